@@ -1,0 +1,57 @@
+"""``ucad-index``: the command-line entry point. Sub-commands live in ``ucad_cl/commands/``."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+
+from . import __version__
+from . import commands as _commands
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ucad-index",
+        description="Turn vehicle CAD libraries into a part-labelled catalogue: ingest, filter, "
+                    "render 360-degree material-index views with OpenCL, Canny edges, part "
+                    "segmentation, material->part classification, pose features and search.",
+        epilog="OpenCL device: --device P:D or a name substring (env UCAD_CL_DEVICE); "
+               "default is the PoCL CPU device. `ucad-index info` lists devices.")
+    parser.add_argument("--device", default=None,
+                        help="OpenCL device: 'P:D' indices or a platform/device name substring")
+    parser.add_argument("--version", action="store_true",
+                        help="print version and the OpenCL device in use, then exit")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for mod in sorted(m.name for m in pkgutil.iter_modules(_commands.__path__)):
+        importlib.import_module(f"{_commands.__name__}.{mod}").register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.device:
+        import os
+        os.environ["UCAD_CL_DEVICE"] = args.device
+    if args.version:
+        print(f"ucad-index {__version__}")
+        from .runtime import OpenCLUnavailable, get_runtime
+        try:
+            print(f"OpenCL device: {get_runtime().describe()}")
+        except OpenCLUnavailable as exc:
+            print(f"OpenCL device: none\n{exc}", file=sys.stderr)
+            return 2
+        return 0
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
