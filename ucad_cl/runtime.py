@@ -26,9 +26,12 @@ from dataclasses import dataclass, field
 from importlib import resources
 
 INSTALL_HINT = (
-    "No OpenCL platform was found. Install the portable CPU runtime from PyPI with\n"
+    "Install the portable CPU runtime from PyPI with\n"
     "    pip install 'pyopencl[pocl]'\n"
-    "or install a vendor OpenCL driver (an ICD), then check with `ucad-index info`."
+    "and, where that PoCL cannot compile for this CPU (newer CPUs: 'unknown target CPU generic'),\n"
+    "Debian/Ubuntu's PoCL with\n"
+    "    apt-get install pocl-opencl-icd\n"
+    "(scripts/setup.sh does both), or a vendor OpenCL driver (an ICD); check with `ucad-index info`."
 )
 
 
@@ -54,6 +57,7 @@ class Runtime:
     device: object
     compile_seconds: dict = field(default_factory=dict)
     _programs: dict = field(default_factory=dict)
+    _kernels: dict = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     @property
@@ -64,6 +68,16 @@ class Runtime:
         d = self.device
         return (f"{d.platform.name} {d.platform.version} | {d.name.strip()} | "
                 f"{d.max_compute_units} compute units | {d.global_mem_size // 2**20} MiB")
+
+    def kernel(self, program: str, name: str, options: tuple[str, ...] = ()):
+        """A cached ``cl.Kernel`` (one per program, options and kernel name; not thread-safe)."""
+        import pyopencl as cl
+
+        key = (program, tuple(options), name)
+        k = self._kernels.get(key)
+        if k is None:
+            k = self._kernels[key] = cl.Kernel(self.program(program, options), name)
+        return k
 
     def program(self, name: str, options: tuple[str, ...] = ()):
         """Built program for ``kernels/<name>.cl``; cached per process and on disk."""
@@ -105,10 +119,39 @@ def _pick_device(spec: str | None):
                 return d
         listing = "\n".join(f"  {pi}:{di}  {p.name} | {d.name.strip()}" for pi, di, p, d in devices)
         raise OpenCLUnavailable(f"No OpenCL device matches {spec!r}. Available:\n{listing}")
-    for pi, di, p, d in devices:
-        if "portable computing language" in p.name.lower():
+    # Default: the first PoCL CPU device that really compiles and runs a kernel, then any other.
+    # (The PoCL 3.0-rc2 bundled with pyopencl's PyPI wheels uses LLVM 14, which cannot name newer
+    # CPUs such as AMD Zen 5 and fails every build with "unknown target CPU 'generic'"; Debian's
+    # pocl-opencl-icd is then used. See README, "OpenCL runtime".)
+    ordered = sorted(devices, key=lambda t: "portable computing language" not in t[2].name.lower())
+    errors = []
+    for pi, di, p, d in ordered:
+        ok, why = _probe(d)
+        if ok:
             return d
-    return devices[0][3]
+        errors.append(f"  {pi}:{di}  {p.name} {p.version.strip()} | {d.name.strip()}: {why}")
+    raise OpenCLUnavailable("No OpenCL device could compile a kernel:\n" + "\n".join(errors)
+                            + "\n" + INSTALL_HINT)
+
+
+def _probe(dev) -> tuple[bool, str]:
+    """Build and run a one-line kernel on ``dev``; (ok, first line of the error)."""
+    import numpy as np
+    import pyopencl as cl
+
+    try:
+        ctx = cl.Context([dev])
+        q = cl.CommandQueue(ctx)
+        prg = cl.Program(ctx, "kernel void probe(global int *a) { a[get_global_id(0)] = 7; }").build()
+        buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, 4)
+        prg.probe(q, (1,), None, buf)
+        out = np.zeros(1, np.int32)
+        cl.enqueue_copy(q, out, buf)
+        q.finish()
+        return bool(out[0] == 7), "probe kernel gave a wrong result"
+    except Exception as exc:  # build failure, missing compiler, ...
+        lines = [ln for ln in str(exc).splitlines() if "error" in ln.lower()]
+        return False, (lines[0] if lines else str(exc).splitlines()[0]).strip()
 
 
 def get_runtime(device: str | None = None) -> Runtime:
