@@ -1,0 +1,126 @@
+"""The per-mesh view stack: one multi-part OpenEXR file, one part per view (format version 1).
+
+Every part ``view_VVV`` (scanline, ZIP compressed, H x W pixels) holds three channels:
+
+=======  =====  =====================================================================
+channel  type   meaning
+=======  =====  =====================================================================
+``tri``  UINT   triangle (face) index after ingest; 0xFFFFFFFF = background
+``mat``  UINT   material id = material index + 1; 0 = background
+``Z``    FLOAT  linear camera-space depth z in canonical units; +inf = background
+=======  =====  =====================================================================
+
+and these header attributes (all parts, unless noted):
+
+* ``ucad:K`` (m33d): intrinsics, OpenCV convention, pixel (i, j) centred at (j + 0.5, i + 0.5);
+* ``ucad:w2c`` (m44d): world-to-camera, world = the canonical frame, camera x right, y down,
+  z forward; ``worldToCamera`` (m44f, the standard EXR attribute) holds the same matrix;
+* ``ucad:fileToNorm`` (m44d): file frame -> canonical frame, so file-frame rays are recoverable;
+* ``ucad:view`` (int), ``ucad:azimuth`` / ``ucad:elevation`` (float, degrees),
+  ``ucad:distance`` / ``ucad:near`` (float, canonical units);
+* ``ucad:formatVersion`` (int), ``ucad:meshSha256`` (string), ``ucad:conventions`` (string);
+* part 0 only: ``ucad:materials`` (string, JSON list of material names, index = id - 1).
+
+The ray of pixel (i, j) in the canonical frame: origin ``-R^T t``, direction
+``R^T K^-1 (j + 0.5, i + 0.5, 1)`` with ``w2c = [R t; 0 1]``; the surface point is
+``origin + direction * Z / (direction . R[2])``. See ``read_viewset_exr`` and docs/FORMATS.md.
+This module imports no OpenCL.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+FORMAT_VERSION = 1
+CONVENTIONS = ("canonical frame: right-handed, +Y up, bbox centred, bbox diagonal 1; "
+               "camera: OpenCV (x right, y down, z forward), pixel (i,j) centre at (j+0.5,i+0.5); "
+               "azimuth 0 looks from +X, counter-clockwise seen from +Y; "
+               "mat = material index + 1 (0 background), tri = face index (0xFFFFFFFF background), "
+               "Z = linear camera depth (+inf background)")
+
+
+def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_norm=None,
+                      mesh_sha256: str | None = None) -> Path:
+    """Write ``views`` (a ViewSet) to ``path`` atomically (temporary name, then rename)."""
+    import OpenEXR
+
+    path = Path(path)
+    cams = views.cameras
+    names = material_names if material_names is not None else (
+        [m.name for m in mesh.materials] if mesh is not None else [])
+    f2n = np.asarray(file_to_norm if file_to_norm is not None else (
+        mesh.file_to_norm if mesh is not None else np.eye(4)), np.float64)
+    sha = mesh_sha256 or (mesh.sha256 if mesh is not None else "")
+    parts = []
+    for v in range(views.n_views):
+        header = {
+            "compression": OpenEXR.ZIP_COMPRESSION,
+            "type": OpenEXR.scanlineimage,
+            "ucad:formatVersion": FORMAT_VERSION,
+            "ucad:K": np.asarray(cams.K, np.float64),
+            "ucad:w2c": np.asarray(cams.w2c[v], np.float64),
+            "worldToCamera": np.asarray(cams.w2c[v], np.float32),
+            "ucad:fileToNorm": f2n,
+            "ucad:view": v,
+            "ucad:azimuth": float(cams.azimuth[v]),
+            "ucad:elevation": float(cams.elevation[v]),
+            "ucad:distance": float(cams.distance),
+            "ucad:near": float(cams.near),
+            "ucad:meshSha256": sha,
+            "ucad:conventions": CONVENTIONS,
+        }
+        if v == 0:
+            header["ucad:materials"] = json.dumps(list(names), ensure_ascii=False)
+        channels = {
+            "tri": OpenEXR.Channel(np.ascontiguousarray(views.tri_id[v], np.uint32)),
+            "mat": OpenEXR.Channel(np.ascontiguousarray(views.mat_id[v], np.uint32)),
+            "Z": OpenEXR.Channel(np.ascontiguousarray(views.depth[v], np.float32)),
+        }
+        parts.append(OpenEXR.Part(header, channels, f"view_{v:03d}"))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        OpenEXR.File(parts).write(str(tmp))
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def read_viewset_exr(path):
+    """Read a view stack back: ``(ViewSet, meta)`` with meta keys ``materials``,
+    ``file_to_norm``, ``mesh_sha256``, ``format_version``. Raises ValueError naming the file."""
+    import OpenEXR
+
+    from ucad_cl.types import CameraRing, ViewSet
+
+    path = Path(path)
+    try:
+        f = OpenEXR.File(str(path))
+    except Exception as exc:
+        raise ValueError(f"{path}: not a readable OpenEXR view stack ({exc})") from exc
+    parts = f.parts
+    if not parts or "ucad:w2c" not in parts[0].header:
+        raise ValueError(f"{path}: OpenEXR file without ucad view headers")
+    h0 = parts[0].header
+    tri = np.stack([p.channels["tri"].pixels.astype(np.uint32) for p in parts])
+    mat = np.stack([p.channels["mat"].pixels.astype(np.uint16) for p in parts])
+    depth = np.stack([p.channels["Z"].pixels.astype(np.float32) for p in parts])
+    ring = CameraRing(
+        K=np.asarray(h0["ucad:K"], np.float64),
+        w2c=np.stack([np.asarray(p.header["ucad:w2c"], np.float64) for p in parts]),
+        width=int(tri.shape[2]), height=int(tri.shape[1]),
+        azimuth=np.array([p.header["ucad:azimuth"] for p in parts], np.float64),
+        elevation=np.array([p.header["ucad:elevation"] for p in parts], np.float64),
+        distance=float(h0["ucad:distance"]), near=float(h0["ucad:near"]))
+    meta = {
+        "materials": json.loads(h0.get("ucad:materials", "[]")),
+        "file_to_norm": np.asarray(h0["ucad:fileToNorm"], np.float64),
+        "mesh_sha256": h0.get("ucad:meshSha256", ""),
+        "format_version": int(h0.get("ucad:formatVersion", 0)),
+    }
+    return ViewSet(cameras=ring, tri_id=tri, mat_id=mat, depth=depth), meta

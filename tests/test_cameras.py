@@ -1,0 +1,53 @@
+"""Camera conventions (docs/CONVENTIONS.md) checked numerically."""
+import numpy as np
+import pytest
+
+from ucad_cl.cameras import camera_position, make_ring, pixel_rays
+
+
+def project(ring, v, X):
+    x = ring.w2c[v, :3, :3] @ X + ring.w2c[v, :3, 3]
+    p = ring.K @ x
+    return p[:2] / p[2], x[2]
+
+
+def test_azimuth_and_elevation_conventions():
+    assert np.allclose(camera_position(0, 0, 2), [2, 0, 0])
+    assert np.allclose(camera_position(90, 0, 2), [0, 0, -2])      # counter-clockwise seen from +Y
+    assert np.allclose(camera_position(0, 90 - 1e-9, 2), [0, 2, 0], atol=1e-6)
+    ring = make_ring(azimuth_step=90, elevations=(0.0, 30.0), size=(64, 48))
+    assert ring.n_views == 8 and list(ring.azimuth[:4]) == [0, 90, 180, 270]
+    assert list(ring.elevation) == [0.0] * 4 + [30.0] * 4              # elevation-major
+    for v in range(8):
+        R = ring.w2c[v, :3, :3]
+        assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+        (u, w), z = project(ring, v, np.zeros(3))
+        assert np.allclose([u, w], [32, 24]) and np.isclose(z, ring.distance)
+        # +Y (up) appears above the centre: smaller row coordinate
+        assert project(ring, v, np.array([0, 0.1, 0]))[0][1] < 24
+
+
+def test_fitted_distance_keeps_the_bounding_sphere_in_frame():
+    ring = make_ring(azimuth_step=30, elevations=(-20.0, 10.0, 60.0), size=(96, 64), fov_deg=35)
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(2000, 3))
+    pts *= 0.5 / np.linalg.norm(pts, axis=1, keepdims=True)
+    for v in range(ring.n_views):
+        for X in pts[::50]:
+            (u, w), _ = project(ring, v, X)
+            assert 0 <= u <= 96 and 0 <= w <= 64
+
+
+def test_pixel_rays_go_through_pixel_centres():
+    ring = make_ring(azimuth_step=120, size=32)
+    o, d = pixel_rays(ring.K, ring.w2c[1], 32, 32)
+    X = o + 1.7 * d[5, 9]
+    (u, w), _ = project(ring, 1, X)
+    assert np.allclose([u, w], [9.5, 5.5])
+
+
+@pytest.mark.parametrize("kwargs", [dict(azimuth_step=7), dict(elevations=(90.0,)), dict(size=0),
+                                    dict(fov_deg=180), dict(elevations=())])
+def test_bad_rings_are_rejected(kwargs):
+    with pytest.raises(ValueError):
+        make_ring(**kwargs)
