@@ -1,0 +1,565 @@
+"""``ucad-index build``: a library of meshes -> the part-labelled catalogue.
+
+``build(library, catalog, options)`` discovers meshes, skips those already catalogued with the
+same content hash and options hash, runs the per-mesh pipeline (ingest -> filter -> render ->
+filter by views -> edges -> segment -> classify -> features) in worker processes, and commits
+each mesh atomically from the driver, the catalogue's single writer.
+
+Engines
+* ``local`` (default): ``workers`` processes, each with its own OpenCL context and
+  ``cores // workers`` PoCL threads (no oversubscription). Inside a worker a loader thread
+  prefetches (ingests) the next mesh while the current one is on the OpenCL device. A worker that
+  dies (a native loader segfaults) or exceeds ``timeout`` seconds on one mesh is killed and
+  replaced; that mesh is recorded as rejected (``loader_crashed`` / ``timeout``) and the build
+  goes on. Workers are replaced after ``recycle_after`` meshes so memory stays flat.
+* ``ray``: the same per-mesh function as Ray tasks on an existing cluster (``ucad_cl.engines``).
+
+Resumability: a mesh is either fully committed (rows + artifacts) or absent, so a build killed at
+any moment (even SIGKILL) and run again continues where it stopped, with nothing duplicated.
+A changed file (new content hash) is re-processed and replaces the old entry; a change of any
+option that affects results changes the options hash, and every mesh with another options hash
+is re-processed (its entry replaced in one transaction).
+"""
+from __future__ import annotations
+
+import gzip
+import hashlib
+import io
+import json
+import os
+import queue
+import shutil
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from .ingest import SUPPORTED_SUFFIXES
+
+CODE_VERSION = "1"        # bump when a change alters results: it enters the options hash
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """Everything that affects what is stored. Angles in degrees, sizes in pixels."""
+
+    azimuth_step: float = 5.0
+    elevations: tuple[float, ...] = (15.0,)
+    fov_deg: float = 40.0
+    size: int = 256
+    segmenter: str = "prior"            # 'prior' | 'masks:DIR' | 'onnx:MODEL[:CONFIG]'
+    threshold: float = 0.5              # part score threshold (UrbanCAD: 0.5)
+    min_materials: int = 2
+    max_triangles: int = 2_000_000      # reject above this (after decimation, if any)
+    triangle_budget: int = 0            # decimate above this many triangles (0 = never)
+    dominant_fraction: float = 0.97     # reject when one material covers this share of pixels
+    min_visible_materials: int = 2
+    features: bool = True
+    edges: bool = True
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["elevations"] = list(self.elevations)
+        return d
+
+    def hash(self) -> str:
+        blob = json.dumps({"code": CODE_VERSION, **self.to_dict()}, sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()
+
+
+@dataclass
+class MeshRef:
+    """A library file: path, size in bytes, mtime (s)."""
+
+    path: str
+    size: int
+    mtime: float
+
+
+@dataclass
+class BuildSummary:
+    run_id: int
+    discovered: int = 0
+    skipped: int = 0
+    accepted: int = 0
+    rejected: int = 0
+    failed: int = 0
+    seconds: float = 0.0
+    reasons: dict = field(default_factory=dict)
+    stage_seconds: dict = field(default_factory=dict)
+    peak_rss_mb: float = 0.0
+
+    @property
+    def processed(self) -> int:
+        return self.accepted + self.rejected
+
+    @property
+    def meshes_per_s(self) -> float:
+        return self.processed / self.seconds if self.seconds > 0 else 0.0
+
+
+# ----------------------------------------------------------------------------- discovery
+
+def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None) -> list[MeshRef]:
+    """Mesh files of a library, sorted by path.
+
+    ``library`` is a folder tree (every file with a supported suffix; an Objaverse layout
+    ``glbs/<shard>/<uid>.glb`` is such a tree), or a manifest file (.txt: one path per line;
+    .json: a list of paths or ``{"paths": [...]}``), paths relative to the manifest's folder.
+    ``uids`` keeps only files whose stem is in it (e.g. Objaverse uids of vehicle categories).
+    """
+    root = Path(library)
+    if not root.exists():
+        raise FileNotFoundError(f"library {root} does not exist")
+    if root.is_dir():
+        paths = [p for p in root.rglob("*") if p.suffix.lower() in SUPPORTED_SUFFIXES
+                 and p.is_file() and not p.name.startswith(".")]
+    else:
+        text = root.read_text(encoding="utf-8")
+        if root.suffix.lower() == ".json":
+            data = json.loads(text)
+            items = data.get("paths", []) if isinstance(data, dict) else data
+        else:
+            items = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
+        paths = [(root.parent / p) if not Path(p).is_absolute() else Path(p) for p in items]
+    if uids is not None:
+        keep = set(uids)
+        paths = [p for p in paths if p.stem in keep]
+    refs = []
+    for p in sorted(set(paths)):
+        try:
+            st = p.stat()
+            refs.append(MeshRef(str(p), st.st_size, st.st_mtime))
+        except OSError:
+            refs.append(MeshRef(str(p), -1, 0.0))      # recorded as unreadable later
+    return refs
+
+
+def read_uid_list(path: str | os.PathLike) -> list[str]:
+    """Uids from a text file (one per line) or an Objaverse-style annotations JSON (its keys)."""
+    p = Path(path)
+    if p.suffix.lower() == ".json":
+        data = json.loads(p.read_text(encoding="utf-8"))
+        return list(data.keys() if isinstance(data, dict) else data)
+    return [ln.strip() for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
+
+
+def content_sha256(path: str | os.PathLike) -> str:
+    """The mesh key: sha256 of the file (plus external buffers / MTL files, as ingest does)."""
+    from .ingest import IngestError, _gltf_json, _sha256
+
+    p = Path(path)
+    raw = p.read_bytes()
+    gltf = None
+    if p.suffix.lower() == ".gltf":
+        try:
+            gltf = _gltf_json(p, raw)
+        except IngestError:
+            gltf = {}
+    try:
+        return _sha256(p, raw, gltf)
+    except IngestError:
+        return hashlib.sha256(raw).hexdigest()
+
+
+# ----------------------------------------------------------------------------- per mesh
+
+class Pipeline:
+    """The per-mesh stages with their state (segmenter, feature extractor) built once."""
+
+    def __init__(self, options: BuildOptions):
+        from .cameras import make_ring
+
+        self.options = options
+        self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
+                              fov_deg=options.fov_deg, size=options.size)
+        self.segmenter = make_segmenter(options.segmenter)
+        self.extractor = None
+        if options.features:
+            from .features import HogExtractor
+            self.extractor = HogExtractor()
+
+    def load(self, ref: MeshRef):
+        """Ingest (may raise IngestError). Returns (mesh, seconds)."""
+        from .ingest import load_mesh
+
+        t0 = time.perf_counter()
+        mesh = load_mesh(ref.path)
+        return mesh, time.perf_counter() - t0
+
+    def process(self, ref: MeshRef, mesh, load_seconds: float, staging: Path):
+        """Everything after ingest; returns a CatalogEntry (accepted or rejected)."""
+        from ucad_catalog.entry import CatalogEntry
+        from ucad_catalog.exr import write_viewset_exr
+
+        from .filter import filter_mesh, filter_views
+        from .types import Verdict
+
+        o = self.options
+        timings = {"ingest": load_seconds}
+        t = time.perf_counter()
+
+        def lap(name):
+            nonlocal t
+            now = time.perf_counter()
+            timings[name] = timings.get(name, 0.0) + now - t
+            t = now
+
+        def rejected(verdict):
+            return CatalogEntry.from_results(sha256=mesh.sha256, path=ref.path, size=ref.size,
+                                             mtime=ref.mtime, verdict=verdict, mesh=mesh,
+                                             timings=timings)
+
+        if o.triangle_budget and mesh.n_faces > o.triangle_budget:
+            from .decimate import decimate
+            mesh = decimate(mesh, o.triangle_budget)
+            lap("decimate")
+        verdict = filter_mesh(mesh, min_materials=o.min_materials, max_triangles=o.max_triangles)
+        lap("filter")
+        if not verdict.accepted:
+            return rejected(verdict)
+        from .render import render_views
+        views = render_views(mesh, self.ring)
+        lap("render")
+        verdict = filter_views(mesh, views, dominant_fraction=o.dominant_fraction,
+                               min_visible_materials=o.min_visible_materials)
+        lap("filter")
+        if not verdict.accepted:
+            return rejected(verdict)
+        artifacts = {}
+        staging.mkdir(parents=True, exist_ok=True)
+        exr = staging / f"{mesh.sha256}.views.exr"
+        write_viewset_exr(exr, views, mesh)
+        artifacts["views.exr"] = exr
+        lap("write")
+        if o.edges:
+            from .edges import material_edges
+            edges = material_edges(views).edges
+            artifacts["edges.npy.gz"] = npy_gz_bytes(np.packbits(edges > 0, axis=-1))
+            lap("edges")
+        masks = self.segmenter.segment(mesh, views)
+        lap("segment")
+        from .classify import classify_parts
+        table = classify_parts(mesh, views, masks, threshold=o.threshold)
+        lap("classify")
+        if self.extractor is not None:
+            from .shade import shade_views
+            images = shade_views(mesh, views, background=(128, 128, 128))
+            feats = self.extractor.extract(images, np.isfinite(views.depth)).feats
+            artifacts["features.npy"] = npy_bytes(feats.astype(np.float32))
+            lap("features")
+        artifacts["parts.png"] = parts_sheet_png(views, table)
+        lap("write")
+        view_stats = [{"visible_pixels": int(np.count_nonzero(views.mat_id[v]))}
+                      for v in range(views.n_views)]
+        return CatalogEntry.from_results(
+            sha256=mesh.sha256, path=ref.path, size=ref.size, mtime=ref.mtime,
+            verdict=Verdict(True), mesh=mesh, table=table, ring=self.ring, artifacts=artifacts,
+            timings=timings, view_stats=view_stats)
+
+
+def make_segmenter(spec: str):
+    """'prior' | 'masks:DIR' | 'onnx:MODEL[:CONFIG.json]' -> a Segmenter."""
+    from . import segment
+
+    kind, _, arg = spec.partition(":")
+    if kind == "prior":
+        return segment.PriorSegmenter()
+    if kind == "masks" and arg:
+        return segment.MasksSegmenter(arg)
+    if kind == "onnx" and arg:
+        model, _, config = arg.partition(":")
+        cfg = json.loads(Path(config).read_text()) if config else None
+        return segment.OnnxSegmenter(model, cfg) if cfg is not None else segment.OnnxSegmenter(model)
+    raise ValueError(f"unknown segmenter {spec!r}: use prior, masks:DIR or onnx:MODEL[:CONFIG]")
+
+
+def rejected_entry(ref: MeshRef, sha: str, reason: str, detail: str):
+    from ucad_catalog.entry import CatalogEntry
+    from .types import Verdict
+
+    return CatalogEntry.from_results(sha256=sha, path=ref.path, size=max(ref.size, 0),
+                                     mtime=ref.mtime, verdict=Verdict(False, reason, detail))
+
+
+def npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return buf.getvalue()
+
+
+def npy_gz_bytes(a: np.ndarray) -> bytes:
+    """Deterministic gzip (mtime 0) of an .npy file."""
+    return gzip.compress(npy_bytes(a), compresslevel=6, mtime=0)
+
+
+def parts_sheet_png(views, table) -> bytes:
+    """Contact sheet of the views coloured by part (fixed colour per part), as PNG bytes."""
+    import cv2
+
+    from .sheets import contact_sheet, id_palette, legend
+    from .types import PART_NAMES
+
+    names = list(PART_NAMES) + ["unseen"]
+    lut = np.zeros(len(table.rows) + 1, np.int64)
+    for r in table.rows:
+        lut[r.material + 1] = names.index(r.part) + 1 if r.part in names else len(names)
+    pal = id_palette(len(names) + 2)
+    step = max(1, views.n_views // 24)
+    sel = np.arange(0, views.n_views, step)
+    labels = [f"az {views.cameras.azimuth[v]:.0f}" for v in sel]
+    sheet = contact_sheet(pal[lut[views.mat_id[sel]]], labels, max_width=1600)
+    leg = legend(names, pal[1:len(names) + 1])
+    h = max(sheet.shape[0], leg.shape[0])
+    out = np.full((h, sheet.shape[1] + leg.shape[1], 3), 32, np.uint8)
+    out[:sheet.shape[0], :sheet.shape[1]] = sheet
+    out[:leg.shape[0], sheet.shape[1]:] = leg
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(out[..., ::-1]))
+    return png.tobytes()
+
+
+# ----------------------------------------------------------------------------- local engine
+
+def _worker_main(task_q, result_q, options_dict: dict, threads: int, staging: str) -> None:
+    """Worker process: prefetching loader thread + OpenCL stages; messages to the driver:
+    ('loading', i), ('done', i, entry), ('error', i, reason, detail)."""
+    os.environ["POCL_MAX_PTHREAD_COUNT"] = str(threads)
+    os.environ["POCL_CPU_MAX_CU_NUM"] = str(threads)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    opts = BuildOptions(**{**options_dict, "elevations": tuple(options_dict["elevations"])})
+    pipe = Pipeline(opts)
+    loaded: queue.Queue = queue.Queue(maxsize=1)
+
+    def loader():
+        from .ingest import IngestError
+        while True:
+            item = task_q.get()
+            if item is None:
+                loaded.put(None)
+                return
+            i, ref = item
+            result_q.put(("loading", i))
+            try:
+                mesh, secs = pipe.load(ref)
+                result_q.put(("loaded", i))
+                loaded.put((i, ref, mesh, secs, None))
+            except IngestError as exc:
+                loaded.put((i, ref, None, 0.0, (exc.reason, str(exc))))
+            except Exception as exc:            # a loader bug must not stop the build
+                loaded.put((i, ref, None, 0.0, ("unreadable", f"{ref.path}: {exc!r}")))
+
+    threading.Thread(target=loader, daemon=True).start()
+    stage_dir = Path(staging) / f"w{os.getpid()}"
+    while True:
+        item = loaded.get()
+        if item is None:
+            return
+        i, ref, mesh, secs, err = item
+        result_q.put(("processing", i))
+        if err is not None:
+            result_q.put(("error", i, err[0], err[1]))
+            continue
+        try:
+            entry = pipe.process(ref, mesh, secs, stage_dir)
+            result_q.put(("done", i, entry))
+        except Exception as exc:
+            result_q.put(("error", i, "pipeline_error", f"{ref.path}: {type(exc).__name__}: {exc}"))
+
+
+class _Worker:
+    def __init__(self, ctx, result_q, options, threads, staging):
+        self.task_q = ctx.Queue()
+        self.proc = ctx.Process(target=_worker_main, daemon=True,
+                                args=(self.task_q, result_q, options.to_dict(), threads, staging))
+        self.proc.start()
+        self.assigned: list[int] = []          # task indices sent, in order
+        self.loading: int | None = None
+        self.processing: int | None = None
+        self.since = time.monotonic()
+        self.done = 0
+
+    def send(self, i, ref):
+        self.assigned.append(i)
+        self.task_q.put((i, ref))
+
+
+
+    def stop(self, kill=False):
+        if kill:
+            self.proc.kill()
+        else:
+            self.task_q.put(None)
+        self.proc.join(timeout=10)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join()
+
+
+def build(library: str | os.PathLike, catalog: str | os.PathLike,
+          options: BuildOptions = BuildOptions(), *, workers: int = 1, engine: str = "local",
+          timeout: float = 600.0, recycle_after: int = 200, progress: bool = True,
+          uids: Iterable[str] | None = None, limit: int | None = None,
+          ray_address: str | None = None, log=print) -> BuildSummary:
+    """Build or update the catalogue at ``catalog`` from ``library``. See the module docstring."""
+    import resource
+
+    from ucad_catalog.store import Catalog
+
+    t_start = time.perf_counter()
+    refs = discover(library, uids=uids)
+    if limit:
+        refs = refs[:limit]
+    cat = Catalog.open(catalog, create=True)
+    try:
+        run_id = cat.begin_run({**options.to_dict(), "code": CODE_VERSION}, engine)
+        ohash = cat._run_hash
+        summary = BuildSummary(run_id=run_id, discovered=len(refs))
+        todo: list[tuple[MeshRef, str]] = []
+        for ref in refs:
+            rec = cat.file_record(ref.path)
+            if rec and rec[1] == ref.size and rec[2] == ref.mtime:
+                sha = rec[0]                               # unchanged file: no need to re-hash
+            else:
+                try:
+                    sha = content_sha256(ref.path)
+                except OSError:
+                    sha = hashlib.sha256(f"unreadable:{ref.path}".encode()).hexdigest()
+            if cat.needs_processing(ref.path, sha, ohash):
+                todo.append((ref, sha))
+            else:
+                summary.skipped += 1
+        log(f"{len(refs)} meshes found, {summary.skipped} unchanged (skipped), "
+            f"{len(todo)} to process with the {engine} engine")
+
+        def commit(entry):
+            cat.commit_mesh(entry)
+            if entry.state == "accepted":
+                summary.accepted += 1
+            else:
+                summary.rejected += 1
+                summary.reasons[entry.reason] = summary.reasons.get(entry.reason, 0) + 1
+            for k, v in (entry.timings or {}).items():
+                summary.stage_seconds[k] = summary.stage_seconds.get(k, 0.0) + v
+
+        staging = Path(catalog) / "staging"
+        if engine == "local":
+            _run_local(todo, options, commit, workers=workers, timeout=timeout,
+                       recycle_after=recycle_after, progress=progress, staging=staging, log=log)
+        elif engine == "ray":
+            from .engines import run_ray
+            run_ray(todo, options, commit, address=ray_address, progress=progress,
+                    staging=staging, log=log)
+        else:
+            raise ValueError(f"unknown engine {engine!r}: use local or ray")
+        shutil.rmtree(staging, ignore_errors=True)
+        summary.seconds = time.perf_counter() - t_start
+        summary.peak_rss_mb = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
+                                  resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024
+        cat.finish_run(run_id, {"skipped": summary.skipped, "failed": summary.failed,
+                                "meshes_per_s": summary.meshes_per_s,
+                                "stage_seconds": summary.stage_seconds})
+    finally:
+        cat.close()
+    return summary
+
+
+def _run_local(todo, options, commit, *, workers, timeout, recycle_after, progress, staging, log):
+    import multiprocessing as mp
+
+    from tqdm import tqdm
+
+    if not todo:
+        return
+    ctx = mp.get_context("spawn")
+    workers = max(1, min(workers, len(todo)))
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    result_q = ctx.Queue()
+    staging.mkdir(parents=True, exist_ok=True)
+    pool = [_Worker(ctx, result_q, options, threads, str(staging)) for _ in range(workers)]
+    pending = list(range(len(todo)))[::-1]          # stack: pop() gives the next index
+    finished: set[int] = set()
+    bar = tqdm(total=len(todo), unit="mesh", desc="build", disable=not progress, smoothing=0.05)
+
+    def outstanding(w):
+        return [i for i in w.assigned if i not in finished]
+
+    def feed(w):
+        # at most two tasks per worker: one on the device, one being prefetched; a worker takes
+        # no more than recycle_after tasks in its life
+        while pending and len(outstanding(w)) < 2 and len(w.assigned) < recycle_after:
+            i = pending.pop()
+            w.send(i, todo[i][0])
+
+    def finish(i, entry):
+        finished.add(i)
+        commit(entry)
+        bar.update(1)
+
+    def replace(w, reason, detail, kill=True):
+        """Worker died or hung: reject its current mesh, requeue the rest, start a new one."""
+        w.stop(kill=kill)
+        culprit = w.loading if w.loading is not None and w.loading not in finished else w.processing
+        for i in reversed(outstanding(w)):
+            if i == culprit:
+                ref, sha = todo[i]
+                log(f"rejected {ref.path}: {detail}")
+                finish(i, rejected_entry(ref, sha, reason, f"{ref.path}: {detail}"))
+            else:
+                pending.append(i)
+        nw = _Worker(ctx, result_q, options, threads, str(staging))
+        pool[pool.index(w)] = nw
+        feed(nw)
+
+    for w in pool:
+        feed(w)
+    try:
+        while len(finished) < len(todo):
+            try:
+                msg = result_q.get(timeout=0.5)
+            except queue.Empty:
+                msg = None
+            if msg is not None:
+                kind, i = msg[0], msg[1]
+                w = next((w for w in pool if i in w.assigned), None)
+                if w is None or i in finished:
+                    continue
+                if kind == "loading":
+                    w.loading, w.since = i, time.monotonic()
+                elif kind == "loaded":
+                    w.since = time.monotonic()
+                    if w.loading == i:
+                        w.loading = None
+                elif kind == "processing":
+                    w.processing, w.since = i, time.monotonic()
+                    if w.loading == i:
+                        w.loading = None
+                else:
+                    ref, sha = todo[i]
+                    entry = msg[2] if kind == "done" else rejected_entry(ref, sha, msg[2], msg[3])
+                    if w.processing == i:
+                        w.processing = None
+                    w.done += 1
+                    finish(i, entry)
+                    if len(w.assigned) >= recycle_after and not outstanding(w):
+                        w.stop()                      # recycle: memory stays flat
+                        nw = _Worker(ctx, result_q, options, threads, str(staging))
+                        pool[pool.index(w)] = nw
+                        w = nw
+                    feed(w)
+            for w in list(pool):
+                busy = outstanding(w)
+                if busy and not w.proc.is_alive():
+                    code = w.proc.exitcode
+                    replace(w, "loader_crashed", f"worker process died (exit code {code}) "
+                            "while loading or processing this mesh", kill=False)
+                elif busy and time.monotonic() - w.since > timeout:
+                    replace(w, "timeout", f"no progress for {timeout:.0f} s on this mesh")
+    finally:
+        bar.close()
+        for w in pool:
+            w.stop(kill=len(finished) < len(todo))
