@@ -150,21 +150,13 @@ def read_uid_list(path: str | os.PathLike) -> list[str]:
 
 
 def content_sha256(path: str | os.PathLike) -> str:
-    """The mesh key: sha256 of the file (plus external buffers / MTL files, as ingest does)."""
-    from .ingest import IngestError, _gltf_json, _sha256
+    """The mesh key: sha256 of the file (plus external buffers / MTL files), as ingest does."""
+    from .ingest import IngestError, file_sha256
 
-    p = Path(path)
-    raw = p.read_bytes()
-    gltf = None
-    if p.suffix.lower() == ".gltf":
-        try:
-            gltf = _gltf_json(p, raw)
-        except IngestError:
-            gltf = {}
     try:
-        return _sha256(p, raw, gltf)
-    except IngestError:
-        return hashlib.sha256(raw).hexdigest()
+        return file_sha256(path)
+    except IngestError:           # unreadable references: key on the file bytes alone
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 # ----------------------------------------------------------------------------- per mesh
@@ -189,6 +181,7 @@ class Pipeline:
         from .ingest import load_mesh
 
         t0 = time.perf_counter()
+        _inject_fault(ref.path)
         mesh = load_mesh(ref.path)
         return mesh, time.perf_counter() - t0
 
@@ -263,6 +256,23 @@ class Pipeline:
             timings=timings, view_stats=view_stats)
 
 
+def _inject_fault(path: str) -> None:
+    """Test hook standing in for a native loader that crashes or hangs on a broken file:
+    ``UCAD_FAULT_INJECT="crash:NAME,hang:NAME"`` segfaults / hangs while loading a path that
+    contains NAME. Unset in normal use."""
+    spec = os.environ.get("UCAD_FAULT_INJECT")
+    if not spec:
+        return
+    import signal
+    for item in spec.split(","):
+        kind, _, needle = item.partition(":")
+        if needle and needle in path:
+            if kind == "crash":
+                os.kill(os.getpid(), signal.SIGSEGV)
+            elif kind == "hang":
+                time.sleep(3600)
+
+
 def make_segmenter(spec: str):
     """'prior' | 'masks:DIR' | 'onnx:MODEL[:CONFIG.json]' -> a Segmenter."""
     from . import segment
@@ -325,61 +335,78 @@ def parts_sheet_png(views, table) -> bytes:
 
 # ----------------------------------------------------------------------------- local engine
 
-def _worker_main(task_q, result_q, options_dict: dict, threads: int, staging: str) -> None:
-    """Worker process: prefetching loader thread + OpenCL stages; messages to the driver:
-    ('loading', i), ('done', i, entry), ('error', i, reason, detail)."""
+def _worker_main(task_q, result_q, state, options_dict: dict, threads: int, staging: str) -> None:
+    """Worker process: prefetching loader thread + OpenCL stages. Messages to the driver:
+    ('loading' | 'loaded' | 'processing', i), ('done', i, entry), ('error', i, reason, detail).
+    ``state`` (shared memory, written before each step, so it survives a crash of this process):
+    [index being loaded, index being processed], -1 for none."""
     os.environ["POCL_MAX_PTHREAD_COUNT"] = str(threads)
     os.environ["POCL_CPU_MAX_CU_NUM"] = str(threads)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     opts = BuildOptions(**{**options_dict, "elevations": tuple(options_dict["elevations"])})
     pipe = Pipeline(opts)
     loaded: queue.Queue = queue.Queue(maxsize=1)
+    parent = os.getppid()
+
+    def get(q):
+        """Blocking get that ends the worker when the driver is gone (e.g. killed with -9)."""
+        while True:
+            try:
+                return q.get(timeout=1.0)
+            except queue.Empty:
+                if os.getppid() != parent:
+                    os._exit(0)
 
     def loader():
         from .ingest import IngestError
         while True:
-            item = task_q.get()
+            item = get(task_q)
             if item is None:
                 loaded.put(None)
                 return
             i, ref = item
+            state[0] = i
             result_q.put(("loading", i))
             try:
                 mesh, secs = pipe.load(ref)
-                result_q.put(("loaded", i))
-                loaded.put((i, ref, mesh, secs, None))
+                out = (i, ref, mesh, secs, None)
             except IngestError as exc:
-                loaded.put((i, ref, None, 0.0, (exc.reason, str(exc))))
+                out = (i, ref, None, 0.0, (exc.reason, str(exc)))
             except Exception as exc:            # a loader bug must not stop the build
-                loaded.put((i, ref, None, 0.0, ("unreadable", f"{ref.path}: {exc!r}")))
+                out = (i, ref, None, 0.0, ("unreadable", f"{ref.path}: {exc!r}"))
+            state[0] = -1
+            result_q.put(("loaded", i))
+            loaded.put(out)
 
     threading.Thread(target=loader, daemon=True).start()
     stage_dir = Path(staging) / f"w{os.getpid()}"
     while True:
-        item = loaded.get()
+        item = get(loaded)
         if item is None:
             return
         i, ref, mesh, secs, err = item
+        state[1] = i
         result_q.put(("processing", i))
         if err is not None:
-            result_q.put(("error", i, err[0], err[1]))
-            continue
-        try:
-            entry = pipe.process(ref, mesh, secs, stage_dir)
-            result_q.put(("done", i, entry))
-        except Exception as exc:
-            result_q.put(("error", i, "pipeline_error", f"{ref.path}: {type(exc).__name__}: {exc}"))
+            msg = ("error", i, err[0], err[1])
+        else:
+            try:
+                msg = ("done", i, pipe.process(ref, mesh, secs, stage_dir))
+            except Exception as exc:
+                msg = ("error", i, "pipeline_error", f"{ref.path}: {type(exc).__name__}: {exc}")
+        state[1] = -1
+        result_q.put(msg)
 
 
 class _Worker:
     def __init__(self, ctx, result_q, options, threads, staging):
         self.task_q = ctx.Queue()
+        self.state = ctx.Array("q", [-1, -1], lock=False)
         self.proc = ctx.Process(target=_worker_main, daemon=True,
-                                args=(self.task_q, result_q, options.to_dict(), threads, staging))
+                                args=(self.task_q, result_q, self.state, options.to_dict(),
+                                      threads, staging))
         self.proc.start()
         self.assigned: list[int] = []          # task indices sent, in order
-        self.loading: int | None = None
-        self.processing: int | None = None
         self.since = time.monotonic()
         self.done = 0
 
@@ -503,7 +530,8 @@ def _run_local(todo, options, commit, *, workers, timeout, recycle_after, progre
     def replace(w, reason, detail, kill=True):
         """Worker died or hung: reject its current mesh, requeue the rest, start a new one."""
         w.stop(kill=kill)
-        culprit = w.loading if w.loading is not None and w.loading not in finished else w.processing
+        loading, processing = w.state[0], w.state[1]
+        culprit = loading if loading >= 0 and loading not in finished else processing
         for i in reversed(outstanding(w)):
             if i == culprit:
                 ref, sha = todo[i]
@@ -528,21 +556,11 @@ def _run_local(todo, options, commit, *, workers, timeout, recycle_after, progre
                 w = next((w for w in pool if i in w.assigned), None)
                 if w is None or i in finished:
                     continue
-                if kind == "loading":
-                    w.loading, w.since = i, time.monotonic()
-                elif kind == "loaded":
+                if kind in ("loading", "loaded", "processing"):
                     w.since = time.monotonic()
-                    if w.loading == i:
-                        w.loading = None
-                elif kind == "processing":
-                    w.processing, w.since = i, time.monotonic()
-                    if w.loading == i:
-                        w.loading = None
                 else:
                     ref, sha = todo[i]
                     entry = msg[2] if kind == "done" else rejected_entry(ref, sha, msg[2], msg[3])
-                    if w.processing == i:
-                        w.processing = None
                     w.done += 1
                     finish(i, entry)
                     if len(w.assigned) >= recycle_after and not outstanding(w):

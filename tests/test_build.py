@@ -1,0 +1,176 @@
+"""End-to-end catalogue builds: labels vs generator truth, resume after SIGKILL, crash isolation."""
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ucad_cl.build import BuildOptions, build, discover
+
+OPTS = BuildOptions(azimuth_step=45.0, elevations=(15.0,), size=96)
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def library(tmp_path_factory):
+    from ucad_cl.synth import write_library
+    out = tmp_path_factory.mktemp("lib")
+    write_library(out, 8, seed=11, messy_fraction=0.0, progress=False)
+    # two rejects: one material, and a broken file
+    from ucad_cl.synth import make_vehicle
+    v = make_vehicle(5, "sedan")
+    single = out / "single_material.glb"
+    import trimesh
+    mesh = v.mesh()
+    trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(single)
+    (out / "broken.glb").write_bytes(b"glTF\x02\x00\x00\x00garbage")
+    return out
+
+
+def catalogue_content(path) -> dict:
+    """What must be equal between two builds of the same library: rows and artifact hashes
+    (not row ids, run ids, times)."""
+    from ucad_catalog.reader import CatalogReader
+    out = {}
+    with CatalogReader(path) as r:
+        for m in r.meshes(state=None):
+            rec = r.record(m.sha256)
+            out[m.sha256] = {
+                "path": Path(m.path).name, "state": m.state, "reason": m.reason,
+                "materials": [(p.index, p.name, p.part, round(p.score, 6), p.view, p.decision,
+                               p.pixels) for p in r.parts(m.sha256)],
+                "artifacts": sorted((k, v["sha256"]) for k, v in rec["artifacts"].items()),
+                "views": len(rec["views"]),
+            }
+    return out
+
+
+def test_build_labels_rejections_and_skip(library, tmp_path, runtime):
+    cat = tmp_path / "cat"
+    s = build(library, cat, OPTS, progress=False, log=lambda *a: None)
+    assert s.discovered == 10 and s.accepted == 8 and s.rejected == 2
+    assert s.reasons == {"too_few_materials": 1, "unreadable": 1}
+    content = catalogue_content(cat)
+    ok = total = 0
+    for sha, rec in content.items():
+        if rec["state"] != "accepted":
+            continue
+        truth = json.loads((library / rec["path"]).with_suffix(".json").read_text())["materials"]
+        for _, name, part, *_ in rec["materials"]:
+            if part != "unseen":
+                total += 1
+                ok += part == truth[name]
+        assert {k for k, _ in rec["artifacts"]} >= {"views.exr", "features.npy", "parts.png",
+                                                      "edges.npy.gz"}
+    assert total > 100 and ok / total >= 0.80, f"prior labels: {ok}/{total}"
+    # second run: everything unchanged is skipped
+    s2 = build(library, cat, OPTS, progress=False, log=lambda *a: None)
+    assert s2.skipped == 10 and s2.processed == 0
+    # changed options: re-processed, same number of entries
+    s3 = build(library, cat, BuildOptions(azimuth_step=90.0, size=96), progress=False,
+               log=lambda *a: None)
+    assert s3.processed == 10 and len(catalogue_content(cat)) == 10
+
+
+def test_changed_file_is_reprocessed(library, tmp_path, runtime):
+    lib = tmp_path / "lib"
+    shutil.copytree(library, lib)
+    cat = tmp_path / "cat"
+    build(lib, cat, OPTS, progress=False, log=lambda *a: None)
+    before = catalogue_content(cat)
+    victim = sorted(lib.glob("synth_*.glb"))[0]
+    from ucad_cl.synth import make_vehicle
+    make_vehicle(99, "bus").scene.export(victim)
+    s = build(lib, cat, OPTS, progress=False, log=lambda *a: None)
+    assert s.processed == 1 and s.skipped == 9
+    after = catalogue_content(cat)
+    assert len(after) == len(before) and set(after) != set(before)
+
+
+def _build_cmd(library, cat):
+    return [sys.executable, "-m", "ucad_cl.cli", "build", str(library), "--catalog", str(cat),
+            "--azimuth-step", "45", "--size", "96"]
+
+
+def test_sigkill_resume_equals_uninterrupted_build(library, tmp_path, runtime):
+    ref = tmp_path / "ref"
+    build(library, ref, OPTS, progress=False, log=lambda *a: None)
+    expected = catalogue_content(ref)
+    cat = tmp_path / "killed"
+    rng = random.Random(5)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    for attempt in range(5):
+        proc = subprocess.Popen(_build_cmd(library, cat), env=env, stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
+        time.sleep(rng.uniform(0.5, 4.0))
+        os.kill(proc.pid, signal.SIGKILL)          # the driver, mid-commit or anywhere
+        proc.wait()
+        time.sleep(1.5)                            # orphaned workers notice and exit
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    done = subprocess.run(_build_cmd(library, cat), env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert catalogue_content(cat) == expected
+    from ucad_catalog.store import Catalog
+    with Catalog.open(cat, create=False) as c:
+        assert c.verify() == []
+
+
+def test_crashing_and_hanging_loaders_are_isolated(library, tmp_path, runtime, monkeypatch):
+    names = sorted(p.name for p in library.glob("synth_*.glb"))
+    monkeypatch.setenv("UCAD_FAULT_INJECT", f"crash:{names[1]},hang:{names[4]}")
+    cat = tmp_path / "cat"
+    s = build(library, cat, OPTS, progress=False, timeout=8.0, log=lambda *a: None)
+    content = catalogue_content(cat)
+    by_name = {rec["path"]: rec for rec in content.values()}
+    assert by_name[names[1]]["state"] == "rejected"
+    assert by_name[names[1]]["reason"] == "loader_crashed"
+    assert by_name[names[4]]["reason"] == "timeout"
+    assert s.accepted == 6 and s.rejected == 4 and len(content) == 10, (s.reasons, content)
+
+
+def test_two_workers_give_the_same_catalogue(library, tmp_path, runtime):
+    a, b = tmp_path / "a", tmp_path / "b"
+    build(library, a, OPTS, workers=1, progress=False, log=lambda *a: None)
+    build(library, b, OPTS, workers=2, progress=False, log=lambda *a: None)
+    assert catalogue_content(a) == catalogue_content(b)
+
+
+def test_discover_layouts(tmp_path):
+    shard = tmp_path / "glbs" / "000-001"
+    shard.mkdir(parents=True)
+    for uid in ("aaa", "bbb", "ccc"):
+        (shard / f"{uid}.glb").write_bytes(b"x")
+    (tmp_path / "notes.txt").write_text("not a mesh")
+    assert [Path(r.path).stem for r in discover(tmp_path)] == ["aaa", "bbb", "ccc"]
+    assert [Path(r.path).stem for r in discover(tmp_path, uids=["ccc", "aaa"])] == ["aaa", "ccc"]
+    manifest = tmp_path / "list.txt"
+    manifest.write_text("# meshes\nglbs/000-001/bbb.glb\n")
+    assert [Path(r.path).stem for r in discover(manifest)] == ["bbb"]
+    (tmp_path / "m.json").write_text(json.dumps({"paths": ["glbs/000-001/aaa.glb"]}))
+    assert [Path(r.path).stem for r in discover(tmp_path / "m.json")] == ["aaa"]
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        discover(tmp_path / "missing")
+
+
+def test_real_models_build_without_crash(vehicles_dir, tmp_path, runtime):
+    cat = tmp_path / "real"
+    s = build(vehicles_dir, cat, BuildOptions(azimuth_step=60.0, size=96), progress=False,
+              log=lambda *a: None)
+    content = {rec["path"]: rec for rec in catalogue_content(cat).values()}
+    assert s.failed == 0 and s.processed == len(content) >= 11
+    kenney = content["vehicle-truck-green.glb"]
+    assert kenney["state"] == "rejected" and kenney["reason"] == "too_few_materials"
+    for name in ("o3dv_car.glb", "ferrari_458.glb", "cesium_milk_truck.glb"):
+        assert content[name]["state"] == "accepted", content[name]
