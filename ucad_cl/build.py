@@ -444,7 +444,7 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     cat = Catalog.open(catalog, create=True)
     try:
         run_id = cat.begin_run({**options.to_dict(), "code": CODE_VERSION}, engine)
-        ohash = cat._run_hash
+        ohash = cat.run_options_hash
         summary = BuildSummary(run_id=run_id, discovered=len(refs))
         todo: list[tuple[MeshRef, str]] = []
         for ref in refs:

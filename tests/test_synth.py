@@ -1,0 +1,365 @@
+"""Procedural vehicle library: ground truth checked against trimesh re-loads, NumPy geometry,
+SciPy nearest neighbours and embree ray casts (all independent of the generator's own code)."""
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from ucad_cl import synth
+from ucad_cl.synth import KINDS, MESSY_TRAITS, make_vehicle, majority_part, write_library
+from ucad_cl.types import PART_NAMES, Material, Mesh
+
+
+@pytest.fixture(scope="module")
+def cars():
+    return {k: make_vehicle(101 + i, k) for i, k in enumerate(KINDS)}
+
+
+def _load(data: bytes) -> trimesh.Scene:
+    return trimesh.load(io.BytesIO(data), file_type="glb", force="scene")
+
+
+def _glb_json(data: bytes) -> dict:
+    n = int.from_bytes(data[12:16], "little")
+    return json.loads(data[20:20 + n])
+
+
+def _faces_per_material(scene: trimesh.Scene) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for node in scene.graph.nodes_geometry:
+        _, g = scene.graph[node]
+        geom = scene.geometry[g]
+        name = geom.visual.material.name
+        out[name] = out.get(name, 0) + len(geom.faces)
+    return out
+
+
+def _file_points(scene: trimesh.Scene) -> dict[str, np.ndarray]:
+    """node -> (F, 3, 3) triangle corners in file coordinates (scene graph flattened)."""
+    out = {}
+    for node in scene.graph.nodes_geometry:
+        M, g = scene.graph[node]
+        geom = scene.geometry[g]
+        v = np.asarray(geom.vertices, np.float64) @ M[:3, :3].T + M[:3, 3]
+        out[node] = v[geom.faces]
+    return out
+
+
+def _node_tris(m: Mesh, node: str) -> np.ndarray:
+    return m.vertices[m.faces[m.face_node == m.node_names.index(node)]]
+
+
+# ---------------------------------------------------------------------------------------------
+
+def test_every_kind_builds_with_parts_and_realistic_materials(cars):
+    for kind, v in cars.items():
+        t = v.truth
+        assert v.kind == kind == t["kind"]
+        assert 10_000 <= t["n_triangles"] <= 60_000, (kind, t["n_triangles"])
+        assert set(t["materials"].values()) == set(PART_NAMES), kind  # every part, nothing else
+        m = v.mesh()
+        assert m.n_faces == t["n_triangles"]
+        n_tyres = sum(1 for n in t["materials"] if n.startswith("tyre_"))
+        assert n_tyres == (6 if kind == "truck" else 4)
+        assert sum(1 for n in t["materials"] if n.startswith("rim_")) == n_tyres
+        for mat in m.materials:
+            part = t["materials"][mat.name]
+            if part == "window":
+                assert mat.base_color[3] < 1 and mat.alpha_mode == "BLEND"
+                assert mat.transmission > 0
+            elif part == "light":
+                assert max(mat.emissive) > 0.5
+            elif part in ("chrome", "rim"):
+                assert mat.metallic == 1.0 and mat.roughness <= 0.2
+            elif part == "wheel":
+                assert max(mat.base_color[:3]) < 0.1 and mat.roughness >= 0.8
+            else:
+                assert mat.alpha_mode == "OPAQUE" and max(mat.emissive) == 0.0
+    bus = cars["bus"].truth["materials"]
+    assert sum(1 for n in bus if n.startswith("glass_side_")) >= 12
+    paint = {m.base_color for m in cars["sedan"].mesh().materials if m.name.startswith("paint_")}
+    assert len(paint) == 1                       # one paint colour, many panel materials
+
+
+def test_mesh_is_canonical_and_clean(cars):
+    for kind, v in cars.items():
+        m = v.mesh()
+        assert m.vertices.dtype == np.float64 and m.faces.dtype == np.uint32
+        assert m.face_material.dtype == np.uint16 and m.face_node.dtype == np.int32
+        assert all(isinstance(x, Material) for x in m.materials)
+        assert len({x.name for x in m.materials}) == len(m.materials)
+        lo, hi = m.vertices.min(0), m.vertices.max(0)
+        np.testing.assert_allclose((lo + hi) / 2, 0.0, atol=1e-12)
+        assert abs(np.linalg.norm(hi - lo) - 1.0) < 1e-9
+        ext = hi - lo                            # length along X, up +Y, width along Z
+        assert ext[0] > ext[2] and ext[0] > ext[1], kind
+        assert int(m.faces.max()) < len(m.vertices)
+        tri = m.vertices[m.faces]
+        area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        assert area.min() > 0, f"{kind}: zero-area triangles"
+        assert len(np.unique(np.sort(m.faces, axis=1), axis=0)) == m.n_faces, "duplicate faces"
+        # wheels stand on the ground: the lowest tyre point is the lowest point of the car
+        tyres = [i for i, n in enumerate(m.node_names) if n.startswith("tyre_")]
+        ymin = m.vertices[m.faces[np.isin(m.face_node, tyres)]][..., 1].min()
+        assert ymin == pytest.approx(lo[1], abs=1e-9)
+        assert m.file_to_norm.shape == (4, 4)
+        assert m.sha256 == v.mesh().sha256 and len(m.sha256) == 64
+
+
+def test_same_seed_gives_identical_bytes_and_other_seed_differs():
+    a = make_vehicle(7, "sedan").glb_bytes()
+    assert a == make_vehicle(7, "sedan").glb_bytes()
+    assert a != make_vehicle(8, "sedan").glb_bytes()
+    # another process with another str-hash seed (trimesh dedupes by hash) gives the same file
+    code = ("import hashlib,sys; from ucad_cl.synth import make_vehicle;"
+            "sys.stdout.write(hashlib.sha256(make_vehicle(7,'sedan').glb_bytes()).hexdigest())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env={**os.environ, "PYTHONHASHSEED": "12345"}).stdout
+    assert out == hashlib.sha256(a).hexdigest()
+
+
+def test_random_kind_is_drawn_from_seed():
+    kinds = {make_vehicle(s).kind for s in range(40)}
+    assert kinds == set(KINDS)
+    assert make_vehicle(5).kind == make_vehicle(5).kind
+
+
+def test_glb_round_trip_keeps_one_material_per_part(cars):
+    for kind, v in cars.items():
+        data = v.glb_bytes()
+        scene = _load(data)
+        m = v.mesh()
+        before = {x.name: int(np.sum(m.face_material == i)) for i, x in enumerate(m.materials)}
+        after = _faces_per_material(scene)
+        assert after == before, kind
+        assert set(scene.graph.nodes_geometry) == set(m.node_names)
+        # material properties in the file (read from the glTF JSON, not trimesh)
+        tree = _glb_json(data)
+        mats = {x["name"]: x for x in tree["materials"]}
+        assert set(mats) == set(before)
+        for x in m.materials:
+            f = mats[x.name]
+            pbr = f["pbrMetallicRoughness"]
+            np.testing.assert_allclose(pbr["baseColorFactor"], x.base_color, atol=1e-12)
+            assert pbr["metallicFactor"] == x.metallic
+            assert pbr["roughnessFactor"] == x.roughness
+            assert f.get("alphaMode", "OPAQUE") == x.alpha_mode
+            np.testing.assert_allclose(f.get("emissiveFactor", [0, 0, 0]), x.emissive)
+            trans = f.get("extensions", {}).get("KHR_materials_transmission", {})
+            assert trans.get("transmissionFactor", 0.0) == x.transmission
+        assert "KHR_materials_transmission" in tree["extensionsUsed"]
+
+
+def test_left_right_pairs_are_mirror_images(cars):
+    for kind, v in cars.items():
+        m = v.mesh()
+        pairs = v.truth["symmetric_pairs"]
+        assert len(pairs) >= 15, kind
+        for left, right in pairs:
+            assert left[-1] == "L" and right[-1] == "R" and left[:-1] == right[:-1]
+            a = _node_tris(m, left).reshape(-1, 3) * [1.0, 1.0, -1.0]
+            b = _node_tris(m, right).reshape(-1, 3)
+            assert a.shape == b.shape
+            d1, _ = cKDTree(b).query(a)
+            d2, _ = cKDTree(a).query(b)
+            assert max(d1.max(), d2.max()) < 1e-12, (kind, left)
+            assert np.mean(-a[:, 2]) < 0 < np.mean(b[:, 2])        # left is at -Z
+        # the check can fail: a front and a rear wheel are not mirror images
+        a = _node_tris(m, "tyre_FL").reshape(-1, 3) * [1.0, 1.0, -1.0]
+        assert cKDTree(_node_tris(m, "tyre_RR").reshape(-1, 3)).query(a)[0].max() > 0.05
+
+
+def test_interior_is_visible_through_side_windows(cars):
+    """Embree ray casts from the left at window height, glass removed: rays reach seats."""
+    for kind in ("sedan", "van", "bus"):
+        m = cars[kind].mesh()
+        names = m.node_names
+        glass = np.isin(m.face_node, [i for i, n in enumerate(names) if n.startswith("glass")])
+        tm = trimesh.Trimesh(m.vertices, m.faces[~glass], process=False)
+        fnode = m.face_node[~glass]
+        win = _node_tris(m, next(n for n in names if n.startswith("glass_side")
+                                 and n.endswith("_L"))).reshape(-1, 3)
+        lo, hi = win.min(0), win.max(0)
+        xs, ys = np.meshgrid(np.linspace(lo[0], hi[0], 15)[1:-1],
+                             np.linspace(lo[1], hi[1], 9)[1:-1])
+        orig = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, -2.0)], 1)
+        dirs = np.tile([0.0, 0.0, 1.0], (len(orig), 1))
+        tri, _ = tm.ray.intersects_id(orig, dirs, multiple_hits=False)
+        hit = {names[fnode[t]] for t in tri}
+        assert any(h.startswith("interior_seat") for h in hit), (kind, hit)
+        # and with the glass kept, the first hit at the window centre is the window itself
+        full = trimesh.Trimesh(m.vertices, m.faces, process=False)
+        c = np.array([[(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, -2.0]])
+        t0, _ = full.ray.intersects_id(c, np.array([[0.0, 0.0, 1.0]]), multiple_hits=False)
+        assert names[m.face_node[t0[0]]].startswith("glass_side"), kind
+
+
+@pytest.mark.parametrize("traits", [["z_up"], ["rotated"], ["units_mm"], ["units_km"],
+                                    ["offset"], ["units_cm", "offset"],
+                                    ["rotated", "units_mm", "offset"]])
+def test_pose_traits_map_back_with_file_to_canonical(traits):
+    v = make_vehicle(21, "suv", messy=traits)
+    clean = make_vehicle(21, "suv")
+    assert v.truth["messy"] == traits
+    assert v.truth["expected_reject"] is None
+    scene = _load(v.glb_bytes())
+    T = np.array(v.truth["file_to_canonical"])
+    m = v.mesh()
+    np.testing.assert_array_equal(m.vertices, clean.mesh().vertices)   # mesh() is the clean car
+    pts = _file_points(scene)
+    allp = np.concatenate([p.reshape(-1, 3) for p in pts.values()])
+    lo, hi = allp.min(0), allp.max(0)
+    diag_m = np.linalg.norm(np.ptp(np.concatenate([q.vertices for q in clean.nodes]), axis=0))
+    scale = {"units_mm": 1000.0, "units_cm": 100.0, "units_km": 1e-3}
+    s = np.prod([scale.get(t, 1.0) for t in traits])
+    if "rotated" not in traits:                  # axis-aligned: the bbox diagonal shows units
+        assert np.linalg.norm(hi - lo) == pytest.approx(diag_m * s, rel=1e-6)
+    if "z_up" in traits:                          # the height is now along Z
+        ext = hi - lo
+        assert ext[2] < ext[1] and ext[2] < ext[0]
+    if "offset" in traits:
+        assert np.abs((lo + hi) / 2).max() > 1e3
+    for node, tri in pts.items():
+        got = tri.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+        ref = _node_tris(m, node).reshape(-1, 3)
+        assert np.abs(got - ref).max() < 1e-6, node          # mesh diagonal is 1: relative
+    # the same check fails with a wrong transform (the identity)
+    node, tri = next(iter(pts.items()))
+    assert np.abs(tri.reshape(-1, 3) - _node_tris(m, node).reshape(-1, 3)).max() > 1e-3
+
+
+def test_merged_materials_truth_is_the_majority_part():
+    v = make_vehicle(5, "sedan", messy=["merged_materials"])
+    scene = _load(v.glb_bytes())
+    per_mat = _faces_per_material(scene)
+    nodes = v.truth["nodes"]
+    assert len(per_mat) < len(nodes)             # some nodes share a material
+    counts: dict[str, dict[str, int]] = {}       # recount from the file, by node part
+    for node in scene.graph.nodes_geometry:
+        _, g = scene.graph[node]
+        geom = scene.geometry[g]
+        c = counts.setdefault(geom.visual.material.name, {})
+        c[nodes[node]] = c.get(nodes[node], 0) + len(geom.faces)
+    assert counts == v.truth["material_part_faces"]
+    assert set(counts) - set(nodes)              # materials named after a group, not a node
+    for mat, c in counts.items():
+        best = sorted(c.items(), key=lambda kv: (-kv[1], PART_NAMES.index(kv[0])))[0][0]
+        assert v.truth["materials"][mat] == best
+    flat = [x for pair in v.truth["symmetric_pairs"] for x in pair]
+    assert all(flat.count(x) == 1 and x in per_mat for x in flat)
+
+
+def test_majority_tie_goes_to_earlier_part():
+    assert majority_part({"rim": 10, "wheel": 10}) == "wheel"
+    assert majority_part({"chrome": 3, "plate": 3, "body": 2}) == "chrome"
+    assert majority_part({"rim": 11, "wheel": 10}) == "rim"
+    with pytest.raises(ValueError, match="tyre"):
+        majority_part({"tyre": 3})
+
+
+def test_reject_and_structure_traits():
+    single = make_vehicle(3, "van", messy=["single_material"])
+    assert single.truth["expected_reject"] == "too_few_materials"
+    assert len(_faces_per_material(_load(single.glb_bytes()))) == 1
+
+    nowheels = make_vehicle(3, "van", messy=["missing_wheels"])
+    names = set(nowheels.truth["materials"])
+    assert not any(n.startswith(("tyre_", "rim_")) for n in names)
+    assert not any(p[0].startswith(("tyre", "rim")) for p in nowheels.truth["symmetric_pairs"])
+    assert nowheels.truth["expected_reject"] is None
+    assert _faces_per_material(_load(nowheels.glb_bytes())).keys() == names
+
+    many = make_vehicle(3, "van", messy=["many_materials"])
+    loaded = _faces_per_material(_load(many.glb_bytes()))
+    assert len(loaded) >= 1000 and len(loaded) == len(many.truth["materials"])
+    assert sum(loaded.values()) == many.truth["n_triangles"]
+
+    nan = make_vehicle(3, "van", messy=["nan_vertex"])
+    assert nan.truth["expected_reject"] == "non_finite"
+    pts = np.concatenate([p.reshape(-1, 3) for p in _file_points(_load(nan.glb_bytes())).values()])
+    assert np.isnan(pts).any()
+
+    empty = make_vehicle(3, "van", messy=["empty_file"])
+    assert empty.glb_bytes() == b"" and empty.truth["expected_reject"] == "empty"
+    cut = make_vehicle(3, "van", messy=["truncated"])
+    assert cut.truth["expected_reject"] == "unreadable"
+    full = make_vehicle(3, "van").glb_bytes()
+    data = cut.glb_bytes()
+    assert 0 < len(data) < len(full) and full.startswith(data)
+    with pytest.raises(Exception):
+        _load(data)
+
+
+def test_target_triangles_and_detail():
+    base = make_vehicle(9, "sedan").truth["n_triangles"]
+    assert make_vehicle(9, "sedan", detail=2).truth["n_triangles"] > 3 * base
+    for target in (10_000, 100_000):
+        n = make_vehicle(9, "hatchback", target_triangles=target).truth["n_triangles"]
+        assert abs(n - target) <= 0.1 * target, (target, n)
+    t = time.perf_counter()
+    v = make_vehicle(9, "truck", target_triangles=500_000)
+    data = v.glb_bytes()
+    dt = time.perf_counter() - t
+    assert abs(v.truth["n_triangles"] - 500_000) <= 50_000
+    assert dt < 10.0, dt
+    assert sum(_faces_per_material(_load(data)).values()) == v.truth["n_triangles"]
+
+
+def test_bad_input_is_named():
+    with pytest.raises(ValueError, match="'boat'"):
+        make_vehicle(1, "boat")
+    with pytest.raises(ValueError, match="seed"):
+        make_vehicle(-1)
+    with pytest.raises(ValueError, match="wobbly"):
+        make_vehicle(1, messy=["wobbly"])
+    with pytest.raises(ValueError, match="detail"):
+        make_vehicle(1, detail=0)
+    with pytest.raises(ValueError, match="target_triangles"):
+        make_vehicle(1, target_triangles=10)
+    with pytest.raises(ValueError, match="messy_fraction"):
+        write_library("/nonexistent/never", 1, 0, messy_fraction=1.5)
+    with pytest.raises(ValueError, match="'tank'"):
+        write_library("/nonexistent/never", 1, 0, kinds=["tank"])
+
+
+def test_write_library_is_deterministic_and_covers_traits(tmp_path):
+    a = write_library(tmp_path / "a", 28, 4, messy_fraction=0.5, progress=False)
+    b = write_library(tmp_path / "b", 28, 4, messy_fraction=0.5, progress=False)
+    assert [p.name for p in a] == [p.name for p in b]
+    for pa, pb in zip(a, b):
+        assert pa.read_bytes() == pb.read_bytes()
+        assert pa.with_suffix(".json").read_bytes() == pb.with_suffix(".json").read_bytes()
+    truths = [json.loads(p.with_suffix(".json").read_text()) for p in a]
+    assert sum(1 for t in truths if t["messy"]) == 14
+    seen = {x for t in truths for x in t["messy"]}
+    assert seen == set(MESSY_TRAITS) - {"huge"}
+    for p, t in zip(a, truths):
+        assert p.stem == t["name"] and t["kind"] in KINDS
+        assert set(t["materials"].values()) <= set(PART_NAMES)
+        assert t["expected_reject"] == next((synth.REJECT_OF[x] for x in t["messy"]
+                                             if x in synth.REJECT_OF), None)
+        if t["expected_reject"] is None:         # every readable file re-loads with its truth
+            assert set(_faces_per_material(_load(p.read_bytes()))) == set(t["materials"])
+
+
+def test_cli_writes_library(tmp_path):
+    from ucad_cl.cli import main
+    rc = main(["synth", str(tmp_path / "lib"), "--count", "3", "--seed", "2", "--kinds", "bus",
+               "pickup", "--messy-fraction", "0", "--no-progress"])
+    assert rc == 0
+    glbs = sorted((tmp_path / "lib").glob("*.glb"))
+    assert len(glbs) == 3 and len(list((tmp_path / "lib").glob("*.json"))) == 3
+    kinds = {json.loads(g.with_suffix(".json").read_text())["kind"] for g in glbs}
+    assert kinds <= {"bus", "pickup"}
+    with pytest.raises(SystemExit):
+        main(["synth", str(tmp_path / "x"), "--kinds", "boat"])

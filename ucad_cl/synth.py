@@ -1,0 +1,874 @@
+"""Procedural vehicle library: Objaverse-like cars with one material per part instance.
+
+``make_vehicle(seed, kind)`` builds a parametric vehicle (sedan, suv, van, truck, bus, hatchback,
+pickup) out of body panels, glazing, tyres, rims, lights, plates, chrome trim and interior boxes.
+Every part instance is its own node and its own glTF PBR material with a realistic name
+(``paint_door_front_L``, ``glass_windshield``, ``tyre_FL``, ``rim_RR``, ``headlight_L``,
+``plate_rear``, ``chrome_trim_R``, ``interior_seat_FL``...), and ``truth["materials"]`` maps
+each material name to a part of :data:`ucad_cl.types.PART_NAMES`.
+
+Frames and units:
+
+* Car frame (what a clean GLB stores): metres, +Y up, ground at y = 0, front of the car at +X,
+  width along Z, the car's left side at -Z and right side at +Z (left = up x forward). The car is
+  exactly mirror-symmetric across z = 0: every right part is the left one with z negated, and
+  every ``_L``/``_R`` (``FL``/``FR``...) pair is listed in ``truth["symmetric_pairs"]``.
+* Canonical frame (``SynthVehicle.mesh()``): the car frame moved to its bounding-box centre and
+  scaled to bounding-box diagonal 1 (``ucad_cl.types``). ``truth["file_to_canonical"]`` maps the
+  GLB's coordinates (scene graph flattened) to it, also for the messy variants (rotated, other
+  units, large offsets).
+* Vertices are rounded to float32 before anything else (the GLB stores float32), so ``mesh()``
+  is what a loader of a clean file gets, up to the final float64 normalisation.
+
+Messy traits (``MESSY_TRAITS``) imitate broken real libraries; ``write_library`` gives a share of
+the vehicles one each (and sometimes an extra pose trait), recorded in ``truth["messy"]``.
+Determinism: everything derives from ``numpy.random.default_rng(seed)``; the same seed gives the
+same GLB bytes. Ties (majority part of a merged material) go to the part earlier in PART_NAMES.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import trimesh
+from trimesh.visual import TextureVisuals
+from trimesh.visual.material import PBRMaterial
+
+from .types import PART_NAMES, Material, Mesh
+
+KINDS: tuple[str, ...] = ("sedan", "suv", "van", "truck", "bus", "hatchback", "pickup")
+
+#: messy traits: pose/units traits combine with others; the rest are applied alone.
+POSE_TRAITS: tuple[str, ...] = ("z_up", "rotated", "units_mm", "units_cm", "units_km", "offset")
+MESSY_TRAITS: tuple[str, ...] = POSE_TRAITS + (
+    "merged_materials", "single_material", "missing_wheels", "many_materials", "nan_vertex",
+    "empty_file", "truncated", "huge")
+#: expected_reject code of the traits that make a file unusable
+REJECT_OF: dict[str, str] = {"single_material": "too_few_materials", "nan_vertex": "non_finite",
+                             "empty_file": "empty", "truncated": "unreadable"}
+UNIT_SCALE: dict[str, float] = {"units_mm": 1000.0, "units_cm": 100.0, "units_km": 0.001}
+OFFSET = 1.0e5              # size of the 'offset' trait's translation, in file units
+MANY_MATERIALS = 2000       # about how many materials the 'many_materials' trait makes
+HUGE_TRIANGLES = 2_000_000  # default triangle count of the 'huge' trait
+
+
+def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
+                 target_triangles: int | None = None, messy: Sequence[str] = (),
+                 name: str | None = None) -> "SynthVehicle":
+    """Build one vehicle. kind: one of KINDS (random from the seed when None).
+
+    detail: resolution factor (triangles grow ~detail**2; 1 gives ~20-35k triangles).
+    target_triangles: overrides detail, tessellates to about this many triangles (within ~10 %).
+    messy: traits from MESSY_TRAITS to apply to the file (see module docstring).
+    """
+    seed = int(seed)
+    if seed < 0:
+        raise ValueError(f"seed must be >= 0, got {seed}")
+    if kind is not None and kind not in KINDS:
+        raise ValueError(f"unknown vehicle kind {kind!r}; expected one of {KINDS}")
+    if int(detail) < 1:
+        raise ValueError(f"detail must be >= 1, got {detail}")
+    bad = [t for t in messy if t not in MESSY_TRAITS]
+    if bad:
+        raise ValueError(f"unknown messy trait(s) {bad}; expected some of {MESSY_TRAITS}")
+    if target_triangles is not None and int(target_triangles) < 1000:
+        raise ValueError(f"target_triangles must be >= 1000, got {target_triangles}")
+    messy = tuple(dict.fromkeys(messy))          # unique, order kept
+    if "huge" in messy and target_triangles is None:
+        target_triangles = HUGE_TRIANGLES
+    kind_rng = np.random.default_rng([seed, 0])
+    kind = kind if kind is not None else KINDS[int(kind_rng.integers(len(KINDS)))]
+
+    def build(res: float) -> list[_Part]:
+        return _build_parts(kind, np.random.default_rng([seed, 1]), res)
+
+    res = float(detail)
+    parts = build(res)
+    if target_triangles is not None:                 # triangles grow ~ res**2: two corrections
+        for _ in range(3):
+            n = sum(len(p.faces) for p in parts)
+            if abs(n - target_triangles) <= 0.08 * target_triangles:
+                break
+            res *= math.sqrt(target_triangles / n)
+            parts = build(res)
+    return _finish(seed, kind, name or f"{kind}_{seed:08d}", parts, messy,
+                   np.random.default_rng([seed, 2]))
+
+
+def write_library(out_dir: str | Path, count: int, seed: int, *, messy_fraction: float = 0.3,
+                  progress: bool = True, kinds: Sequence[str] | None = None,
+                  huge_triangles: int | None = None, detail: int = 1) -> list[Path]:
+    """Write ``count`` vehicles as ``NAME.glb`` + ``NAME.json`` (the truth); returns the GLB paths.
+
+    A share ``messy_fraction`` of the vehicles (every k-th, deterministically) gets one messy
+    trait, cycling through the traits so that all of them occur, and every other messy vehicle
+    also a random pose trait. The 'huge' trait is only used when ``huge_triangles`` is given.
+    Same arguments -> same bytes.
+    """
+    if count < 0:
+        raise ValueError(f"count must be >= 0, got {count}")
+    if not 0.0 <= messy_fraction <= 1.0:
+        raise ValueError(f"messy_fraction must be in [0, 1], got {messy_fraction}")
+    kinds = tuple(kinds) if kinds else KINDS
+    bad = [k for k in kinds if k not in KINDS]
+    if bad:
+        raise ValueError(f"unknown vehicle kind(s) {bad}; expected some of {KINDS}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    traits = [t for t in MESSY_TRAITS if t != "huge" or huge_triangles]
+    rng = np.random.default_rng([int(seed), 7])
+    vseeds = rng.integers(0, 2**31 - 1, size=count)
+    kind_idx = rng.integers(0, len(kinds), size=count)
+    extra = rng.integers(0, len(POSE_TRAITS), size=count)
+    n_messy = int(round(messy_fraction * count))
+    messy_at = set(np.floor(np.arange(n_messy) * (count / max(n_messy, 1))).astype(int).tolist())
+    paths: list[Path] = []
+    it: Iterable[int] = range(count)
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(it, total=count, desc="synth", unit="car")
+    k = 0
+    for i in it:
+        traits_i: list[str] = []
+        if i in messy_at:
+            traits_i.append(traits[k % len(traits)])
+            if k % 2 == 1 and traits_i[0] not in REJECT_OF:
+                traits_i.append(POSE_TRAITS[int(extra[i])])
+            k += 1
+        kind = kinds[int(kind_idx[i])]
+        v = make_vehicle(int(vseeds[i]), kind, detail=detail, messy=traits_i,
+                         target_triangles=huge_triangles if "huge" in traits_i else None,
+                         name=f"synth_{i:05d}_{kind}")
+        paths.append(v.write(out))
+    return paths
+
+
+def majority_part(face_counts: dict[str, int]) -> str:
+    """The part with the most faces; a tie goes to the part earlier in PART_NAMES."""
+    bad = [p for p in face_counts if p not in PART_NAMES]
+    if bad or not face_counts:
+        raise ValueError(f"face_counts must be a non-empty dict over PART_NAMES, got {face_counts}")
+    return max(face_counts, key=lambda p: (face_counts[p], -PART_NAMES.index(p)))
+
+
+@dataclass
+class SynthVehicle:
+    """A generated vehicle: the trimesh scene as written, its truth and the canonical mesh."""
+
+    name: str
+    kind: str
+    seed: int
+    scene: trimesh.Scene
+    truth: dict
+    nodes: list = field(repr=False, default_factory=list)   # list[_Part], car frame
+    canonical: np.ndarray = field(repr=False, default_factory=lambda: np.eye(4))
+
+    def mesh(self) -> Mesh:
+        """The vehicle in the canonical frame, materials and node names as in the file."""
+        names: list[str] = []
+        mats: list[Material] = []
+        index: dict[str, int] = {}
+        verts, faces, fmat, fnode = [], [], [], []
+        off = 0
+        for ni, p in enumerate(self.nodes):
+            if p.material.name not in index:
+                index[p.material.name] = len(mats)
+                mats.append(p.material)
+            verts.append(p.vertices)
+            faces.append(p.faces + off)
+            off += len(p.vertices)
+            fmat.append(np.full(len(p.faces), index[p.material.name], np.uint16))
+            fnode.append(np.full(len(p.faces), ni, np.int32))
+            names.append(p.node)
+        v = np.concatenate(verts) if verts else np.zeros((0, 3))
+        v = v @ self.canonical[:3, :3].T + self.canonical[:3, 3]
+        f = np.concatenate(faces).astype(np.uint32) if faces else np.zeros((0, 3), np.uint32)
+        fm = np.concatenate(fmat) if fmat else np.zeros(0, np.uint16)
+        h = hashlib.sha256()
+        for a in (v, f, fm):
+            h.update(np.ascontiguousarray(a).tobytes())
+        return Mesh(path=f"{self.name}.glb", sha256=h.hexdigest(), vertices=v, faces=f,
+                    face_material=fm, materials=mats,
+                    file_to_norm=np.array(self.truth["file_to_canonical"], dtype=np.float64),
+                    face_node=np.concatenate(fnode) if fnode else np.zeros(0, np.int32),
+                    node_names=names)
+
+    def glb_bytes(self) -> bytes:
+        """The file as written: trimesh's GLB, plus KHR_materials_transmission on glass.
+
+        The 'empty_file' and 'truncated' traits return b'' and the first half of the bytes.
+        """
+        data = _add_transmission(self.scene.export(file_type="glb"),
+                                 {p.material.name: p.material.transmission for p in self.nodes})
+        if "empty_file" in self.truth["messy"]:
+            return b""
+        if "truncated" in self.truth["messy"]:
+            return data[: len(data) // 2]
+        return data
+
+    def write(self, out_dir: str | Path) -> Path:
+        """Write ``NAME.glb`` and ``NAME.json`` into out_dir; returns the GLB path."""
+        out = Path(out_dir)
+        path = out / f"{self.name}.glb"
+        path.write_bytes(self.glb_bytes())
+        (out / f"{self.name}.json").write_text(json.dumps(self.truth, indent=1, sort_keys=True))
+        return path
+
+
+# --------------------------------------------------------------------------------------------
+# materials
+
+class _NamedPBR(PBRMaterial):
+    """PBRMaterial whose hash includes its name: trimesh's exporter merges materials with equal
+    hashes, and the stock hash ignores the name (all paint panels would become one material)."""
+
+    def __hash__(self) -> int:
+        return hash((self.name, super().__hash__()))
+
+
+def _q8(x: float) -> float:
+    """Colours are stored as 8-bit by trimesh: quantise up front so file and truth agree."""
+    return round(float(np.clip(x, 0.0, 1.0)) * 255.0) / 255.0
+
+
+def _material(name: str, cls: str, paint: tuple[float, float, float]) -> Material:
+    """Realistic PBR properties per material class (glass, paint, tyre, chrome...)."""
+    if cls == "paint":
+        return Material(name, (*paint, 1.0), "OPAQUE", 0.5, 0.3)
+    if cls == "glass":
+        return Material(name, (0.08, 0.1, 0.12, 0.3), "BLEND", 0.0, 0.05, transmission=0.9)
+    if cls == "tyre":
+        return Material(name, (0.02, 0.02, 0.02, 1.0), "OPAQUE", 0.0, 0.9)
+    if cls == "rim":
+        return Material(name, (0.75, 0.75, 0.78, 1.0), "OPAQUE", 1.0, 0.2)
+    if cls == "chrome":
+        return Material(name, (0.95, 0.95, 0.95, 1.0), "OPAQUE", 1.0, 0.05)
+    if cls == "headlight":
+        return Material(name, (0.9, 0.9, 0.85, 1.0), "OPAQUE", 0.0, 0.1, (1.0, 0.95, 0.8))
+    if cls == "taillight":
+        return Material(name, (0.6, 0.02, 0.02, 1.0), "OPAQUE", 0.0, 0.15, (0.8, 0.0, 0.0))
+    if cls == "plate":
+        return Material(name, (0.95, 0.95, 0.9, 1.0), "OPAQUE", 0.0, 0.5)
+    if cls == "plastic":
+        return Material(name, (0.03, 0.03, 0.03, 1.0), "OPAQUE", 0.0, 0.6)
+    if cls == "interior":
+        return Material(name, (0.18, 0.16, 0.14, 1.0), "OPAQUE", 0.0, 0.85)
+    raise ValueError(f"unknown material class {cls!r}")
+
+
+def _quantised(m: Material) -> Material:
+    return Material(m.name, tuple(_q8(c) for c in m.base_color), m.alpha_mode, float(m.metallic),
+                    float(m.roughness), tuple(float(e) for e in m.emissive),
+                    float(m.transmission), False)
+
+
+def _pbr(m: Material) -> _NamedPBR:
+    return _NamedPBR(name=m.name, baseColorFactor=list(m.base_color),
+                     metallicFactor=float(m.metallic), roughnessFactor=float(m.roughness),
+                     emissiveFactor=list(m.emissive) if any(m.emissive) else None,
+                     alphaMode=m.alpha_mode, doubleSided=m.alpha_mode == "BLEND")
+
+
+def _add_transmission(glb: bytes, transmission: dict[str, float]) -> bytes:
+    """Add KHR_materials_transmission to the materials with transmission > 0 (trimesh does not
+    export it); re-pack the GLB. Deterministic: JSON keys keep trimesh's order."""
+    if not any(t > 0 for t in transmission.values()):
+        return glb
+    (jlen,) = struct.unpack_from("<I", glb, 12)
+    tree = json.loads(glb[20:20 + jlen])
+    used = False
+    for m in tree.get("materials", []):
+        t = transmission.get(m.get("name"), 0.0)
+        if t > 0:
+            m.setdefault("extensions", {})["KHR_materials_transmission"] = {
+                "transmissionFactor": t}
+            used = True
+    if not used:
+        return glb
+    exts = tree.setdefault("extensionsUsed", [])
+    if "KHR_materials_transmission" not in exts:
+        exts.append("KHR_materials_transmission")
+    js = json.dumps(tree, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    rest = glb[20 + jlen:]
+    total = 12 + 8 + len(js) + len(rest)
+    return (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(js), b"JSON")
+            + js + rest)
+
+
+# --------------------------------------------------------------------------------------------
+# geometry primitives (NumPy, vectorised; faces wound counter-clockwise seen from outside)
+
+@dataclass
+class _Part:
+    node: str
+    part: str
+    material: Material
+    vertices: np.ndarray      # (N, 3) float64 (float32-exact after _finish)
+    faces: np.ndarray         # (F, 3) int64
+
+
+def _lines(breaks: Sequence[float], length: float, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Grid parameters in [0, 1] through every break, cells of about ``cell`` (same unit as
+    length); returns (params, segment index of each cell)."""
+    b = np.asarray(breaks, dtype=np.float64)
+    ts, seg = [np.zeros(1)], []
+    for s in range(len(b) - 1):
+        n = max(1, int(math.ceil((b[s + 1] - b[s]) * length / cell - 1e-9)))
+        ts.append(b[s] + (b[s + 1] - b[s]) * np.arange(1, n + 1) / n)
+        seg.append(np.full(n, s))
+    t = np.concatenate(ts)
+    t[0], t[-1] = b[0], b[-1]
+    return t, np.concatenate(seg)
+
+
+def _patch(p00, p10, p01, p11, ubreaks, vbreaks, cell, bulge=0.0, label=None, drop=None):
+    """Bilinear patch split into named panels.
+
+    Corners p00 (u=0,v=0), p10, p01, p11; normal side = (p10-p00) x (p01-p00). ubreaks/vbreaks:
+    panel boundaries in [0, 1]; label(su, sv) -> name or None (dropped). bulge: outward
+    displacement (same unit) at the centre, zero on the border. drop(centroids) -> bool mask of
+    faces to remove (wheel arches). Returns {name: (V, F)}.
+    """
+    p00, p10, p01, p11 = (np.asarray(p, dtype=np.float64) for p in (p00, p10, p01, p11))
+    lu = max(np.linalg.norm(p10 - p00), np.linalg.norm(p11 - p01))
+    lv = max(np.linalg.norm(p01 - p00), np.linalg.norm(p11 - p10))
+    us, su = _lines(ubreaks, lu, cell)
+    vs, sv = _lines(vbreaks, lv, cell)
+    U, V = np.meshgrid(us, vs, indexing="ij")
+    P = (((1 - U) * (1 - V))[..., None] * p00 + (U * (1 - V))[..., None] * p10
+         + ((1 - U) * V)[..., None] * p01 + (U * V)[..., None] * p11)
+    if bulge:
+        n = np.cross(p10 - p00, p01 - p00)
+        n /= np.linalg.norm(n)
+        P += (bulge * (1 - (2 * U - 1) ** 2) * (1 - (2 * V - 1) ** 2))[..., None] * n
+    nu, nv = len(us), len(vs)
+    idx = np.arange(nu * nv).reshape(nu, nv)
+    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+    F = np.stack([np.stack([a, b, c], -1), np.stack([a, c, d], -1)], 2).reshape(-1, 3)
+    cu = np.repeat(np.repeat(su[:, None], nv - 1, 1), 2, axis=1).reshape(-1)
+    cv = np.repeat(np.repeat(sv[None, :], nu - 1, 0), 2, axis=1).reshape(-1)
+    Pf = P.reshape(-1, 3)
+    keep = np.ones(len(F), bool)
+    if drop is not None:
+        keep &= ~drop(Pf[F].mean(axis=1))
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    label = label or (lambda i, j: "panel")
+    for i in range(len(ubreaks) - 1):
+        for j in range(len(vbreaks) - 1):
+            name = label(i, j)
+            if name is None:
+                continue
+            m = keep & (cu == i) & (cv == j)
+            if not m.any():
+                continue
+            sub = _compact(Pf, F[m])
+            if name in out:
+                sub = _merge([out[name], sub])
+            out[name] = sub
+    return out
+
+
+def _compact(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    used, inv = np.unique(F.reshape(-1), return_inverse=True)
+    return V[used], inv.reshape(-1, 3)
+
+
+def _merge(meshes: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    vs, fs, off = [], [], 0
+    for v, f in meshes:
+        vs.append(v)
+        fs.append(f + off)
+        off += len(v)
+    return np.concatenate(vs), np.concatenate(fs)
+
+
+def _box(lo, hi, cell, bulge=0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box [lo, hi], each face a grid of ~cell; outward winding."""
+    x0, y0, z0 = lo
+    x1, y1, z1 = hi
+    c = np.array
+    faces = [  # (p00, p10, p01, p11) with (p10-p00) x (p01-p00) outward
+        (c([x1, y0, z0]), c([x1, y1, z0]), c([x1, y0, z1]), c([x1, y1, z1])),   # +X
+        (c([x0, y0, z0]), c([x0, y0, z1]), c([x0, y1, z0]), c([x0, y1, z1])),   # -X
+        (c([x0, y1, z0]), c([x0, y1, z1]), c([x1, y1, z0]), c([x1, y1, z1])),   # +Y
+        (c([x0, y0, z0]), c([x1, y0, z0]), c([x0, y0, z1]), c([x1, y0, z1])),   # -Y
+        (c([x0, y0, z1]), c([x1, y0, z1]), c([x0, y1, z1]), c([x1, y1, z1])),   # +Z
+        (c([x0, y0, z0]), c([x0, y1, z0]), c([x1, y0, z0]), c([x1, y1, z0])),   # -Z
+    ]
+    return _merge([_patch(*f, [0, 1], [0, 1], cell, bulge)["panel"] for f in faces])
+
+
+def _revolve(profile: np.ndarray, segments: int, center):
+    """Surface of revolution about an axis parallel to Z through ``center``.
+
+    profile: (n, 2) points (r, a): radius and axial offset along +Z; the outside is on the right
+    of the profile direction (walking outward in r faces -Z). Points with
+    r == 0 (first/last only) become one pole vertex (no degenerate triangles).
+    """
+    prof = np.asarray(profile, dtype=np.float64)
+    th = 2 * np.pi * np.arange(segments) / segments
+    ct, st = np.cos(th), np.sin(th)
+    verts, rings = [], []
+    off = 0
+    for r, a in prof:
+        if r == 0.0:
+            verts.append(np.array([[0.0, 0.0, a]]))
+            rings.append(np.full(segments, off))
+            off += 1
+        else:
+            verts.append(np.stack([r * ct, r * st, np.full(segments, a)], 1))
+            rings.append(off + np.arange(segments))
+            off += segments
+    faces = []
+    for i in range(len(prof) - 1):           # quad (r0, r0n, r1n, r1) -> two triangles;
+        r0, r1 = rings[i], rings[i + 1]       # the one touching a pole twice is left out
+        r0n, r1n = np.roll(r0, -1), np.roll(r1, -1)
+        if prof[i, 0] != 0.0:
+            faces.append(np.stack([r0, r0n, r1], 1))
+        if prof[i + 1, 0] != 0.0:
+            faces.append(np.stack([r1, r0n, r1n], 1))
+    V = np.concatenate(verts)
+    F = np.concatenate(faces)
+    return V + np.asarray(center, dtype=np.float64), F
+
+
+def _mirror(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reflect across z = 0 (exact: negation) and flip the winding."""
+    return v * np.array([1.0, 1.0, -1.0]), f[:, ::-1].copy()
+
+
+# --------------------------------------------------------------------------------------------
+# the vehicle
+
+def _kind_params(kind: str, r: np.random.Generator) -> dict:
+    """Dimensions in metres. x: rear -L/2 .. front +L/2. Greenhouse bottom [c0, c1] at the belt
+    line, top [t0, t1] at roof height H; ``axles``: x of the axles, front first."""
+    u = r.uniform
+    if kind == "sedan":
+        L, W, H = u(4.4, 4.9), u(1.75, 1.85), u(1.40, 1.48)
+        p = dict(R=u(0.31, 0.34), tw=0.22, clear=0.16, belt=u(0.9, 1.0))
+        p.update(c1=L / 2 - u(1.4, 1.6), c0=-L / 2 + u(0.95, 1.1))
+        p.update(t1=p["c1"] - 0.75, t0=p["c0"] + 0.55, windows=2, doors=2, rear_glass=True)
+        p["axles"] = [L / 2 - 0.9, -L / 2 + 1.0]
+    elif kind == "hatchback":
+        L, W, H = u(3.9, 4.2), u(1.7, 1.8), u(1.44, 1.52)
+        p = dict(R=u(0.29, 0.32), tw=0.2, clear=0.15, belt=u(0.88, 0.95))
+        p.update(c1=L / 2 - u(1.1, 1.25), c0=-L / 2 + 0.22)
+        doors = int(r.integers(1, 3))
+        p.update(t1=p["c1"] - 0.7, t0=p["c0"] + 0.3, windows=doors, doors=doors, rear_glass=True)
+        p["axles"] = [L / 2 - 0.8, -L / 2 + 0.7]
+    elif kind == "suv":
+        L, W, H = u(4.5, 4.9), u(1.85, 1.95), u(1.7, 1.8)
+        p = dict(R=u(0.36, 0.39), tw=0.25, clear=0.22, belt=u(1.05, 1.12))
+        p.update(c1=L / 2 - u(1.3, 1.4), c0=-L / 2 + 0.2)
+        p.update(t1=p["c1"] - 0.65, t0=p["c0"] + 0.15, windows=3, doors=2, rear_glass=True,
+                 roof_rails=True)
+        p["axles"] = [L / 2 - 0.95, -L / 2 + 1.0]
+    elif kind == "van":
+        L, W, H = u(4.9, 5.3), u(1.95, 2.0), u(2.0, 2.3)
+        p = dict(R=u(0.33, 0.35), tw=0.22, clear=0.18, belt=u(1.0, 1.08))
+        p.update(c1=L / 2 - u(0.75, 0.85), c0=-L / 2 + 0.03)
+        p.update(t1=p["c1"] - 0.7, t0=p["c0"] + 0.05, windows=3, doors=2, rear_glass=True)
+        p["axles"] = [L / 2 - 0.9, -L / 2 + 1.0]
+    elif kind == "pickup":
+        L, W, H = u(5.2, 5.6), u(1.9, 2.0), u(1.8, 1.9)
+        p = dict(R=u(0.37, 0.4), tw=0.26, clear=0.25, belt=u(1.12, 1.18))
+        crew = bool(r.integers(0, 2))
+        p.update(c1=L / 2 - u(1.45, 1.55))
+        p.update(c0=p["c1"] - (2.3 if crew else 1.5))
+        p.update(t1=p["c1"] - 0.6, t0=p["c0"] + 0.1, windows=2 if crew else 1,
+                 doors=2 if crew else 1, rear_glass=True, bed=True)
+        p["axles"] = [L / 2 - 1.0, -L / 2 + 1.2]
+    elif kind == "truck":
+        L, W, H = u(6.5, 8.5), u(2.35, 2.5), u(3.0, 3.4)
+        p = dict(R=u(0.48, 0.52), tw=0.3, clear=0.35, belt=u(1.35, 1.45))
+        p.update(c1=L / 2 - 0.15, c0=L / 2 - 2.1)
+        p.update(t1=p["c1"] - 0.2, t0=p["c0"], windows=1, doors=1, rear_glass=False,
+                 cargo=True, cab_H=u(2.6, 2.8))
+        p["axles"] = [L / 2 - 1.2, -L / 2 + 2.9, -L / 2 + 1.6]
+    elif kind == "bus":
+        L, W, H = u(10.5, 12.5), 2.5, u(3.0, 3.2)
+        p = dict(R=u(0.48, 0.52), tw=0.3, clear=0.3, belt=u(1.15, 1.25))
+        p.update(c1=L / 2 - 0.05, c0=-L / 2 + 0.05)
+        p.update(t1=p["c1"] - 0.15, t0=p["c0"] + 0.05, windows=int(r.integers(6, 10)), doors=1,
+                 rear_glass=True)
+        p["axles"] = [L / 2 - 2.5, -L / 2 + 3.0]
+    else:  # pragma: no cover - checked by make_vehicle
+        raise ValueError(kind)
+    p.update(kind=kind, L=L, W=W, H=H)
+    p.setdefault("cab_H", H)
+    return p
+
+
+def _build_parts(kind: str, r: np.random.Generator, res: float) -> list[_Part]:
+    """All part instances of one vehicle, car frame (see module docstring)."""
+    p = _kind_params(kind, r)
+    L, W, H, R, tw = p["L"], p["W"], p["cab_H"], p["R"], p["tw"]
+    clear, belt, c0, c1, t0, t1 = p["clear"], p["belt"], p["c0"], p["c1"], p["t0"], p["t1"]
+    xf, xr, hw = L / 2, -L / 2, W / 2
+    cell = 0.08 * max(1.0, L / 4.6) ** 0.5 / res
+    seg = max(12, int(round(48 * res)))
+    paint = tuple(r.uniform(0.05, 0.9, 3))
+    big = kind in ("truck", "bus", "van")
+    parts: list[_Part] = []
+
+    def add(name, part, cls, v, f, pair=False):
+        """Add a part; pair=True: (v, f) is the right (+Z) instance named NAME_R / _xR, and the
+        left one is its mirror image."""
+        mk = lambda n: _Part(n, part, _material(n, cls, paint), v, f)  # noqa: E731
+        if not pair:
+            parts.append(mk(name))
+            return
+        vl, fl = _mirror(v, f)
+        left = name[:-1] + "L"
+        parts.append(_Part(left, part, _material(left, cls, paint), vl, fl))
+        parts.append(mk(name))
+
+    # ---- lower body: a box from the ground clearance to the belt line, split into panels
+    bulge_side = 0.01 if big else 0.03
+    arch = [(ax, R + 0.04) for ax in p["axles"]]
+
+    def arches(cen):
+        d = np.zeros(len(cen), bool)
+        for ax, rad in arch:
+            d |= (cen[:, 0] - ax) ** 2 + (cen[:, 1] - R) ** 2 < rad ** 2
+        return d
+
+    bed_x = c0 - 0.05 if p.get("bed") else None
+    cargo_x = c0 - 0.1 if p.get("cargo") else None
+    # top (y = belt), u along x from rear to front: trunk | cabin (open) | hood
+    xb = [xr]
+    for x in sorted([min(max(c0, xr), xf), min(max(c1, xr), xf), xf]):
+        if x - xb[-1] > 1e-6:
+            xb.append(x)
+    ub = [(x - xr) / L for x in xb]
+
+    def top_label(i, j):
+        x_mid = xr + 0.5 * (ub[i] + ub[i + 1]) * L
+        if x_mid > c1:
+            return "paint_hood"
+        if x_mid < c0:
+            if p.get("bed") or p.get("cargo"):
+                return None
+            return "paint_trunk" if kind == "sedan" else "paint_rear_deck"
+        return None
+    for n, (v, f) in _patch([xr, belt, hw], [xf, belt, hw], [xr, belt, -hw], [xf, belt, -hw],
+                            ub, [0, 1], cell, 0.0 if big else 0.04, top_label).items():
+        add(n, "body", "paint", v, f)
+    # sides (right side z = +hw; left mirrored): quarter | doors | fender
+    d0, d1 = (c0 + 0.05, min(c1 + 0.25, xf - 0.3)) if kind != "bus" else (c1 - 1.6, c1 - 0.4)
+    if kind == "truck":
+        d0, d1 = c0 + 0.1, c1 - 0.35
+    nd = p["doors"]
+    xs = [xr, d0] + [d0 + (d1 - d0) * k / nd for k in range(1, nd)] + [d1, xf]
+    if bed_x is not None:
+        xs = sorted(xs + [bed_x])
+    us = [(x - xr) / L for x in xs]
+    door_names = (["paint_door_R"] if nd == 1 else ["paint_door_rear_R", "paint_door_front_R"])
+    rear_name = "paint_side_R" if big else "paint_quarter_R"
+
+    def side_label(i, j):
+        x_mid = xr + 0.5 * (us[i] + us[i + 1]) * L
+        if bed_x is not None and x_mid < bed_x:
+            return "paint_bed_side_R"
+        if x_mid < d0:
+            return rear_name
+        if x_mid > d1:
+            return "paint_fender_R"
+        return door_names[min(nd - 1, int((x_mid - d0) / (d1 - d0) * nd))]
+    for n, (v, f) in _patch([xr, clear, hw], [xf, clear, hw], [xr, belt, hw], [xf, belt, hw],
+                            us, [0, 1], cell, bulge_side, side_label, arches).items():
+        add(n, "body", "paint", v, f, pair=True)
+    # front face (x = xf), u along z: nose | grille | nose, v along y
+    zb = [0, 0.3, 0.7, 1]
+    yb = [0, 0.45, 0.85, 1]
+
+    def front_label(i, j):
+        return "grille" if (i == 1 and j == 1) else "paint_nose"
+    fparts = _patch([xf, clear, hw], [xf, clear, -hw], [xf, belt, hw], [xf, belt, -hw],
+                    zb, yb, cell, 0.0, front_label)
+    add("grille", "other", "plastic", *fparts["grille"])
+    add("paint_nose", "body", "paint", *fparts["paint_nose"])
+    # rear face (x = xr): tail panel, or tailgate for pickups
+    rname = "paint_tailgate" if p.get("bed") else "paint_tail_panel"
+    add(rname, "body", "paint", *_patch([xr, clear, -hw], [xr, clear, hw], [xr, belt, -hw],
+                                        [xr, belt, hw], [0, 1], [0, 1], cell)["panel"])
+    add("underbody", "other", "plastic", *_patch([xr, clear, hw], [xr, clear, -hw],
+                                                 [xf, clear, hw], [xf, clear, -hw],
+                                                 [0, 1], [0, 1], cell * 2)["panel"])
+    if bed_x is not None:
+        yfl = clear + 0.35
+        add("paint_bed_floor", "body", "paint", *_patch(
+            [xr, yfl, hw - 0.05], [bed_x, yfl, hw - 0.05], [xr, yfl, -hw + 0.05],
+            [bed_x, yfl, -hw + 0.05], [0, 1], [0, 1], cell)["panel"])
+        add("paint_bed_front", "body", "paint", *_patch(
+            [bed_x, yfl, -hw], [bed_x, yfl, hw], [bed_x, belt, -hw], [bed_x, belt, hw],
+            [0, 1], [0, 1], cell)["panel"])
+    if cargo_x is not None:
+        add("cargo_box", "body", "paint", *_box([xr - 0.02, belt - 0.05, -hw - 0.02],
+                                                [cargo_x, p["H"], hw + 0.02], cell * 1.5))
+
+    # ---- greenhouse: windshield, rear window, roof, pillars and side windows
+    wc, wt = hw - (0.03 if big else 0.06), hw - (0.06 if big else 0.18)
+    add("glass_windshield", "window", "glass", *_patch(
+        [c1, belt, wc], [c1, belt, -wc], [t1, H, wt], [t1, H, -wt], [0, 1], [0, 1], cell)["panel"])
+    back = _patch([c0, belt, -wc], [c0, belt, wc], [t0, H, -wt], [t0, H, wt], [0, 1],
+                  [0, 0.12, 0.9, 1] if p["rear_glass"] else [0, 1], cell,
+                  label=lambda i, j: "glass_rear" if (p["rear_glass"] and j == 1)
+                  else "paint_rear_frame")
+    for n, (v, f) in back.items():
+        add(n, "window" if n.startswith("glass") else "body",
+            "glass" if n.startswith("glass") else "paint", v, f)
+    add("paint_roof", "body", "paint", *_patch(
+        [t0, H, wt], [t1, H, wt], [t0, H, -wt], [t1, H, -wt], [0, 1], [0, 1], cell,
+        0.015 if big else 0.03)["panel"])
+    nw = p["windows"]
+    pil = 0.04 if big else 0.06                       # pillar width, fraction of the side
+    a_w = 0.02 if big else 0.12                       # A pillar, fraction
+    c_w = 0.04 if big else (0.15 if kind == "sedan" else 0.1)
+    inner = np.linspace(c_w, 1 - a_w, nw + 1)
+    ubr = [0.0, c_w]
+    for k in range(1, nw):
+        ubr += [inner[k] - pil / 2, inner[k] + pil / 2]
+    ubr += [1 - a_w, 1.0]
+    vbr = [0.0, 0.06, 0.88, 1.0]
+    win_names = (["glass_side_R"] if nw == 1 else
+                 ["glass_side_rear_R", "glass_side_front_R"] if nw == 2 else
+                 [f"glass_side_{k + 1}_R" for k in range(nw)])
+
+    def gh_label(i, j):
+        if j == 0:
+            return "paint_window_sill_R"
+        if j == 2:
+            return "paint_roof_rail_R"
+        if i == 0:
+            return "paint_pillar_C_R"
+        if i == len(ubr) - 2:
+            return "paint_pillar_A_R"
+        if i % 2 == 1:
+            return win_names[(i - 1) // 2]
+        return f"paint_pillar_B{i // 2}_R" if nw > 2 else "paint_pillar_B_R"
+    for n, (v, f) in _patch([c0, belt, wc], [c1, belt, wc], [t0, H, wt], [t1, H, wt], ubr, vbr,
+                            cell, 0.0, gh_label).items():
+        glass = n.startswith("glass")
+        add(n, "window" if glass else "body", "glass" if glass else "paint", v, f, pair=True)
+
+    # ---- wheels: tyre (closed rounded profile) and rim (dished disc, inset 1.5 cm)
+    nar = max(2, int(round(3 * res)))
+    zc = hw - tw / 2 + 0.02
+    rr, cr = 0.62 * R, 0.05
+    arc = np.linspace(0, np.pi / 2, nar + 1)
+    prof = np.concatenate([
+        [[rr, -tw / 2]],
+        np.stack([R - cr + cr * np.sin(arc), -tw / 2 + cr - cr * np.cos(arc)], 1),
+        np.stack([R - cr + cr * np.cos(arc), tw / 2 - cr + cr * np.sin(arc)], 1),
+        [[rr, tw / 2], [rr, -tw / 2]]])
+    prof = prof[np.r_[True, np.any(np.abs(np.diff(prof, axis=0)) > 1e-12, axis=1)]]
+    af = tw / 2 - 0.015
+    rim_prof = np.array([[rr, af - 0.12], [rr, af], [0.85 * rr, af - 0.012],
+                         [0.3 * rr, af - 0.004], [0.2 * rr, af - 0.03], [0.0, af - 0.03]])
+    axle_tags = ["F", "R", "R2"]
+    for ai, ax in enumerate(p["axles"]):
+        tag = axle_tags[ai]
+        add(f"tyre_{tag}R", "wheel", "tyre", *_revolve(prof, seg, [ax, R, zc]), pair=True)
+        add(f"rim_{tag}R", "rim", "rim", *_revolve(rim_prof, seg, [ax, R, zc]), pair=True)
+
+    # ---- lights, plates, bumpers, chrome, mirrors
+    ly = (belt - 0.2, belt - 0.06) if not big else (clear + 0.35, clear + 0.55)
+    add("headlight_R", "light", "headlight",
+        *_box([xf - 0.04, ly[0], hw - 0.4], [xf + 0.025, ly[1], hw - 0.1], cell / 2), pair=True)
+    add("taillight_R", "light", "taillight",
+        *_box([xr - 0.025, ly[0], hw - 0.35], [xr + 0.04, ly[1], hw - 0.08], cell / 2), pair=True)
+    by = (clear + 0.04, clear + 0.28)
+    add("bumper_front", "body", "paint" if not big else "plastic",
+        *_box([xf - 0.05, by[0], -hw + 0.03], [xf + 0.06, by[1], hw - 0.03], cell))
+    add("bumper_rear", "body", "paint" if not big else "plastic",
+        *_box([xr - 0.06, by[0], -hw + 0.03], [xr + 0.05, by[1], hw - 0.03], cell))
+    py = clear + 0.16
+    add("plate_front", "plate", "plate", *_box([xf + 0.06, py - 0.055, -0.26],
+                                              [xf + 0.072, py + 0.055, 0.26], cell / 2))
+    add("plate_rear", "plate", "plate", *_box([xr - 0.072, py - 0.055, -0.26],
+                                             [xr - 0.06, py + 0.055, 0.26], cell / 2))
+    ty = clear + 0.55 * (belt - clear)
+    add("chrome_trim_R", "chrome", "chrome",
+        *_box([d0, ty - 0.015, hw + 0.025], [d1, ty + 0.015, hw + 0.035], cell / 2), pair=True)
+    if p.get("roof_rails"):
+        add("chrome_roof_rail_R", "chrome", "chrome", *_box(
+            [t0 + 0.1, H + 0.03, wt - 0.12], [t1 - 0.1, H + 0.06, wt - 0.08], cell / 2), pair=True)
+    if kind in ("sedan", "suv", "pickup", "hatchback"):
+        ex = np.array([[0.0, -0.12], [0.035, -0.12], [0.035, 0.0], [0.03, 0.0], [0.03, -0.1]])
+        v, f = _revolve(ex, max(12, seg // 3), [0.0, 0.0, 0.0])
+        v = np.stack([-v[:, 2], v[:, 1], v[:, 0]], 1) + [xr - 0.03, clear + 0.02, hw - 0.5]
+        add("exhaust_R", "chrome", "chrome", v, f, pair=True)
+    my = belt + 0.05
+    add("paint_mirror_R", "body", "paint",
+        *_box([c1 - 0.18, my, wc + 0.02], [c1 - 0.05, my + 0.12, wc + 0.2], cell / 2), pair=True)
+
+    # ---- interior: floor, seats, dashboard (visible through the glazing)
+    yfl = clear + (0.35 if kind == "bus" else 0.12)
+    ix0, ix1 = (c0 + 0.1, c1 - 0.1)
+    add("interior_floor", "interior", "interior", *_patch(
+        [ix0, yfl, wc - 0.02], [ix1, yfl, wc - 0.02], [ix0, yfl, -wc + 0.02],
+        [ix1, yfl, -wc + 0.02], [0, 1], [0, 1], cell * 2)["panel"])
+    add("interior_dashboard", "interior", "interior", *_box(
+        [c1 - 0.55, belt - 0.3, -wc + 0.08], [c1 - 0.12, belt + 0.04, wc - 0.08], cell))
+
+    def seat(x, z0, z1):
+        cush = _box([x - 0.25, yfl, z0], [x + 0.25, yfl + 0.3, z1], cell)
+        backr = _box([x - 0.32, yfl + 0.3, z0], [x - 0.2, belt + 0.35, z1], cell)
+        return _merge([cush, backr])
+    row0 = c1 - 1.0
+    rows = [row0 - 0.85 * k for k in range(14) if row0 - 0.85 * k - 0.32 > c0 - 0.35]
+    for k, x in enumerate(rows):
+        if k == 0:
+            add("interior_seat_FR", "interior", "interior", *seat(x, 0.12, min(0.65, wc - 0.1)),
+                pair=True)
+        elif kind in ("bus", "van"):
+            add(f"interior_seat_{k}_R", "interior", "interior",
+                *seat(x, 0.12, min(0.65, wc - 0.1)), pair=True)
+        elif k == 1:
+            add("interior_seat_rear", "interior", "interior", *seat(x, -wc + 0.15, wc - 0.15))
+    return parts
+
+
+def _finish(seed: int, kind: str, name: str, parts: list[_Part], messy: Sequence[str],
+            r: np.random.Generator) -> SynthVehicle:
+    """Round to float32, apply the messy traits, build the trimesh scene and the truth."""
+    for q in parts:
+        q.vertices = q.vertices.astype(np.float32).astype(np.float64)
+        q.material = _quantised(q.material)
+    if "missing_wheels" in messy:
+        parts = [q for q in parts if q.part not in ("wheel", "rim")]
+    allv = np.concatenate([q.vertices for q in parts])
+    lo, hi = allv.min(axis=0), allv.max(axis=0)
+    canonical = np.eye(4)
+    canonical[:3, :3] /= np.linalg.norm(hi - lo)
+    canonical[:3, 3] = -(lo + hi) / 2 / np.linalg.norm(hi - lo)
+
+    # node parts (canonical geometry) vs the materials as written
+    mat_part_faces: dict[str, dict[str, int]] = {}
+    if "many_materials" in messy:
+        body_faces = sum(len(q.faces) for q in parts if q.part == "body")
+        chunk = max(2, int(math.ceil(body_faces / MANY_MATERIALS)))
+        split: list[_Part] = []
+        for q in parts:
+            if q.part != "body":
+                split.append(q)
+                continue
+            for k, s in enumerate(range(0, len(q.faces), chunk)):
+                v, f = _compact(q.vertices, q.faces[s:s + chunk])
+                nm = f"{q.node}.{k:03d}"
+                m = Material(**{**q.material.__dict__, "name": nm})
+                split.append(_Part(nm, q.part, m, v, f))
+        parts = split
+    if "merged_materials" in messy:
+        groups = [("paint", lambda q: q.material.name.startswith("paint_")),
+                  ("glass", lambda q: q.part == "window"),
+                  ("wheels", lambda q: q.part in ("wheel", "rim")),
+                  ("lights", lambda q: q.part == "light"),
+                  ("trim", lambda q: q.part in ("chrome", "plate")),
+                  ("interior", lambda q: q.part == "interior")]
+        pick = sorted(r.choice(len(groups), size=int(r.integers(2, 5)), replace=False).tolist())
+        for gi in pick:
+            gname, test = groups[gi]
+            members = [q for q in parts if test(q)]
+            if not members:
+                continue
+            shared = Material(**{**members[0].material.__dict__, "name": gname})
+            for q in members:
+                q.material = shared
+    if "single_material" in messy:
+        shared = Material("Material", parts[0].material.base_color, "OPAQUE", 0.0, 0.5)
+        for q in parts:
+            q.material = shared
+    pairs = _symmetric_pairs(parts)
+    for q in parts:
+        d = mat_part_faces.setdefault(q.material.name, {})
+        d[q.part] = d.get(q.part, 0) + len(q.faces)
+    materials = {m: majority_part(c) for m, c in mat_part_faces.items()}
+
+    # file transform: baked (rotation, units) into vertices, 'offset' on the root node
+    bake = np.eye(4)
+    if "z_up" in messy:          # +Y up -> +Z up
+        bake = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1.0]]) @ bake
+    if "rotated" in messy:
+        q = r.normal(size=4)
+        q /= np.linalg.norm(q)
+        rot = np.eye(4)
+        rot[:3, :3] = _quat_matrix(q)
+        bake = rot @ bake
+    for t, s in UNIT_SCALE.items():
+        if t in messy:
+            bake = np.diag([s, s, s, 1.0]) @ bake
+    root = np.eye(4)
+    if "offset" in messy:
+        root[:3, 3] = r.uniform(-1, 1, 3) * OFFSET
+    file_verts = [q.vertices @ bake[:3, :3].T + bake[:3, 3] for q in parts]
+    file_verts = [v.astype(np.float32).astype(np.float64) for v in file_verts]
+    if "nan_vertex" in messy:
+        i = int(r.integers(len(parts)))
+        file_verts[i][int(r.integers(len(file_verts[i])))] = np.nan
+    file_to_canonical = canonical @ np.linalg.inv(bake) @ np.linalg.inv(root)
+    nodes = parts            # mesh() is the clean car (exactly symmetric, diagonal 1)
+    if "nan_vertex" in messy:
+        nodes = [_Part(q.node, q.part, q.material, fv, q.faces)
+                 for q, fv in zip(parts, file_verts)]
+
+    scene = trimesh.Scene()
+    scene.graph.update(frame_from=scene.graph.base_frame, frame_to=name, matrix=root)
+    pbr: dict[str, _NamedPBR] = {}
+    for q, fv in zip(parts, file_verts):
+        if q.material.name not in pbr:
+            pbr[q.material.name] = _pbr(q.material)
+        tm = trimesh.Trimesh(vertices=fv, faces=q.faces, process=False, validate=False,
+                             visual=TextureVisuals(material=pbr[q.material.name]))
+        scene.add_geometry(tm, node_name=q.node, geom_name=q.node, parent_node_name=name)
+
+    n_tri = int(sum(len(q.faces) for q in parts))
+    reject = next((REJECT_OF[t] for t in messy if t in REJECT_OF), None)
+    truth = {
+        "name": name, "kind": kind, "seed": seed, "materials": materials,
+        "nodes": {q.node: q.part for q in parts},
+        "material_part_faces": mat_part_faces,
+        "symmetric_pairs": [list(pr) for pr in pairs],
+        "expected_reject": reject, "messy": list(messy),
+        "file_to_canonical": file_to_canonical.tolist(), "n_triangles": n_tri,
+        "frame": {"up": "+Y", "front": "+X", "left": "-Z", "unit": "m"},
+    }
+    return SynthVehicle(name, kind, seed, scene, truth, nodes, canonical)
+
+
+def _symmetric_pairs(parts: list[_Part]) -> list[tuple[str, str]]:
+    """(left, right) material pairs of mirror-image nodes: node 'X_L' / 'X_FL' / 'X_L.003'
+    pairs with the same name ending in R; kept when both materials are distinct and are used by
+    that node only (merged materials drop out)."""
+    users: dict[str, int] = {}
+    for q in parts:
+        users[q.material.name] = users.get(q.material.name, 0) + 1
+    by_node = {q.node: q for q in parts}
+    out = set()
+    for q in parts:
+        head, dot, tail = q.node.partition(".")
+        if not head.endswith("L"):
+            continue
+        other = by_node.get(head[:-1] + "R" + dot + tail)
+        if other is None:
+            continue
+        a, b = q.material.name, other.material.name
+        if a != b and users[a] == 1 and users[b] == 1:
+            out.add((a, b))
+    return sorted(out)
+
+
+def _quat_matrix(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
