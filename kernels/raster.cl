@@ -26,7 +26,8 @@
  * vertices in a canonical rotation (first the vertex with the smallest (y, x)) so that duplicate
  * faces listed in another vertex order get identical depths.
  *
- * Work split. raster_small: one work-item per (face, view). A triangle whose clipped bounding
+ * Work split. project_vertices: clip code and snapped position of every (vertex, view), once.
+ * raster_small: one work-item per (face, view). A triangle whose clipped bounding
  * box exceeds BIG_PIXELS pixels is appended to a list instead, and raster_big spreads each listed
  * triangle over LANES work-items (rows interleaved). If the list overflows, the host enlarges it
  * and reruns raster_small: atomic_min is idempotent, so a rerun only repeats work.
@@ -105,91 +106,125 @@ static inline int2 pixel_span(long a, long b, int n) {
     return r;
 }
 
-static inline int owned(long2 a, long2 b) {
+/* Rasterize one snapped triangle into one view's key map, rows row0, row0+step, ...
+ * Instantiated for 64-bit edge functions (any triangle inside the guard band) and for 32-bit
+ * ones, used only when the fixed-point bounding box (xmax - xmin) * (ymax - ymin) is at most
+ * BIG_PIXELS * 256^2 = 2^26: coordinates are taken relative to the first covered pixel centre o,
+ * which lies inside the box, so every x difference is at most xmax - xmin and every y difference
+ * at most ymax - ymin; each edge-function product (an x difference times a y difference) is then
+ * at most 2^26 and every edge function, area and step at most 2^27: exact in 32 bits.
+ */
+#define DEFINE_RASTER_TRIANGLE(NAME, T, VEC)                                                      \
+static void NAME(long2 p0, long2 p1, long2 p2, float z0, float z1, float z2,                  \
+                 uint face, int width, int height, int row0, int row_step,                     \
+                 global ulong *keys) {                                                         \
+    /* canonical rotation: smallest (y, x) first; keeps the winding */                        \
+    int r = 0;                                                                                 \
+    if (p1.y < p0.y || (p1.y == p0.y && p1.x < p0.x)) r = 1;                                   \
+    long2 pr = r ? p1 : p0;                                                                    \
+    if (p2.y < pr.y || (p2.y == pr.y && p2.x < pr.x)) r = 2;                                   \
+    long2 la, lb, lc; float za, zb, zc;                                                        \
+    if (r == 0)      { la = p0; lb = p1; lc = p2; za = z0; zb = z1; zc = z2; }                 \
+    else if (r == 1) { la = p1; lb = p2; lc = p0; za = z1; zb = z2; zc = z0; }                 \
+    else             { la = p2; lb = p0; lc = p1; za = z2; zb = z0; zc = z1; }                 \
+    int2 xs = pixel_span(min(la.x, min(lb.x, lc.x)), max(la.x, max(lb.x, lc.x)), width);       \
+    int2 ys = pixel_span(min(la.y, min(lb.y, lc.y)), max(la.y, max(lb.y, lc.y)), height);      \
+    if (xs.x > xs.y || ys.x > ys.y) return;                                                    \
+    /* origin: the first pixel centre of the box */                                            \
+    long2 o = (long2)((long)xs.x * SUB_ONE + SUB_HALF, (long)ys.x * SUB_ONE + SUB_HALF);        \
+    VEC a = CONVERT_##T(la - o), b = CONVERT_##T(lb - o), c = CONVERT_##T(lc - o);             \
+    T area = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);                           \
+    if (area == 0) return;                                                                     \
+    if (area < 0) {   /* make the winding positive (clockwise on screen, y down) */            \
+        VEC t = b; b = c; c = t;                                                               \
+        float tz = zb; zb = zc; zc = tz;                                                       \
+        area = -area;                                                                          \
+    }                                                                                          \
+    /* edge functions E_ab(P) = (b - a) x (P - a); bias -1 on edges that are not owned */     \
+    T bias_ab = owned_##T(a, b) ? 0 : -1;                                                      \
+    T bias_bc = owned_##T(b, c) ? 0 : -1;                                                      \
+    T bias_ca = owned_##T(c, a) ? 0 : -1;                                                      \
+    /* z = area / (E_bc / za + E_ca / zb + E_ab / zc), without per-vertex reciprocals */       \
+    float wa = zb * zc, wb = za * zc, wc = za * zb, num = (float)area * za * wa;               \
+    T s_ab = -(b.y - a.y) * (T)SUB_ONE, s_bc = -(c.y - b.y) * (T)SUB_ONE,                      \
+      s_ca = -(a.y - c.y) * (T)SUB_ONE;                                                        \
+    for (int i = ys.x + row0; i <= ys.y; i += row_step) {                                      \
+        T py = (T)(i - ys.x) * (T)SUB_ONE;                                                     \
+        T e_ab = (b.x - a.x) * (py - a.y) - (b.y - a.y) * (-a.x);                              \
+        T e_bc = (c.x - b.x) * (py - b.y) - (c.y - b.y) * (-b.x);                              \
+        T e_ca = (a.x - c.x) * (py - c.y) - (a.y - c.y) * (-c.x);                              \
+        global ulong *row = keys + (long)i * width;                                            \
+        for (int j = xs.x; j <= xs.y; ++j) {                                                   \
+            if (e_ab + bias_ab >= 0 && e_bc + bias_bc >= 0 && e_ca + bias_ca >= 0) {           \
+                /* weight of a is E_bc / area, of b is E_ca / area, of c is E_ab / area */     \
+                float den = (float)e_bc * wa + (float)e_ca * wb + (float)e_ab * wc;            \
+                float z = num / den;                                                           \
+                PLOT(row + j, z, face);                                                        \
+            }                                                                                  \
+            e_ab += s_ab; e_bc += s_bc; e_ca += s_ca;                                          \
+        }                                                                                      \
+    }                                                                                          \
+}
+
+#ifdef UCAD_COUNT_COVERAGE    /* test build: count how often each pixel centre is covered */
+#define PLOT(ptr, z, face) atom_add((ptr), 1UL)
+#else
+#define PLOT(ptr, z, face) atom_min((ptr), ((ulong)as_uint(z) << 32) | (ulong)(face))
+#endif
+#define CONVERT_long(x) (x)
+#define CONVERT_int(x) convert_int2(x)
+static inline int owned_long(long2 a, long2 b) {
     long dx = b.x - a.x, dy = b.y - a.y;
     return dy < 0 || (dy == 0 && dx > 0);
 }
+static inline int owned_int(int2 a, int2 b) {
+    int dx = b.x - a.x, dy = b.y - a.y;
+    return dy < 0 || (dy == 0 && dx > 0);
+}
+DEFINE_RASTER_TRIANGLE(raster_triangle64, long, long2)
+DEFINE_RASTER_TRIANGLE(raster_triangle32, int, int2)
 
-/* Rasterize one snapped triangle into one view's key map, rows row0, row0+step, ... */
-static void raster_triangle(long2 p0, long2 p1, long2 p2, float z0, float z1, float z2,
-                            uint face, int width, int height, int row0, int row_step,
-                            global ulong *keys) {
-    /* canonical rotation: smallest (y, x) first; keeps the winding */
-    int r = 0;
-    if (p1.y < p0.y || (p1.y == p0.y && p1.x < p0.x)) r = 1;
-    long2 pr = r ? p1 : p0;
-    if (p2.y < pr.y || (p2.y == pr.y && p2.x < pr.x)) r = 2;
-    long2 a, b, c; float za, zb, zc;
-    if (r == 0)      { a = p0; b = p1; c = p2; za = z0; zb = z1; zc = z2; }
-    else if (r == 1) { a = p1; b = p2; c = p0; za = z1; zb = z2; zc = z0; }
-    else             { a = p2; b = p0; c = p1; za = z2; zb = z0; zc = z1; }
-    long area = (b.x - a.x) * (c.y - a.y) - (b.y - a.y) * (c.x - a.x);
-    if (area == 0) return;
-    if (area < 0) {   /* make the winding positive (clockwise on screen, y down) */
-        long2 t = b; b = c; c = t;
-        float tz = zb; zb = zc; zc = tz;
-        area = -area;
-    }
-    int2 xs = pixel_span(min(a.x, min(b.x, c.x)), max(a.x, max(b.x, c.x)), width);
-    int2 ys = pixel_span(min(a.y, min(b.y, c.y)), max(a.y, max(b.y, c.y)), height);
-    if (xs.x > xs.y || ys.x > ys.y) return;
-
-    /* edge functions E_ab(P) = (b - a) x (P - a); bias -1 on edges that are not owned */
-    long bias_ab = owned(a, b) ? 0 : -1;
-    long bias_bc = owned(b, c) ? 0 : -1;
-    long bias_ca = owned(c, a) ? 0 : -1;
-    float iza = 1.0f / za, izb = 1.0f / zb, izc = 1.0f / zc;
-    float farea = (float)area;
-    long px0 = (long)xs.x * SUB_ONE + SUB_HALF;
-    for (int i = ys.x + row0; i <= ys.y; i += row_step) {
-        long py = (long)i * SUB_ONE + SUB_HALF;
-        long e_ab = (b.x - a.x) * (py - a.y) - (b.y - a.y) * (px0 - a.x);
-        long e_bc = (c.x - b.x) * (py - b.y) - (c.y - b.y) * (px0 - b.x);
-        long e_ca = (a.x - c.x) * (py - c.y) - (a.y - c.y) * (px0 - c.x);
-        long s_ab = -(b.y - a.y) * SUB_ONE, s_bc = -(c.y - b.y) * SUB_ONE,
-             s_ca = -(a.y - c.y) * SUB_ONE;
-        global ulong *row = keys + (long)i * width;
-        for (int j = xs.x; j <= xs.y; ++j) {
-            if (e_ab + bias_ab >= 0 && e_bc + bias_bc >= 0 && e_ca + bias_ca >= 0) {
-                /* barycentric weight of a is E_bc / area, of b is E_ca / area, of c is E_ab / area */
-                float inv = (float)e_bc * iza + (float)e_ca * izb + (float)e_ab * izc;
-                float z = farea / inv;
-#ifdef UCAD_COUNT_COVERAGE    /* test build: count how often each pixel centre is covered */
-                (void)z;
-                atom_add(row + j, 1UL);
-#else
-                ulong key = ((ulong)as_uint(z) << 32) | (ulong)face;
-                atom_min(row + j, key);
-#endif
-            }
-            e_ab += s_ab; e_bc += s_bc; e_ca += s_ca;
-        }
-    }
+/* Per (vertex, view): clip code (bit k set when outside plane k; NaN counts as outside) and, for
+ * a vertex inside every plane, its snapped position. out = (x, y, float bits of w, code). */
+kernel void project_vertices(global const float *verts, global const float *P, raster_params prm,
+                             uint n_verts, global int4 *out) {
+    uint v = get_global_id(0), view = get_global_id(1);
+    if (v >= n_verts || view >= (uint)prm.n_views) return;
+    float W = (float)prm.width, H = (float)prm.height;
+    hvert h = project(P + 12 * view, verts[3 * v], verts[3 * v + 1], verts[3 * v + 2]);
+    int code = 0;
+    for (int k = 0; k < 5; ++k)
+        if (!(plane_dist(h, k, prm.near, W, H) >= 0.0f)) code |= 1 << k;
+    long2 sn = code ? (long2)(0, 0) : snap(h);
+    out[(long)view * n_verts + v] = (int4)((int)sn.x, (int)sn.y, as_int(h.w), code);
 }
 
-/* Clip one face against near plane + guard band and rasterize the pieces.
- * small_pass: if the clipped bounding box is bigger than BIG_PIXELS, push (face, view) instead.
- */
+/* Clip (rarely needed) and rasterize one face in one view.
+ * small_pass: if the bounding box is bigger than BIG_PIXELS, push (face, view) instead. */
 static void raster_face(global const float *verts, global const uint *faces,
-                        global const float *P, raster_params prm, uint face, uint view,
+                        global const float *P, global const int4 *pverts, uint n_verts,
+                        raster_params prm, uint face, uint view,
                         int row0, int row_step, int small_pass,
                         global ulong *keys, global uint *big_list, volatile global uint *big_count) {
-    float W = (float)prm.width, H = (float)prm.height;
     uint i0 = faces[3 * face], i1 = faces[3 * face + 1], i2 = faces[3 * face + 2];
-    global const float *Pv = P + 12 * view;
-    hvert poly[MAX_POLY], tmp[MAX_POLY];
-    poly[0] = project(Pv, verts[3 * i0], verts[3 * i0 + 1], verts[3 * i0 + 2]);
-    poly[1] = project(Pv, verts[3 * i1], verts[3 * i1 + 1], verts[3 * i1 + 2]);
-    poly[2] = project(Pv, verts[3 * i2], verts[3 * i2 + 1], verts[3 * i2 + 2]);
-    int n = 3;
-    for (int k = 0; k < 5; ++k) {
-        float d0 = plane_dist(poly[0], k, prm.near, W, H);
-        float d1 = plane_dist(poly[1], k, prm.near, W, H);
-        float d2 = plane_dist(poly[2], k, prm.near, W, H);
-        if (d0 < 0.0f && d1 < 0.0f && d2 < 0.0f) return;        /* wholly outside one plane */
-        if (!(d0 >= 0.0f && d1 >= 0.0f && d2 >= 0.0f)) n = 0;   /* needs clipping (or NaN) */
-    }
-    if (n == 0) {   /* Sutherland-Hodgman against the five planes */
+    global const int4 *pv = pverts + (long)view * n_verts;
+    int4 q0 = pv[i0], q1 = pv[i1], q2 = pv[i2];
+    if (q0.w & q1.w & q2.w) return;                       /* wholly outside one plane */
+    global ulong *kv = keys + (long)view * prm.width * prm.height;
+    long2 s[MAX_POLY];
+    float zs[MAX_POLY];
+    int n;
+    if ((q0.w | q1.w | q2.w) == 0) {                      /* common case: no clipping */
+        s[0] = (long2)(q0.x, q0.y); s[1] = (long2)(q1.x, q1.y); s[2] = (long2)(q2.x, q2.y);
+        zs[0] = as_float(q0.z); zs[1] = as_float(q1.z); zs[2] = as_float(q2.z);
+        n = 3;
+    } else {                                              /* Sutherland-Hodgman, 5 planes */
+        float W = (float)prm.width, H = (float)prm.height;
+        global const float *Pv = P + 12 * view;
+        hvert poly[MAX_POLY], tmp[MAX_POLY];
+        poly[0] = project(Pv, verts[3 * i0], verts[3 * i0 + 1], verts[3 * i0 + 2]);
+        poly[1] = project(Pv, verts[3 * i1], verts[3 * i1 + 1], verts[3 * i1 + 2]);
+        poly[2] = project(Pv, verts[3 * i2], verts[3 * i2 + 1], verts[3 * i2 + 2]);
         n = 3;
         for (int k = 0; k < 5 && n >= 3; ++k) {
             int m = 0;
@@ -204,45 +239,51 @@ static void raster_face(global const float *verts, global const uint *faces,
             for (int e = 0; e < n; ++e) poly[e] = tmp[e];
         }
         if (n < 3) return;
+        for (int e = 0; e < n; ++e) { s[e] = snap(poly[e]); zs[e] = poly[e].w; }
     }
-    long2 s[MAX_POLY];
-    long xmin = LONG_MAX, xmax = LONG_MIN, ymin = LONG_MAX, ymax = LONG_MIN;
-    for (int e = 0; e < n; ++e) {
-        s[e] = snap(poly[e]);
+    long xmin = s[0].x, xmax = s[0].x, ymin = s[0].y, ymax = s[0].y;
+    for (int e = 1; e < n; ++e) {
         xmin = min(xmin, s[e].x); xmax = max(xmax, s[e].x);
         ymin = min(ymin, s[e].y); ymax = max(ymax, s[e].y);
     }
     if (small_pass) {
         int2 xs = pixel_span(xmin, xmax, prm.width), ys = pixel_span(ymin, ymax, prm.height);
         if (xs.x > xs.y || ys.x > ys.y) return;
-        if ((long)(xs.y - xs.x + 1) * (long)(ys.y - ys.x + 1) > BIG_PIXELS) {
+        /* small: at most BIG_PIXELS pixel centres to visit AND a fixed-point box of at most
+         * BIG_PIXELS square pixels (the 32-bit edge-function bound, see raster_triangle32) */
+        if ((long)(xs.y - xs.x + 1) * (long)(ys.y - ys.x + 1) > BIG_PIXELS ||
+            (xmax - xmin) * (ymax - ymin) > (long)BIG_PIXELS * SUB_ONE * SUB_ONE) {
             uint slot = atomic_inc(big_count);
             if (slot < prm.big_capacity) { big_list[2 * slot] = face; big_list[2 * slot + 1] = view; }
             return;
         }
+        for (int e = 1; e + 1 < n; ++e)   /* fan: (0, e, e+1) */
+            raster_triangle32(s[0], s[e], s[e + 1], zs[0], zs[e], zs[e + 1],
+                              face, prm.width, prm.height, 0, 1, kv);
+    } else {
+        for (int e = 1; e + 1 < n; ++e)
+            raster_triangle64(s[0], s[e], s[e + 1], zs[0], zs[e], zs[e + 1],
+                              face, prm.width, prm.height, row0, row_step, kv);
     }
-    global ulong *kv = keys + (long)view * prm.width * prm.height;
-    for (int e = 1; e + 1 < n; ++e)   /* fan: (0, e, e+1) */
-        raster_triangle(s[0], s[e], s[e + 1], poly[0].w, poly[e].w, poly[e + 1].w,
-                        face, prm.width, prm.height, row0, row_step, kv);
 }
 
 /* One work-item per (face = global id 0, view = global id 1). */
 kernel void raster_small(global const float *verts, global const uint *faces, global const float *P,
-                         raster_params prm, global ulong *keys,
-                         global uint *big_list, volatile global uint *big_count) {
+                         global const int4 *pverts, uint n_verts, raster_params prm,
+                         global ulong *keys, global uint *big_list, volatile global uint *big_count) {
     uint face = get_global_id(0), view = get_global_id(1);
     if (face >= (uint)prm.n_faces || view >= (uint)prm.n_views) return;
-    raster_face(verts, faces, P, prm, face, view, 0, 1, 1, keys, big_list, big_count);
+    raster_face(verts, faces, P, pverts, n_verts, prm, face, view, 0, 1, 1, keys, big_list, big_count);
 }
 
 /* One work-item per (listed triangle = global id 0, lane = global id 1 in [0, LANES)). */
 kernel void raster_big(global const float *verts, global const uint *faces, global const float *P,
-                       raster_params prm, global ulong *keys, global const uint *big_list, uint n_big) {
+                       global const int4 *pverts, uint n_verts, raster_params prm,
+                       global ulong *keys, global const uint *big_list, uint n_big) {
     uint entry = get_global_id(0), lane = get_global_id(1), lanes = get_global_size(1);
     if (entry >= n_big) return;
-    raster_face(verts, faces, P, prm, big_list[2 * entry], big_list[2 * entry + 1], (int)lane,
-                (int)lanes, 0, keys, 0, 0);
+    raster_face(verts, faces, P, pverts, n_verts, prm, big_list[2 * entry], big_list[2 * entry + 1],
+                (int)lane, (int)lanes, 0, keys, 0, 0);
 }
 
 /* Keys -> triangle id, material id (= face material + 1, 0 background), depth (+inf background). */

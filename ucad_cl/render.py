@@ -63,6 +63,7 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
     import pyopencl as cl
 
     opts = BUILD_OPTIONS + (("-DUCAD_COUNT_COVERAGE",) if count else ())
+    k_project = rt.kernel("raster", "project_vertices", opts)
     k_small = rt.kernel("raster", "raster_small", opts)
     k_big = rt.kernel("raster", "raster_big", opts)
     k_resolve = rt.kernel("raster", "resolve_maps", opts)
@@ -77,7 +78,9 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
     d_fmat = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=fmat)
     P_all = projection_matrices(ring)
 
-    chunk = max(1, min(V, int(max_key_bytes // (8 * npix))))
+    n_verts = int(verts.shape[0])
+    # views per launch: key buffer (8 B/pixel) and projected vertices (16 B/vertex) both bounded
+    chunk = max(1, min(V, int(max_key_bytes // (8 * npix)), int(max_key_bytes // (16 * n_verts))))
     tri = np.empty((V, H, W), np.uint32)
     mat = np.empty((V, H, W), np.uint16)
     dep = np.empty((V, H, W), np.float32)
@@ -87,6 +90,7 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
     d_mat = cl.Buffer(ctx, mf.WRITE_ONLY, 2 * chunk * npix)
     d_dep = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * chunk * npix)
     d_count = cl.Buffer(ctx, mf.READ_WRITE, 4)
+    d_pverts = cl.Buffer(ctx, mf.READ_WRITE, 16 * chunk * n_verts)
     big_cap = 4096
     d_big = cl.Buffer(ctx, mf.READ_WRITE, 8 * big_cap)
     stats.upload = time.perf_counter() - t0
@@ -97,11 +101,16 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
         d_P = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=P_all[v0:v0 + nv].copy())
         cl.enqueue_fill_buffer(q, d_keys, np.uint64(0 if count else 0xFFFFFFFFFFFFFFFF), 0,
                                8 * nv * npix)
+        prm = np.array([(W, H, faces.shape[0], nv, ring.near, big_cap)], PARAMS_DTYPE)
+        cl.enqueue_nd_range_kernel(
+            q, _args(k_project, d_verts, d_P, prm, np.uint32(n_verts), d_pverts),
+            (_round_up(n_verts, 64), nv), (64, 1))
         while True:   # small triangles; large ones are listed (list grows and pass reruns)
             prm = np.array([(W, H, faces.shape[0], nv, ring.near, big_cap)], PARAMS_DTYPE)
             cl.enqueue_fill_buffer(q, d_count, np.uint32(0), 0, 4)
             cl.enqueue_nd_range_kernel(
-                q, _args(k_small, d_verts, d_faces, d_P, prm, d_keys, d_big, d_count),
+                q, _args(k_small, d_verts, d_faces, d_P, d_pverts, np.uint32(n_verts), prm, d_keys,
+                         d_big, d_count),
                 (_round_up(faces.shape[0], local_size), nv), (local_size, 1))
             n_big_arr = np.zeros(1, np.uint32)
             cl.enqueue_copy(q, n_big_arr, d_count)
@@ -113,7 +122,8 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
             stats.reruns += 1
         if n_big:
             cl.enqueue_nd_range_kernel(
-                q, _args(k_big, d_verts, d_faces, d_P, prm, d_keys, d_big, np.uint32(n_big)),
+                q, _args(k_big, d_verts, d_faces, d_P, d_pverts, np.uint32(n_verts), prm, d_keys,
+                         d_big, np.uint32(n_big)),
                 (n_big, LANES), (1, LANES))
         stats.big_triangles += n_big
         q.finish()
