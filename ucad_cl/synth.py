@@ -103,12 +103,14 @@ def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
 
 def write_library(out_dir: str | Path, count: int, seed: int, *, messy_fraction: float = 0.3,
                   progress: bool = True, kinds: Sequence[str] | None = None,
-                  huge_triangles: int | None = None, detail: int = 1) -> list[Path]:
+                  huge_triangles: int | None = None, detail: int = 1,
+                  target_triangles: int | None = None) -> list[Path]:
     """Write ``count`` vehicles as ``NAME.glb`` + ``NAME.json`` (the truth); returns the GLB paths.
 
     A share ``messy_fraction`` of the vehicles (every k-th, deterministically) gets one messy
     trait, cycling through the traits so that all of them occur, and every other messy vehicle
     also a random pose trait. The 'huge' trait is only used when ``huge_triangles`` is given.
+    ``target_triangles`` sizes every other vehicle (e.g. 50,000 for benchmarks).
     Same arguments -> same bytes.
     """
     if count < 0:
@@ -143,7 +145,7 @@ def write_library(out_dir: str | Path, count: int, seed: int, *, messy_fraction:
             k += 1
         kind = kinds[int(kind_idx[i])]
         v = make_vehicle(int(vseeds[i]), kind, detail=detail, messy=traits_i,
-                         target_triangles=huge_triangles if "huge" in traits_i else None,
+                         target_triangles=huge_triangles if "huge" in traits_i else target_triangles,
                          name=f"synth_{i:05d}_{kind}")
         paths.append(v.write(out))
     return paths

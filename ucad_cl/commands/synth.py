@@ -20,6 +20,8 @@ def register(sub) -> None:
                    help=f"vehicle kinds to draw from (default all: {' '.join(KINDS)})")
     p.add_argument("--detail", type=int, default=1,
                    help="tessellation factor, triangles grow ~detail^2 (default 1: ~20-35k)")
+    p.add_argument("--triangles", type=int, default=None, metavar="N",
+                   help="size every vehicle to about N triangles (overrides --detail)")
     p.add_argument("--huge-triangles", type=int, default=None, metavar="N",
                    help="also use the 'huge' trait, with about N triangles (off by default)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -32,7 +34,7 @@ def run(args) -> int:
         paths = write_library(args.out, args.count, args.seed,
                               messy_fraction=args.messy_fraction, progress=not args.no_progress,
                               kinds=args.kinds, huge_triangles=args.huge_triangles,
-                              detail=args.detail)
+                              detail=args.detail, target_triangles=args.triangles)
     except ValueError as exc:
         print(f"ucad-index synth: {exc}", file=sys.stderr)
         return 2

@@ -1,0 +1,100 @@
+"""Catalogue build throughput: meshes/s, time per stage, peak memory, disk per mesh.
+
+Generates (once, cached in --library) a library of procedural vehicles of about --triangles
+triangles with the usual messy share, then builds it with the local engine at each --workers
+count into a fresh catalogue, sampling the resident memory of the whole process tree (driver +
+workers) every 0.5 s to show it stays flat. Defaults are the acceptance configuration:
+1,000 vehicles, 50k triangles, 72 views x 256 px, prior segmenter.
+
+    python bench/build.py                              # the full run (long)
+    python bench/build.py --count 40 --workers 1 2     # quick look
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def tree_rss_mb(pid: int) -> float:
+    import psutil
+    try:
+        p = psutil.Process(pid)
+        procs = [p] + p.children(recursive=True)
+    except psutil.Error:
+        return 0.0
+    total = 0
+    for q in procs:
+        try:
+            total += q.memory_info().rss
+        except psutil.Error:
+            pass
+    return total / 2**20
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--count", type=int, default=1000)
+    ap.add_argument("--triangles", type=int, default=50_000)
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--library", type=Path, default=Path("/tmp/ucad-bench-library"))
+    ap.add_argument("--catalog", type=Path, default=Path("/tmp/ucad-bench-catalog"))
+    ap.add_argument("--azimuth-step", type=float, default=5.0)
+    ap.add_argument("--size", type=int, default=256)
+    args = ap.parse_args()
+
+    from ucad_cl.build import BuildOptions, build
+    from ucad_cl.synth import write_library
+
+    lib = args.library / f"n{args.count}_t{args.triangles}"
+    if not (lib / ".complete").exists():
+        shutil.rmtree(lib, ignore_errors=True)
+        t0 = time.perf_counter()
+        write_library(lib, args.count, seed=2026, target_triangles=args.triangles)
+        (lib / ".complete").write_text("ok")
+        print(f"generated {args.count} vehicles in {time.perf_counter() - t0:.0f} s -> {lib}")
+    opts = BuildOptions(azimuth_step=args.azimuth_step, size=args.size)
+    rows = []
+    for w in args.workers:
+        cat = args.catalog / f"w{w}"
+        shutil.rmtree(cat, ignore_errors=True)
+        samples: list[tuple[float, float]] = []
+        stop = threading.Event()
+
+        def sample():
+            t0 = time.perf_counter()
+            while not stop.is_set():
+                samples.append((time.perf_counter() - t0, tree_rss_mb(os.getpid())))
+                stop.wait(0.5)
+
+        th = threading.Thread(target=sample, daemon=True)
+        th.start()
+        s = build(lib, cat, opts, workers=w, progress=True, log=lambda *a: None)
+        stop.set()
+        th.join()
+        disk = sum(f.stat().st_size for f in cat.rglob("*") if f.is_file())
+        n = max(s.processed, 1)
+        rss = [r for _, r in samples]
+        q = lambda f: rss[min(len(rss) - 1, int(f * len(rss)))] if rss else 0.0
+        rows.append((w, s, disk / n, max(rss) if rss else 0.0, q(0.25), q(0.5), q(0.95)))
+        print(f"workers {w}: {s.processed} meshes ({s.accepted} accepted, {s.rejected} rejected: "
+              f"{s.reasons}) in {s.seconds:.0f} s")
+        stage = {k: v / n for k, v in sorted(s.stage_seconds.items(), key=lambda kv: -kv[1])}
+        print("  seconds per mesh by stage (summed over workers): "
+              + ", ".join(f"{k} {v:.3f}" for k, v in stage.items()))
+    print()
+    print(f"{'workers':>7} {'meshes':>6} {'meshes/s':>9} {'peak tree MB':>12} "
+          f"{'RSS@25%':>8} {'RSS@50%':>8} {'RSS@95%':>8} {'disk/mesh MB':>12}")
+    for w, s, dpm, peak, r25, r50, r95 in rows:
+        print(f"{w:>7} {s.processed:>6} {s.meshes_per_s:>9.2f} {peak:>12.0f} {r25:>8.0f} {r50:>8.0f} "
+              f"{r95:>8.0f} {dpm / 2**20:>12.2f}")
+
+
+if __name__ == "__main__":
+    main()

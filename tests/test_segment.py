@@ -1,0 +1,326 @@
+"""Segmenters: masks folder round trip and errors, a real ONNX model (built here with ``onnx``),
+and the offline prior segmenter (names in many languages, properties, geometry)."""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from ucad_cl.classify import classify_parts
+from ucad_cl.segment import (MasksSegmenter, OnnxSegmenter, PriorSegmenter, material_colors,
+                             material_image, name_prior, write_masks)
+from ucad_cl.types import PART_NAMES, CameraRing, Material, Mesh, PartMasks, ViewSet
+
+
+def flat_views(mat_id: np.ndarray) -> ViewSet:
+    V, H, W = mat_id.shape
+    ring = CameraRing(K=np.eye(3), w2c=np.tile(np.eye(4), (V, 1, 1)), width=W, height=H,
+                      azimuth=np.zeros(V), elevation=np.zeros(V), distance=1.0, near=0.01)
+    return ViewSet(cameras=ring, tri_id=np.zeros((V, H, W), np.uint32),
+                   mat_id=mat_id.astype(np.uint16), depth=np.zeros((V, H, W), np.float32))
+
+
+def flat_mesh(n_mat: int, sha: str = "ab" * 32) -> Mesh:
+    return Mesh(path="hand-made", sha256=sha, vertices=np.zeros((0, 3)),
+                faces=np.zeros((0, 3), np.uint32), face_material=np.zeros(0, np.uint16),
+                materials=[Material(name=f"m{i}") for i in range(n_mat)])
+
+
+# -- masks folder -------------------------------------------------------------------------------
+def test_masks_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    V, P, H, W = 3, len(PART_NAMES), 12, 17
+    masks = rng.random((V, P, H, W)) < 0.2
+    masks[1, 4] = False                                  # an empty mask: no file, conf 0
+    conf = np.where(masks.any(axis=(2, 3)), rng.random((V, P)), 0).astype(np.float32)
+    pm = PartMasks(list(PART_NAMES), masks, conf)
+    mesh = flat_mesh(1)
+    base = write_masks(tmp_path, mesh.sha256, pm)
+    assert not (base / "view_001" / f"{PART_NAMES[4]}.png").exists()
+    got = MasksSegmenter(tmp_path).segment(mesh, flat_views(np.zeros((V, H, W), np.uint16)))
+    assert got.parts == list(PART_NAMES)
+    np.testing.assert_array_equal(got.masks, masks)
+    np.testing.assert_array_equal(got.confidence, conf)
+
+
+def test_masks_missing_files_and_confidence(tmp_path):
+    import cv2
+
+    mesh = flat_mesh(1)
+    d = tmp_path / mesh.sha256 / "view_001"
+    d.mkdir(parents=True)
+    img = np.zeros((8, 9), np.uint8)
+    img[2:5, 3:7] = 200
+    img[6, 0] = 127                                      # not > 127: outside the mask
+    cv2.imwrite(str(d / "window.png"), img)
+    got = MasksSegmenter(tmp_path).segment(mesh, flat_views(np.zeros((2, 8, 9), np.uint16)))
+    assert not got.masks[0].any() and not got.confidence[0].any()
+    w = PART_NAMES.index("window")
+    np.testing.assert_array_equal(got.masks[1, w], img > 127)
+    assert got.confidence[1, w] == 1.0                   # no confidence.json: 1 for a present mask
+    (tmp_path / mesh.sha256 / "confidence.json").write_text(json.dumps({"1": {"window": 0.25}}))
+    got = MasksSegmenter(tmp_path).segment(mesh, flat_views(np.zeros((2, 8, 9), np.uint16)))
+    assert got.confidence[1, w] == np.float32(0.25)
+
+
+def test_masks_errors_name_the_file(tmp_path):
+    import cv2
+
+    mesh = flat_mesh(1)
+    d = tmp_path / mesh.sha256 / "view_000"
+    d.mkdir(parents=True)
+    cv2.imwrite(str(d / "wheel.png"), np.zeros((10, 10), np.uint8))
+    with pytest.raises(ValueError, match=r"view_000/wheel\.png.*10x10.*8x6"):
+        MasksSegmenter(tmp_path).segment(mesh, flat_views(np.zeros((1, 6, 8), np.uint16)))
+    cv2.imwrite(str(d / "wheel.png"), np.zeros((6, 8), np.uint16))
+    with pytest.raises(ValueError, match=r"wheel\.png.*8-bit"):
+        MasksSegmenter(tmp_path).segment(mesh, flat_views(np.zeros((1, 6, 8), np.uint16)))
+    (d / "wheel.png").unlink()
+    (tmp_path / mesh.sha256 / "confidence.json").write_text("{not json")
+    with pytest.raises(ValueError, match="confidence.json"):
+        MasksSegmenter(tmp_path).segment(mesh, flat_views(np.zeros((1, 6, 8), np.uint16)))
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        MasksSegmenter(tmp_path / "nowhere")
+
+
+# -- ONNX ---------------------------------------------------------------------------------------
+CLASSES = {"0": "background", "1": "window", "2": "light", "3": "plate"}
+WEIGHTS = np.array([[-10, -10, -10], [10, 0, 0], [0, 10, 0], [0, 0, 10]], np.float32)
+BIAS = np.array([1, 0, 0, 0], np.float32)
+
+
+def build_onnx(path, argmax: bool):
+    """A 1x1 convolution RGB -> 4 logits (background, red, green, blue); optionally ArgMax."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    nodes = [helper.make_node("Conv", ["image", "w", "b"], ["logits"])]
+    out = helper.make_tensor_value_info("logits", TensorProto.FLOAT, ["N", 4, "H", "W"])
+    if argmax:
+        nodes.append(helper.make_node("ArgMax", ["logits"], ["classes"], axis=1, keepdims=0))
+        out = helper.make_tensor_value_info("classes", TensorProto.INT64, ["N", "H", "W"])
+    graph = helper.make_graph(
+        nodes, "tiny_seg",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, ["N", 3, "H", "W"])], [out],
+        initializer=[numpy_helper.from_array(WEIGHTS.reshape(4, 3, 1, 1), "w"),
+                     numpy_helper.from_array(BIAS, "b")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return path
+
+
+def blocky_maps(V=3, H=32, W=32, n_ids=9, seed=0):
+    rng = np.random.default_rng(seed)
+    blocks = rng.integers(0, n_ids, (V, H // 8, W // 8)).astype(np.uint16)
+    return np.kron(blocks, np.ones((8, 8), np.uint16))
+
+
+def numpy_reference(mat_id):
+    """Independent reference: the model's maths on the colour-coded maps, in NumPy."""
+    x = material_colors(int(mat_id.max()) + 1)[mat_id].astype(np.float64) / 255.0
+    z = np.einsum("vhwc,kc->vkhw", x, WEIGHTS.astype(np.float64)) + BIAS[None, :, None, None]
+    e = np.exp(z - z.max(axis=1, keepdims=True))
+    prob = e / e.sum(axis=1, keepdims=True)
+    return prob.argmax(axis=1), prob.max(axis=1)
+
+
+def test_onnx_logits_model(tmp_path):
+    mat = blocky_maps()
+    cls, pmax = numpy_reference(mat)
+    seg = OnnxSegmenter(build_onnx(tmp_path / "m.onnx", argmax=False),
+                        {"classes": CLASSES, "input_size": [32, 32], "batch": 2})
+    got = seg.segment(flat_mesh(8), flat_views(mat))
+    assert got.masks.shape == (3, len(PART_NAMES), 32, 32)
+    for k, part in CLASSES.items():
+        if part not in PART_NAMES:
+            continue
+        p = PART_NAMES.index(part)
+        np.testing.assert_array_equal(got.masks[:, p], cls == int(k))
+        for v in range(3):
+            inside = cls[v] == int(k)
+            want = pmax[v][inside].mean() if inside.any() else 0.0
+            assert got.confidence[v, p] == pytest.approx(want, rel=1e-5)
+    assert got.masks[:, [PART_NAMES.index(p) for p in ("body", "wheel", "rim")]].sum() == 0
+    assert not got.masks.any(axis=1)[mat == 0].any()      # background colour -> class 0
+
+
+def test_onnx_class_map_model_with_resize(tmp_path):
+    mat = blocky_maps(H=64, W=64)                         # 8 px blocks survive 2x nearest
+    cls, _ = numpy_reference(mat)
+    seg = OnnxSegmenter(build_onnx(tmp_path / "c.onnx", argmax=True),
+                        {"classes": CLASSES, "input_size": [32, 32]})
+    got = seg.segment(flat_mesh(8), flat_views(mat))
+    for k, part in CLASSES.items():
+        if part in PART_NAMES:
+            p = PART_NAMES.index(part)
+            np.testing.assert_array_equal(got.masks[:, p], cls == int(k))
+            assert set(np.unique(got.confidence[:, p])) <= {0.0, 1.0}
+    # and the masks drive classification: the material of each block gets its colour's class
+    table = classify_parts(flat_mesh(8), flat_views(mat), got, symmetry=False)
+    colors = material_colors(9).astype(int)
+    seen = [r for r in table.rows if r.part != "unseen"]
+    assert len(seen) == len(np.unique(mat[mat > 0]))
+    for r in seen:                                         # red -> window, green -> light, ...
+        assert r.part == CLASSES[str(int(np.argmax(colors[r.material + 1])) + 1)]
+
+
+def test_onnx_bad_config_and_output(tmp_path):
+    import onnx
+    from onnx import TensorProto, helper
+
+    graph = helper.make_graph(
+        [helper.make_node("ReduceMean", ["image"], ["y"], axes=[1], keepdims=0)], "bad",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, ["N", 3, "H", "W"])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", "H", "W"])])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    onnx.save(model, str(tmp_path / "bad.onnx"))
+    seg = OnnxSegmenter(tmp_path / "bad.onnx", {"classes": CLASSES, "input_size": [8, 8]})
+    with pytest.raises(ValueError, match=r"bad\.onnx: output must be"):
+        seg.segment(flat_mesh(2), flat_views(np.ones((1, 8, 8), np.uint16)))
+    with pytest.raises(ValueError, match="input_size"):
+        OnnxSegmenter(tmp_path / "x.onnx", {"classes": CLASSES})
+    with pytest.raises(FileNotFoundError, match="x.onnx"):
+        OnnxSegmenter(tmp_path / "x.onnx", {"classes": CLASSES, "input_size": [8, 8]})
+
+
+# -- priors -------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name,part", [
+    ("Glass_Gray", "window"), ("Windschutzscheibe", "window"), ("vitre_avant", "window"),
+    ("ventana", "window"), ("vetro", "window"), ("フロントガラス", "window"), ("车窗玻璃", "window"),
+    ("стекло", "window"), ("Tires", "wheel"), ("Reifen", "wheel"), ("neumático", "wheel"),
+    ("タイヤ", "wheel"), ("轮胎", "wheel"), ("шина", "wheel"), ("Felge_VL", "rim"), ("jante", "rim"),
+    ("llanta", "rim"), ("cerchio", "rim"), ("轮毂", "rim"), ("Scheinwerfer", "light"),
+    ("phare_avant", "light"), ("faro", "light"), ("Taillight_Glass", "light"), ("ライト", "light"),
+    ("尾灯", "light"), ("фара", "light"), ("chrome", "chrome"), ("window_trim", "window"),
+    ("Kennzeichen", "plate"), ("plaque", "plate"), ("matrícula", "plate"), ("targa", "plate"),
+    ("ナンバー", "plate"), ("牌照", "plate"), ("Interior_light", "interior"), ("Sitz", "interior"),
+    ("siège", "interior"), ("asiento", "interior"), ("Leather_red", "interior"),
+    ("Body_Color", "body"), ("Karosserie", "body"), ("carrosserie", "body"), ("carrocería", "body"),
+    ("ボディ", "body"), ("车身", "body"), ("кузов", "body"), ("paint_window_sill_L", "body"),
+    ("BodyPaint", "body"), ("Material.001", None), ("Blackboard", None)])
+def test_name_prior_languages(name, part):
+    assert name_prior(name) == part
+
+
+def _anonymous(mesh: Mesh) -> Mesh:
+    return replace(mesh, materials=[replace(m, name=f"Material.{i:03d}")
+                                    for i, m in enumerate(mesh.materials)])
+
+
+@pytest.fixture(scope="module")
+def synth_rendered(runtime):
+    synth = pytest.importorskip("ucad_cl.synth")
+    from ucad_cl.cameras import make_ring
+    from ucad_cl.render import render_views
+
+    ring = make_ring(azimuth_step=15.0, elevations=(15.0,), size=128)
+    out = []
+    for seed in range(4):
+        veh = synth.make_vehicle(seed)
+        mesh = veh.mesh()
+        truth = {i: veh.truth["materials"][m.name] for i, m in enumerate(mesh.materials)}
+        out.append((mesh, render_views(mesh, ring), truth))
+    return out
+
+
+def test_prior_masks_follow_material_guesses(synth_rendered):
+    mesh, views, _ = synth_rendered[0]
+    seg = PriorSegmenter()
+    prob = seg.guess(mesh, views)
+    np.testing.assert_allclose(prob.sum(axis=1), 1.0)
+    pm = seg.segment(mesh, views)
+    fg = views.mat_id > 0
+    np.testing.assert_array_equal(pm.masks.sum(axis=1), fg.astype(int))  # one part per pixel
+    part_of = prob.argmax(axis=1)
+    for v in (0, 5):
+        for p in range(len(PART_NAMES)):
+            pix = fg[v] & (part_of[np.maximum(views.mat_id[v].astype(int) - 1, 0)] == p)
+            np.testing.assert_array_equal(pm.masks[v, p], pix)
+            if pix.any():
+                want = prob[views.mat_id[v][pix].astype(int) - 1, p].mean()
+                assert pm.confidence[v, p] == pytest.approx(want, rel=1e-6)
+            else:
+                assert pm.confidence[v, p] == 0
+    assert np.array_equal(seg.segment(mesh, views).masks, pm.masks)       # deterministic
+
+
+def test_prior_with_meaningless_names_synth(synth_rendered):
+    ok = n = 0
+    for mesh, views, truth in synth_rendered:
+        anon = _anonymous(mesh)
+        for r in classify_parts(anon, views, PriorSegmenter().segment(anon, views)).rows:
+            if r.part != "unseen":
+                n += 1
+                ok += r.part == truth[r.material]
+    assert ok / n >= 0.80, ok / n
+
+
+def test_prior_properties_decide_without_names(synth_rendered):
+    """Transparent -> window, emissive -> light, dark tyres low at the corners -> wheel."""
+    mesh, views, truth = synth_rendered[0]
+    prob = PriorSegmenter().guess(_anonymous(mesh), views)
+    for m, mat in enumerate(mesh.materials):
+        guess = PART_NAMES[int(prob[m].argmax())]
+        if mat.alpha_mode == "BLEND" or mat.transmission > 0:
+            assert guess == "window" == truth[m], mat.name
+        if max(mat.emissive) > 0.1:
+            assert guess == "light" == truth[m], mat.name
+        if truth[m] == "wheel":
+            assert guess == "wheel", mat.name
+
+
+def test_prior_real_vehicles_meaningless_names(vehicles_dir, runtime):
+    """Regression guard for bench/parts.py (which prints the per-model table)."""
+    from ucad_cl.cameras import make_ring
+    from ucad_cl.ingest import load_mesh
+    from ucad_cl.render import render_views
+
+    manifest = {m["file"]: m["materials"]
+                for m in json.loads((vehicles_dir / "manifest.json").read_text())["models"]}
+    ring = make_ring(azimuth_step=30.0, elevations=(15.0, 45.0), size=96)
+    ok = n = 0
+    for f in ("o3dv_car.glb", "openmaterial_vehicle/vehicle_example.gltf",
+              "openmaterial_truck/truck_example.gltf", "ferrari_348_lowpoly.glb",
+              "a_frame_car/car.obj", "cesium_milk_truck.glb"):
+        mesh = load_mesh(vehicles_dir / f)
+        anon = _anonymous(mesh)
+        views = render_views(mesh, ring)
+        for r in classify_parts(anon, views, PriorSegmenter().segment(anon, views)).rows:
+            if r.part != "unseen":
+                n += 1
+                ok += r.part == manifest[f][mesh.materials[r.material].name]
+    assert ok / n >= 0.70, ok / n
+
+
+def test_material_image_is_fixed_palette():
+    mat = np.array([[[0, 1, 2], [2, 1, 0]]], np.uint16)
+    img = material_image(mat)
+    assert img.shape == (1, 2, 3, 3) and img.dtype == np.uint8
+    assert (img[0, 0, 0] == 0).all() and (img[0, 0, 1] == img[0, 1, 1]).all()
+    cols = material_colors(64)
+    assert len({tuple(c) for c in cols}) == 64                            # distinct colours
+
+
+def test_cli_parts_writes_table_and_sheet(vehicles_dir, tmp_path, runtime):
+    import csv
+
+    from ucad_cl.cli import main
+
+    out = tmp_path / "out"
+    rc = main(["parts", str(vehicles_dir / "o3dv_car.glb"), "--out", str(out),
+               "--azimuth-step", "90", "--size", "64"])
+    assert rc == 0
+    rows = list(csv.DictReader(open(out / "o3dv_car.parts.csv", encoding="utf-8")))
+    assert [r["name"] for r in rows][:2] == ["Body Material", "Glass Material"]
+    assert rows[0]["part"] == "body" and rows[1]["part"] == "window"
+    assert json.loads((out / "o3dv_car.parts.json").read_text())[0]["part"] == "body"
+    import cv2
+    sheet = cv2.imread(str(out / "o3dv_car.parts.png"))
+    assert sheet is not None and sheet.shape[0] >= 64
+    assert main(["parts", "x.glb", "--segmenter", "onnx", "m.onnx"]) == 2       # no config
+    assert main(["parts", str(vehicles_dir / "missing.glb"), "--out", str(out)]) == 1
