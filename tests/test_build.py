@@ -174,3 +174,32 @@ def test_real_models_build_without_crash(vehicles_dir, tmp_path, runtime):
     assert kenney["state"] == "rejected" and kenney["reason"] == "too_few_materials"
     for name in ("o3dv_car.glb", "ferrari_458.glb", "cesium_milk_truck.glb"):
         assert content[name]["state"] == "accepted", content[name]
+
+
+def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
+    """`ucad-index pose IMAGE --box ... --catalog PATH`: the right mesh and the nearest view."""
+    import cv2
+
+    from ucad_cl.cameras import make_ring
+    from ucad_cl.cli import main
+    from ucad_cl.ingest import load_mesh
+    from ucad_cl.render import render_views
+    from ucad_cl.shade import shade_views
+
+    cat = tmp_path / "cat"
+    build(library, cat, BuildOptions(azimuth_step=30.0, size=128), progress=False,
+          log=lambda *a: None)
+    target = sorted(library.glob("synth_*.glb"))[3]
+    mesh = load_mesh(target)
+    views = render_views(mesh, make_ring(azimuths=[100.0], elevations=[12.0], size=(200, 160)))
+    img = shade_views(mesh, views, background=(70, 110, 50))[0]
+    ys, xs = np.nonzero(np.isfinite(views.depth[0]))
+    ref = tmp_path / "ref.png"
+    cv2.imwrite(str(ref), np.ascontiguousarray(img[:, :, ::-1]))
+    box = [str(v) for v in (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)]
+    assert main(["pose", str(ref), "--box", *box, "--catalog", str(cat), "--top", "3"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    best = lines[1].split()
+    assert best[-2] == str(target) and float(best[1]) in (90.0, 120.0), lines
+    assert (tmp_path / "ref_pose.png").exists()
+    assert main(["pose", str(ref), "--box", *box]) == 2           # neither MESH nor --catalog

@@ -248,7 +248,9 @@ class Pipeline:
             lap("features")
         artifacts["parts.png"] = parts_sheet_png(views, table)
         lap("write")
-        view_stats = [{"visible_pixels": int(np.count_nonzero(views.mat_id[v]))}
+        from .pose import _box_side
+        view_stats = [{"visible_pixels": int(np.count_nonzero(views.mat_id[v])),
+                       "box_side": float(_box_side(views.mat_id[v] > 0))}
                       for v in range(views.n_views)]
         return CatalogEntry.from_results(
             sha256=mesh.sha256, path=ref.path, size=ref.size, mtime=ref.mtime,

@@ -30,7 +30,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    # argparse cannot match an optional positional that follows options ("pose IMAGE --box ...
+    # MESH"); a sub-command names such a positional with set_defaults(late_positional=NAME)
+    late = getattr(args, "late_positional", None)
+    if late and len(extra) == 1 and not extra[0].startswith("-") and getattr(args, late) is None:
+        setattr(args, late, type(args.image)(extra[0]) if hasattr(args, "image") else extra[0])
+        extra = []
+    if extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     if args.device:
         import os
         os.environ["UCAD_CL_DEVICE"] = args.device

@@ -17,7 +17,8 @@ def register(sub) -> None:
                                    "renders of MESH on a camera ring, refine around the best "
                                    "views and print the best candidates.")
     p.add_argument("image", type=Path, help="reference photo (PNG/JPEG, RGB)")
-    p.add_argument("mesh", type=Path, help="vehicle model (glb/gltf/obj) to match")
+    p.add_argument("mesh", type=Path, nargs="?", default=None,
+                   help="vehicle model (glb/gltf/obj) to match; omit with --catalog")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
                    help="object box in pixels (x1, y1 exclusive)")
@@ -31,10 +32,10 @@ def register(sub) -> None:
                    help="use this ONNX image encoder instead of the built-in HOG features")
     p.add_argument("--out", type=Path, default=None,
                    help="side-by-side PNG (default: IMAGE stem + '_pose.png' next to it)")
-    # Hook for the lead: --catalog PATH will search stored ring features of many meshes with
-    # ucad_cl.pose.search_catalog (then MESH becomes optional).
-    p.add_argument("--catalog", type=Path, default=None, help=argparse.SUPPRESS)
-    p.set_defaults(func=run)
+    p.add_argument("--catalog", type=Path, default=None, metavar="PATH",
+                   help="search every stored view of every accepted mesh of this catalogue "
+                        "(built-in features) instead of rendering one MESH")
+    p.set_defaults(func=run, late_positional="mesh")
 
 
 def run(args) -> int:
@@ -45,8 +46,8 @@ def run(args) -> int:
     from ..ingest import IngestError, load_mesh
     from ..pose import estimate_pose
 
-    if args.catalog is not None:
-        print("--catalog is not wired yet: give MESH", file=sys.stderr)
+    if (args.catalog is None) == (args.mesh is None):
+        print("give either MESH or --catalog PATH", file=sys.stderr)
         return 2
     bgr = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
     if bgr is None:
@@ -60,6 +61,8 @@ def run(args) -> int:
             print(f"{args.mask}: cannot read the mask", file=sys.stderr)
             return 2
         mask = m > 0
+    if args.catalog is not None:
+        return run_catalog(args, image, mask)
     try:
         mesh = load_mesh(args.mesh)
     except IngestError as exc:
@@ -81,6 +84,74 @@ def run(args) -> int:
     out = args.out or args.image.with_name(args.image.stem + "_pose.png")
     side = side_by_side(image, mask, args.box, mesh, cands[0], crop_square)
     cv2.imwrite(str(out), side[:, :, ::-1])
+    print(f"wrote {out}")
+    return 0
+
+
+def run_catalog(args, image, mask) -> int:
+    """Nearest stored views across the whole catalogue (the features the build stored)."""
+    import cv2
+    import numpy as np
+
+    from ucad_catalog._db import CatalogError
+    from ucad_catalog.reader import CatalogReader
+
+    from ..features import HogExtractor, crop_square
+    from ..ingest import IngestError, load_mesh
+    from ..pose import PoseCandidate, _box_side, reference_mask, search_catalog
+
+    try:
+        reader = CatalogReader(args.catalog)
+    except CatalogError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    with reader as r:
+        metas = r.meshes()
+        feats, mesh_ids, views, az, el, sides, dist = [], [], [], [], [], [], []
+        for k, m in enumerate(metas):
+            try:
+                f = r.features(m.sha256)
+            except (CatalogError, KeyError):
+                continue                      # built with --no-features
+            rec = r.record(m.sha256)
+            for v in rec["views"]:
+                w2c = np.asarray(v["w2c"], np.float64)
+                dist.append(float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3])))
+                sides.append(float(v["stats"].get("box_side", np.nan))
+                             / min(np.asarray(v["K"])[:2, 2] * 2))
+                az.append(v["azimuth"])
+                el.append(v["elevation"])
+                views.append(v["index"])
+                mesh_ids.append(k)
+            feats.append(f)
+    if not feats:
+        print(f"{args.catalog}: no accepted mesh with stored features", file=sys.stderr)
+        return 2
+    try:
+        qmask = reference_mask(image, box=args.box, mask=mask)
+    except ValueError as exc:
+        print(f"{args.image}: {exc}", file=sys.stderr)
+        return 2
+    query = HogExtractor().extract(image[None], qmask[None]).feats[0]
+    db = np.concatenate(feats)
+    top = min(args.top, len(db))
+    matches = search_catalog(query, db, np.asarray(mesh_ids), np.asarray(views),
+                             np.asarray(az), np.asarray(el), top=top)
+    q_side = _box_side(qmask) / min(qmask.shape)
+    print(f"{'rank':>4s} {'azimuth':>8s} {'elev':>6s} {'dist':>6s} {'score':>7s}  mesh (view)")
+    for i, mt in enumerate(matches):
+        d = dist[mt.row] * sides[mt.row] / q_side if q_side > 0 else float("nan")
+        print(f"{i + 1:4d} {mt.azimuth:8.1f} {mt.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
+              f"{metas[mt.mesh].path} ({mt.view})")
+    best = matches[0]
+    try:
+        mesh = load_mesh(metas[best.mesh].path)
+    except IngestError as exc:
+        print(f"(no side-by-side PNG: {exc})", file=sys.stderr)
+        return 0
+    cand = PoseCandidate(best.azimuth, best.elevation, dist[best.row], best.score, best.view)
+    out = args.out or args.image.with_name(args.image.stem + "_pose.png")
+    cv2.imwrite(str(out), side_by_side(image, mask, args.box, mesh, cand, crop_square)[:, :, ::-1])
     print(f"wrote {out}")
     return 0
 
