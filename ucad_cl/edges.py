@@ -1,0 +1,306 @@
+"""Batched Canny edges (``kernels/canny.cl``) and edges of material-index maps.
+
+``canny(images, low, high, l2)`` equals ``cv2.Canny(image, low, high, apertureSize=3,
+L2gradient=l2)`` pixel for pixel, image by image, for a whole batch in one launch per pass.
+
+Inputs are uint8: (H, W) or (H, W, 3) for one image, (B, H, W) or (B, H, W, C) with C in {1, 3}
+for a batch. A 3-D array whose last axis has length 3 is one colour image (H, W, 3), as OpenCV
+reads it; pass a batch of 3-pixel-wide grey images as (B, H, 3, 1). Colour images are treated like
+OpenCV treats them: per pixel, the channel with the largest gradient magnitude (the first on ties).
+Output is uint8 0 / 255, shape (H, W) or (B, H, W).
+
+Thresholds follow OpenCV exactly: low > high are swapped; with ``l2`` both are clamped to 32767
+and squared when positive; both are then floored to integers; a pixel is a candidate when its
+magnitude is > low and an edge seed when > high (magnitude |dx| + |dy|, or dx^2 + dy^2 for l2).
+
+Device work per batch (kernels/canny.cl): [canny_planes: colour to planes], canny_gradient_nms
+(Sobel, magnitude, direction, NMS and thresholds fused; 16 x ROWS pixel strips, 16-lane integer
+vectors), canny_trace (hysteresis, one work-item per image, depth-first worklist). Programs are
+built once per (channels, l2, ROWS) and cached; device buffers are kept for the two most recent
+batch shapes. Batches above MAX_CHUNK_PIXELS go in several launches (same result).
+
+``material_edges(views)`` turns material-id maps into edge maps (see its docstring for the colouring
+and the guarantee), ``write_conditioning_pngs`` writes them as white-on-black PNGs.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .runtime import get_runtime
+from .types import EdgeSet, ViewSet
+
+PARAMS_DTYPE = np.dtype([("width", np.int32), ("height", np.int32), ("n_images", np.int32),
+                         ("channels", np.int32), ("low", np.int32), ("high", np.int32),
+                         ("l2", np.int32), ("pad", np.int32)])
+VSPAN = 16                   # pixels per work-item along x (VSPAN in canny.cl)
+ROWS = 32                    # rows per work-item of canny_gradient_nms (16/32/64 within 10 %)
+LOCAL = (1, 1, 1)            # its local size (1..16 along x, 1..4 along y: all within noise)
+LOCAL_PLANES = 16            # canny_planes work-items per group along x (1: 2-3x slower)
+MAX_SIDE = 32767             # the trace packs (row, column) into one int
+MAX_CHUNK_PIXELS = 1 << 25   # pixels per launch; bounds the device scratch (C + 5 or 6 bytes/pixel)
+_INT_MIN = -(2**31)
+
+
+def canny(images: np.ndarray, low: float, high: float, l2: bool = False) -> np.ndarray:
+    """Canny edges of one image or a batch, bit-identical to ``cv2.Canny`` (aperture 3)."""
+    batch, single = _as_batch(images)
+    lo, hi = opencv_thresholds(low, high, l2)
+    B, H, W, C = batch.shape
+    out = np.empty((B, H, W), np.uint8)
+    per = max(1, MAX_CHUNK_PIXELS // (H * W))
+    for b0 in range(0, B, per):
+        b1 = min(B, b0 + per)
+        _run_canny(batch[b0:b1], lo, hi, bool(l2), out[b0:b1])
+    return out[0] if single else out
+
+
+def opencv_thresholds(low: float, high: float, l2: bool) -> tuple[int, int]:
+    """The integer thresholds cv::Canny compares magnitudes against (strictly greater)."""
+    for name, t in (("low", low), ("high", high)):
+        if not isinstance(t, (int, float, np.integer, np.floating)) or isinstance(t, bool):
+            raise TypeError(f"canny: {name} threshold must be a number, got {type(t).__name__}")
+        if math.isnan(float(t)):
+            raise ValueError(f"canny: {name} threshold is NaN")
+    lo, hi = float(low), float(high)
+    if lo > hi:
+        lo, hi = hi, lo
+    if l2:
+        lo, hi = min(32767.0, lo), min(32767.0, hi)
+        lo = lo * lo if lo > 0 else lo
+        hi = hi * hi if hi > 0 else hi
+    return _cv_floor(lo), _cv_floor(hi)
+
+
+def _cv_floor(v: float) -> int:
+    """OpenCV's cvFloor on x86: floor, and INT_MIN when the result does not fit an int."""
+    if not math.isfinite(v):
+        return _INT_MIN
+    f = math.floor(v)
+    return f if _INT_MIN <= f < 2**31 else _INT_MIN
+
+
+def _as_batch(images) -> tuple[np.ndarray, bool]:
+    """(B, H, W, C) contiguous uint8 view of the input and whether it was a single image."""
+    a = np.asarray(images)
+    if a.dtype != np.uint8:
+        raise TypeError(f"canny: images must be uint8, got {a.dtype}")
+    if a.ndim == 2:
+        a, single = a[None, :, :, None], True
+    elif a.ndim == 3 and a.shape[-1] == 3:
+        a, single = a[None], True
+    elif a.ndim == 3:
+        a, single = a[:, :, :, None], False
+    elif a.ndim == 4 and a.shape[-1] in (1, 3):
+        single = False
+    else:
+        raise ValueError("canny: images must be (H, W), (H, W, 3), (B, H, W) or (B, H, W, C) "
+                         f"with C in (1, 3); got shape {a.shape}")
+    B, H, W, _ = a.shape
+    if B == 0 or H == 0 or W == 0:
+        raise ValueError(f"canny: empty image batch, shape {np.asarray(images).shape}")
+    if H > MAX_SIDE or W > MAX_SIDE:
+        raise ValueError(f"canny: image side {max(H, W)} exceeds {MAX_SIDE}")
+    return np.ascontiguousarray(a), single
+
+
+@dataclass
+class _Buffers:
+    src: object       # (B, H, W, C) input
+    planes: object    # (B, 3, H, W) for colour input, else None
+    map: object       # (B, H, W) map, then the output
+    stack: object     # (B, H * W) int32 trace worklist
+
+
+@dataclass
+class CannyStats:
+    """Timings (seconds) of the last ``canny`` call: upload, kernels, download."""
+
+    upload: float = 0.0
+    kernels: float = 0.0
+    download: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+last_stats = CannyStats()
+_BUFFERS: OrderedDict = OrderedDict()   # (B, H, W, C) -> _Buffers, the 2 most recent shapes
+
+
+def _buffers(rt, shape: tuple[int, int, int, int]) -> _Buffers:
+    import pyopencl as cl
+
+    bufs = _BUFFERS.get(shape)
+    if bufs is None:
+        B, H, W, C = shape
+        n, mf = B * H * W, cl.mem_flags
+        bufs = _Buffers(src=cl.Buffer(rt.ctx, mf.READ_ONLY, n * C),
+                        planes=cl.Buffer(rt.ctx, mf.READ_WRITE, n * C) if C > 1 else None,
+                        map=cl.Buffer(rt.ctx, mf.READ_WRITE, n),
+                        stack=cl.Buffer(rt.ctx, mf.READ_WRITE, 4 * n))
+        _BUFFERS[shape] = bufs
+        while len(_BUFFERS) > 2:
+            _BUFFERS.popitem(last=False)
+    _BUFFERS.move_to_end(shape)
+    return bufs
+
+
+def _run_canny(batch: np.ndarray, lo: int, hi: int, l2: bool, out: np.ndarray) -> None:
+    import pyopencl as cl
+
+    rt = get_runtime()
+    q = rt.queue
+    B, H, W, C = batch.shape
+    opts = (f"-DCANNY_CHANNELS={C}", f"-DCANNY_L2={int(l2)}", f"-DCANNY_ROWS={ROWS}")
+    k_nms = rt.kernel("canny", "canny_gradient_nms", opts)
+    k_trace = rt.kernel("canny", "canny_trace", opts)
+    bufs = _buffers(rt, batch.shape)
+    prm = np.array([(W, H, B, C, lo, hi, int(l2), 0)], PARAMS_DTYPE)
+    t0 = time.perf_counter()
+    cl.enqueue_copy(q, bufs.src, batch)
+    t1 = time.perf_counter()
+    spans = -(-W // VSPAN)
+    planes = bufs.src
+    if C == 3:
+        k_planes = rt.kernel("canny", "canny_planes", opts)
+        k_planes.set_args(bufs.src, prm, bufs.planes)
+        cl.enqueue_nd_range_kernel(q, k_planes, (_round_up(spans, LOCAL_PLANES), H, B),
+                                   (LOCAL_PLANES, 1, 1))
+        planes = bufs.planes
+    k_nms.set_args(planes, prm, bufs.map)
+    gsize = (_round_up(spans, LOCAL[0]), _round_up(-(-H // ROWS), LOCAL[1]), B)
+    cl.enqueue_nd_range_kernel(q, k_nms, gsize, LOCAL)
+    k_trace.set_args(bufs.map, prm, bufs.stack)
+    cl.enqueue_nd_range_kernel(q, k_trace, (B,), (1,))
+    q.finish()
+    t2 = time.perf_counter()
+    cl.enqueue_copy(q, out, bufs.map)
+    q.finish()
+    global last_stats
+    last_stats = CannyStats(upload=t1 - t0, kernels=t2 - t1, download=time.perf_counter() - t2)
+
+
+def _round_up(n: int, m: int) -> int:
+    return ((n + m - 1) // m) * m
+
+
+# --------------------------------------------------------------------------------------------
+# Material-id maps
+# --------------------------------------------------------------------------------------------
+
+def material_edges(views: ViewSet, *, low: float = 10.0, high: float = 20.0,
+                   l2: bool = False) -> EdgeSet:
+    """Edges of the material-id maps of ``views`` (Canny of a colouring, plus a repair).
+
+    Colouring: ids that touch anywhere (4-neighbours, over all views together) get different
+    colours by a deterministic greedy colouring (ids in increasing order, each takes the first
+    palette entry no touching id already has). The palette is {0, 255/(L-1), ..., 255}^3 with the
+    smallest L >= 2 such that L^3 exceeds the largest number of ids touching one id, the 8 corner
+    colours first; so touching ids differ by at least 255/(L-1) in some channel (127 for L = 3).
+    Every view is coloured with the same table, then ``canny`` runs on the batch.
+
+    Guarantee: every 4-neighbour pair (p, q) with different ids has an edge pixel within one pixel
+    (8-neighbourhood) of p or q. Canny alone cannot promise this for any colouring: inside a
+    pattern of period 2 every Sobel response is 0, and on a stripe two pixels thick OpenCV's
+    tie rule (strict on the previous side) suppresses the second boundary. Such pairs are found
+    after Canny and their first pixel (left or upper) is marked as an edge; ``last_stats.extra
+    ["repaired"]`` counts them. Precision needs no repair: a pixel whose 3x3 neighbourhood holds
+    one id has zero gradient, so every edge pixel is within one pixel of an id boundary.
+    """
+    ids = np.asarray(views.mat_id)
+    if ids.ndim != 3 or ids.dtype != np.uint16:
+        raise ValueError(f"material_edges: mat_id must be a (V, H, W) uint16 array, got "
+                         f"{ids.dtype} {ids.shape}")
+    colours = colour_ids(ids)
+    edges = canny(colours, low, high, l2)          # (V, H, W, 3): always a batch
+    repaired = _repair_missed_boundaries(ids, edges)
+    last_stats.extra["repaired"] = repaired
+    return EdgeSet(edges=edges)
+
+
+def colour_ids(ids: np.ndarray) -> np.ndarray:
+    """(..., H, W) uint16 ids -> (..., H, W, 3) uint8 colours; touching ids differ strongly."""
+    ids = np.asarray(ids)
+    pairs = _touching_pairs(ids)
+    uniq = np.flatnonzero(np.bincount(ids.ravel(), minlength=1))
+    neighbours: dict[int, set[int]] = {int(u): set() for u in uniq}
+    for a, b in pairs:
+        neighbours[int(a)].add(int(b))
+        neighbours[int(b)].add(int(a))
+    degree = max((len(s) for s in neighbours.values()), default=0)
+    levels = 2
+    while levels ** 3 < degree + 1:
+        levels += 1
+    pal = palette(levels)
+    lut = np.zeros((65536, 4), np.uint8)            # RGB + padding, gathered as one uint32
+    chosen: dict[int, int] = {}
+    for u in sorted(neighbours):
+        used = {chosen[n] for n in neighbours[u] if n in chosen}
+        chosen[u] = next(i for i in range(len(pal)) if i not in used)
+        lut[u, :3] = pal[chosen[u]]
+    packed = lut.view(np.uint32).ravel().take(ids)
+    return np.ascontiguousarray(packed.view(np.uint8).reshape(*ids.shape, 4)[..., :3])
+
+
+def palette(levels: int) -> np.ndarray:
+    """(levels^3, 3) uint8 colours on a grid of ``levels`` values per channel, corners first."""
+    values = np.round(np.linspace(0, 255, levels)).astype(np.uint8)
+    grid = np.stack(np.meshgrid(*[np.arange(levels)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    inner = np.sum((grid != 0) & (grid != levels - 1), axis=1)
+    order = np.lexsort((grid[:, 2], grid[:, 1], grid[:, 0], inner))
+    return values[grid[order]]
+
+
+def _touching_pairs(ids: np.ndarray) -> np.ndarray:
+    """(K, 2) sorted unique (a < b) id pairs that are 4-neighbours somewhere."""
+    codes = []
+    for a, b in ((ids[..., :, 1:], ids[..., :, :-1]), (ids[..., 1:, :], ids[..., :-1, :])):
+        diff = a != b
+        lo, hi = np.minimum(a[diff], b[diff]), np.maximum(a[diff], b[diff])
+        codes.append((lo.astype(np.uint32) << 16) | hi.astype(np.uint32))
+    u = np.unique(np.concatenate(codes))
+    return np.stack([u >> 16, u & 0xFFFF], 1).astype(ids.dtype)
+
+
+def _dilate8(mask: np.ndarray) -> np.ndarray:
+    """Binary dilation of (V, H, W) masks by the 3x3 square (pixels outside are False)."""
+    d = mask.copy()
+    d[:, :, 1:] |= mask[:, :, :-1]
+    d[:, :, :-1] |= mask[:, :, 1:]
+    e = d.copy()
+    e[:, 1:, :] |= d[:, :-1, :]
+    e[:, :-1, :] |= d[:, 1:, :]
+    return e
+
+
+def _repair_missed_boundaries(ids: np.ndarray, edges: np.ndarray) -> int:
+    """Mark the left/upper pixel of every id boundary pair with no edge within 1 px; count."""
+    near = _dilate8(edges > 0)
+    miss_h = (ids[:, :, 1:] != ids[:, :, :-1]) & ~near[:, :, 1:] & ~near[:, :, :-1]
+    miss_v = (ids[:, 1:, :] != ids[:, :-1, :]) & ~near[:, 1:, :] & ~near[:, :-1, :]
+    edges[:, :, :-1][miss_h] = 255
+    edges[:, :-1, :][miss_v] = 255
+    return int(miss_h.sum() + miss_v.sum())
+
+
+def write_conditioning_pngs(edges: EdgeSet, out_dir, stem: str) -> list[Path]:
+    """One white-on-black PNG per view, ``<out_dir>/<stem>_<view:03d>.png``; returns the paths."""
+    import cv2
+
+    e = np.asarray(edges.edges)
+    if e.ndim != 3 or e.dtype != np.uint8:
+        raise ValueError(f"write_conditioning_pngs: edges must be (V, H, W) uint8, got "
+                         f"{e.dtype} {e.shape}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for v in range(e.shape[0]):
+        path = out / f"{stem}_{v:03d}.png"
+        if not cv2.imwrite(str(path), np.where(e[v] > 0, 255, 0).astype(np.uint8)):
+            raise OSError(f"write_conditioning_pngs: could not write {path}")
+        paths.append(path)
+    return paths
