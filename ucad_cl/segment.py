@@ -437,8 +437,11 @@ class PriorSegmenter:
         pprob[1:] = prob[np.arange(M), part_of]
         pp = pprob[views.mat_id]
         P = len(PART_NAMES)
-        masks = np.stack([pix == p for p in range(P)], axis=1)
-        cnt = masks.sum(axis=(2, 3))
-        sums = np.stack([(pp * masks[:, p]).sum(axis=(1, 2)) for p in range(P)], axis=1)
+        V = pix.shape[0]
+        masks = pix[:, None] == np.arange(P)[None, :, None, None]
+        # per (view, part): pixel count and summed probability, one bincount each
+        key = (np.arange(V)[:, None, None] * (P + 1) + (pix + 1)).ravel()
+        cnt = np.bincount(key, minlength=V * (P + 1)).reshape(V, P + 1)[:, 1:]
+        sums = np.bincount(key, weights=pp.ravel(), minlength=V * (P + 1)).reshape(V, P + 1)[:, 1:]
         conf = np.where(cnt > 0, sums / np.maximum(cnt, 1), 0.0).astype(np.float32)
         return PartMasks(parts=list(PART_NAMES), masks=masks, confidence=conf, source="prior")
