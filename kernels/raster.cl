@@ -92,9 +92,21 @@ static inline hvert intersect(hvert p, hvert q, int k, float near, float W, floa
     return r;
 }
 
-/* Snapped fixed-point position (1/256 px) of a vertex inside the guard band. */
+/* Round half to even for |x| <= 2^22, as rint() does, but as two additions PoCL vectorizes
+ * (rint() was a scalar library call costing more than the rest of project_vertices): adding
+ * 1.5 * 2^23 moves x where the float spacing is 1, so the sum is rounded to an integer (ties to
+ * even), and the subtraction is exact. Needs FP_CONTRACT OFF and no fast-math (common.h). */
+static inline float round_even(float x) {
+    const float magic = 12582912.0f;
+    return (x + magic) - magic;
+}
+
+/* Snapped fixed-point position (1/256 px) of a vertex inside the guard band (|coordinate| <=
+ * (8192 + GUARD) px = 2^22 / 256): one correctly rounded division, exact products, round half
+ * to even: the same bits on every device. */
 static inline long2 snap(hvert p) {
-    return (long2)(convert_long_rte(p.u / p.w * 256.0f), convert_long_rte(p.v / p.w * 256.0f));
+    float s = 256.0f / p.w;
+    return (long2)((long)round_even(p.u * s), (long)round_even(p.v * s));
 }
 
 /* Pixel range [lo, hi] whose centres lie in [a, b] (fixed point), clamped to [0, n-1]. */
@@ -184,43 +196,54 @@ static inline int owned_int(int2 a, int2 b) {
 DEFINE_RASTER_TRIANGLE(raster_triangle64, long, long2)
 DEFINE_RASTER_TRIANGLE(raster_triangle32, int, int2)
 
-/* Per (vertex, view): clip code (bit k set when outside plane k; NaN counts as outside) and, for
- * a vertex inside every plane, its snapped position. out = (x, y, float bits of w, code). */
+/* Per (vertex, view): for a vertex inside every clip plane, its snapped position (x, y); for
+ * one outside some plane, (CLIPPED, clip code): bit k set when outside plane k, NaN counts as
+ * outside. 8 bytes per vertex and view: this buffer's bandwidth bounds both kernels that touch
+ * it, so depth w is not stored but recomputed (same expression, same bits) where needed. */
+#define CLIPPED INT_MIN
 kernel void project_vertices(global const float *verts, global const float *P, raster_params prm,
-                             uint n_verts, global int4 *out) {
+                             uint n_verts, global int2 *out) {
     uint v = get_global_id(0), view = get_global_id(1);
     if (v >= n_verts || view >= (uint)prm.n_views) return;
     float W = (float)prm.width, H = (float)prm.height;
     hvert h = project(P + 12 * view, verts[3 * v], verts[3 * v + 1], verts[3 * v + 2]);
-    int code = 0;
-    for (int k = 0; k < 5; ++k)
-        if (!(plane_dist(h, k, prm.near, W, H) >= 0.0f)) code |= 1 << k;
-    long2 sn = code ? (long2)(0, 0) : snap(h);
-    out[(long)view * n_verts + v] = (int4)((int)sn.x, (int)sn.y, as_int(h.w), code);
+    /* straight-line plane tests (same expressions as plane_dist), so PoCL can vectorize */
+    int code = (!(h.w - prm.near >= 0.0f))
+             | (!(h.u + GUARD * h.w >= 0.0f)) << 1
+             | (!((W + GUARD) * h.w - h.u >= 0.0f)) << 2
+             | (!(h.v + GUARD * h.w >= 0.0f)) << 3
+             | (!((H + GUARD) * h.w - h.v >= 0.0f)) << 4;
+    long2 sn = snap(h);
+    out[(long)view * n_verts + v] = code ? (int2)(CLIPPED, code) : (int2)((int)sn.x, (int)sn.y);
+}
+
+static inline float depth_of(global const float *Pv, global const float *verts, uint i) {
+    return project(Pv, verts[3 * i], verts[3 * i + 1], verts[3 * i + 2]).w;
 }
 
 /* Clip (rarely needed) and rasterize one face in one view.
  * small_pass: if the bounding box is bigger than BIG_PIXELS, push (face, view) instead. */
 static void raster_face(global const float *verts, global const uint *faces,
-                        global const float *P, global const int4 *pverts, uint n_verts,
+                        global const float *P, global const int2 *pverts, uint n_verts,
                         raster_params prm, uint face, uint view,
                         int row0, int row_step, int small_pass,
                         global ulong *keys, global uint *big_list, volatile global uint *big_count) {
     uint i0 = faces[3 * face], i1 = faces[3 * face + 1], i2 = faces[3 * face + 2];
-    global const int4 *pv = pverts + (long)view * n_verts;
-    int4 q0 = pv[i0], q1 = pv[i1], q2 = pv[i2];
-    if (q0.w & q1.w & q2.w) return;                       /* wholly outside one plane */
+    global const int2 *pv = pverts + (long)view * n_verts;
+    global const float *Pv = P + 12 * view;
+    int2 q0 = pv[i0], q1 = pv[i1], q2 = pv[i2];
+    int clipped = (q0.x == CLIPPED) | (q1.x == CLIPPED) | (q2.x == CLIPPED);
+    if (q0.x == CLIPPED && q1.x == CLIPPED && q2.x == CLIPPED && (q0.y & q1.y & q2.y))
+        return;                                           /* wholly outside one plane */
     global ulong *kv = keys + (long)view * prm.width * prm.height;
     long2 s[MAX_POLY];
     float zs[MAX_POLY];
     int n;
-    if ((q0.w | q1.w | q2.w) == 0) {                      /* common case: no clipping */
+    if (!clipped) {                                       /* common case: no clipping */
         s[0] = (long2)(q0.x, q0.y); s[1] = (long2)(q1.x, q1.y); s[2] = (long2)(q2.x, q2.y);
-        zs[0] = as_float(q0.z); zs[1] = as_float(q1.z); zs[2] = as_float(q2.z);
         n = 3;
     } else {                                              /* Sutherland-Hodgman, 5 planes */
         float W = (float)prm.width, H = (float)prm.height;
-        global const float *Pv = P + 12 * view;
         hvert poly[MAX_POLY], tmp[MAX_POLY];
         poly[0] = project(Pv, verts[3 * i0], verts[3 * i0 + 1], verts[3 * i0 + 2]);
         poly[1] = project(Pv, verts[3 * i1], verts[3 * i1 + 1], verts[3 * i1 + 2]);
@@ -246,9 +269,15 @@ static void raster_face(global const float *verts, global const uint *faces,
         xmin = min(xmin, s[e].x); xmax = max(xmax, s[e].x);
         ymin = min(ymin, s[e].y); ymax = max(ymax, s[e].y);
     }
-    if (small_pass) {
+    {   /* nothing to do when no pixel centre lies in the box (most tiny triangles) */
         int2 xs = pixel_span(xmin, xmax, prm.width), ys = pixel_span(ymin, ymax, prm.height);
         if (xs.x > xs.y || ys.x > ys.y) return;
+    }
+    if (!clipped) {
+        zs[0] = depth_of(Pv, verts, i0); zs[1] = depth_of(Pv, verts, i1); zs[2] = depth_of(Pv, verts, i2);
+    }
+    if (small_pass) {
+        int2 xs = pixel_span(xmin, xmax, prm.width), ys = pixel_span(ymin, ymax, prm.height);
         /* small: at most BIG_PIXELS pixel centres to visit AND a fixed-point box of at most
          * BIG_PIXELS square pixels (the 32-bit edge-function bound, see raster_triangle32) */
         if ((long)(xs.y - xs.x + 1) * (long)(ys.y - ys.x + 1) > BIG_PIXELS ||
@@ -269,7 +298,7 @@ static void raster_face(global const float *verts, global const uint *faces,
 
 /* One work-item per (face = global id 0, view = global id 1). */
 kernel void raster_small(global const float *verts, global const uint *faces, global const float *P,
-                         global const int4 *pverts, uint n_verts, raster_params prm,
+                         global const int2 *pverts, uint n_verts, raster_params prm,
                          global ulong *keys, global uint *big_list, volatile global uint *big_count) {
     uint face = get_global_id(0), view = get_global_id(1);
     if (face >= (uint)prm.n_faces || view >= (uint)prm.n_views) return;
@@ -278,7 +307,7 @@ kernel void raster_small(global const float *verts, global const uint *faces, gl
 
 /* One work-item per (listed triangle = global id 0, lane = global id 1 in [0, LANES)). */
 kernel void raster_big(global const float *verts, global const uint *faces, global const float *P,
-                       global const int4 *pverts, uint n_verts, raster_params prm,
+                       global const int2 *pverts, uint n_verts, raster_params prm,
                        global ulong *keys, global const uint *big_list, uint n_big) {
     uint entry = get_global_id(0), lane = get_global_id(1), lanes = get_global_size(1);
     if (entry >= n_big) return;

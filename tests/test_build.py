@@ -203,3 +203,26 @@ def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
     assert best[-2] == str(target) and float(best[1]) in (90.0, 120.0), lines
     assert (tmp_path / "ref_pose.png").exists()
     assert main(["pose", str(ref), "--box", *box]) == 2           # neither MESH nor --catalog
+
+
+def test_cli_parts_over_catalogue_and_render_edges(library, tmp_path, runtime, capsys):
+    from ucad_cl.cli import main
+
+    cat = tmp_path / "cat"
+    build(library, cat, OPTS, progress=False, log=lambda *a: None)
+    target = sorted(library.glob("synth_*.glb"))[2]
+    assert main(["parts", "--catalog", str(cat), target.name]) == 0
+    out = capsys.readouterr().out
+    truth = json.loads(target.with_suffix(".json").read_text())["materials"]
+    rows = [ln.split() for ln in out.splitlines()[2:]]
+    assert len(rows) == len(truth) and all(r[0] in truth for r in rows)
+    assert main(["parts", "--catalog", str(cat), "no-such-mesh"]) == 2
+    out_dir = tmp_path / "r"
+    assert main(["render", str(target), "--out", str(out_dir), "--azimuth-step", "90",
+                 "--size", "64", "--edges"]) == 0
+    pngs = sorted((out_dir / f"{target.stem}.edges").glob("*.png"))
+    assert len(pngs) == 4
+    import cv2
+    img = cv2.imread(str(pngs[0]), cv2.IMREAD_GRAYSCALE)
+    assert set(np.unique(img)) == {0, 255}
+    assert main(["render", str(tmp_path / "missing.glb"), "--out", str(out_dir)]) == 1

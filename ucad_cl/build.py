@@ -238,7 +238,8 @@ class Pipeline:
         masks = self.segmenter.segment(mesh, views)
         lap("segment")
         from .classify import classify_parts
-        table = classify_parts(mesh, views, masks, threshold=o.threshold)
+        from .segment import name_priors
+        table = classify_parts(mesh, views, masks, threshold=o.threshold, priors=name_priors(mesh))
         lap("classify")
         if self.extractor is not None:
             from .shade import shade_views
@@ -311,27 +312,20 @@ def npy_gz_bytes(a: np.ndarray) -> bytes:
 
 
 def parts_sheet_png(views, table) -> bytes:
-    """Contact sheet of the views coloured by part (fixed colour per part), as PNG bytes."""
+    """Contact sheet of (at most 24 of) the views coloured by part, as PNG bytes."""
+    import copy
+
     import cv2
 
-    from .sheets import contact_sheet, id_palette, legend
-    from .types import PART_NAMES
+    from .commands.parts import part_sheet
 
-    names = list(PART_NAMES) + ["unseen"]
-    lut = np.zeros(len(table.rows) + 1, np.int64)
-    for r in table.rows:
-        lut[r.material + 1] = names.index(r.part) + 1 if r.part in names else len(names)
-    pal = id_palette(len(names) + 2)
-    step = max(1, views.n_views // 24)
-    sel = np.arange(0, views.n_views, step)
-    labels = [f"az {views.cameras.azimuth[v]:.0f}" for v in sel]
-    sheet = contact_sheet(pal[lut[views.mat_id[sel]]], labels, max_width=1600)
-    leg = legend(names, pal[1:len(names) + 1])
-    h = max(sheet.shape[0], leg.shape[0])
-    out = np.full((h, sheet.shape[1] + leg.shape[1], 3), 32, np.uint8)
-    out[:sheet.shape[0], :sheet.shape[1]] = sheet
-    out[:leg.shape[0], sheet.shape[1]:] = leg
-    ok, png = cv2.imencode(".png", np.ascontiguousarray(out[..., ::-1]))
+    sel = np.arange(0, views.n_views, max(1, views.n_views // 24))
+    sub = copy.copy(views)
+    sub.mat_id = views.mat_id[sel]
+    sub.cameras = copy.copy(views.cameras)
+    sub.cameras.azimuth, sub.cameras.elevation = (views.cameras.azimuth[sel],
+                                                  views.cameras.elevation[sel])
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(part_sheet(sub, table, 1600)[..., ::-1]))
     return png.tobytes()
 
 

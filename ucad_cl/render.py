@@ -24,7 +24,8 @@ PARAMS_DTYPE = np.dtype([("width", np.int32), ("height", np.int32), ("n_faces", 
                          ("n_views", np.int32), ("near", np.float32),
                          ("big_capacity", np.uint32)])
 BUILD_OPTIONS = ("-cl-fp32-correctly-rounded-divide-sqrt",)
-LOCAL_SMALL = 64        # work-items per group along faces; measured in bench/render.py
+LOCAL_SMALL = (64, 1)   # work-group (faces, views); see bench/render.py and the README
+LOCAL_PROJECT = (64, 1)  # work-group (vertices, views)
 LANES = 16              # work-items sharing one large triangle (rows interleaved)
 MAX_FACES = 2**32 - 2   # face ids must stay below the background id
 
@@ -46,7 +47,7 @@ last_stats = RenderStats()
 
 
 def render_views(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
-                 local_size: int = LOCAL_SMALL) -> ViewSet:
+                 local_size=LOCAL_SMALL) -> ViewSet:
     """Render material-index, triangle-id and depth maps of ``mesh`` for every camera of ``ring``."""
     return _render(mesh, ring, max_key_bytes=max_key_bytes, local_size=local_size)
 
@@ -57,8 +58,9 @@ def coverage_counts(mesh: Mesh, ring: CameraRing) -> np.ndarray:
 
 
 def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
-            local_size: int = LOCAL_SMALL, count: bool = False):
+            local_size=LOCAL_SMALL, count: bool = False):
     verts, faces, fmat = _validate(mesh)
+    ls = (local_size, 1) if isinstance(local_size, int) else tuple(local_size)
     rt = get_runtime()
     import pyopencl as cl
 
@@ -79,8 +81,8 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
     P_all = projection_matrices(ring)
 
     n_verts = int(verts.shape[0])
-    # views per launch: key buffer (8 B/pixel) and projected vertices (16 B/vertex) both bounded
-    chunk = max(1, min(V, int(max_key_bytes // (8 * npix)), int(max_key_bytes // (16 * n_verts))))
+    # views per launch: key buffer (8 B/pixel) and projected vertices (8 B/vertex) both bounded
+    chunk = max(1, min(V, int(max_key_bytes // (8 * npix)), int(max_key_bytes // (8 * n_verts))))
     tri = np.empty((V, H, W), np.uint32)
     mat = np.empty((V, H, W), np.uint16)
     dep = np.empty((V, H, W), np.float32)
@@ -90,7 +92,7 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
     d_mat = cl.Buffer(ctx, mf.WRITE_ONLY, 2 * chunk * npix)
     d_dep = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * chunk * npix)
     d_count = cl.Buffer(ctx, mf.READ_WRITE, 4)
-    d_pverts = cl.Buffer(ctx, mf.READ_WRITE, 16 * chunk * n_verts)
+    d_pverts = cl.Buffer(ctx, mf.READ_WRITE, 8 * chunk * n_verts)
     big_cap = 4096
     d_big = cl.Buffer(ctx, mf.READ_WRITE, 8 * big_cap)
     stats.upload = time.perf_counter() - t0
@@ -104,14 +106,14 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
         prm = np.array([(W, H, faces.shape[0], nv, ring.near, big_cap)], PARAMS_DTYPE)
         cl.enqueue_nd_range_kernel(
             q, _args(k_project, d_verts, d_P, prm, np.uint32(n_verts), d_pverts),
-            (_round_up(n_verts, 64), nv), (64, 1))
+            (_round_up(n_verts, LOCAL_PROJECT[0]), _round_up(nv, LOCAL_PROJECT[1])), LOCAL_PROJECT)
         while True:   # small triangles; large ones are listed (list grows and pass reruns)
             prm = np.array([(W, H, faces.shape[0], nv, ring.near, big_cap)], PARAMS_DTYPE)
             cl.enqueue_fill_buffer(q, d_count, np.uint32(0), 0, 4)
             cl.enqueue_nd_range_kernel(
                 q, _args(k_small, d_verts, d_faces, d_P, d_pverts, np.uint32(n_verts), prm, d_keys,
                          d_big, d_count),
-                (_round_up(faces.shape[0], local_size), nv), (local_size, 1))
+                (_round_up(faces.shape[0], ls[0]), _round_up(nv, ls[1])), ls)
             n_big_arr = np.zeros(1, np.uint32)
             cl.enqueue_copy(q, n_big_arr, d_count)
             n_big = int(n_big_arr[0])

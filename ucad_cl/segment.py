@@ -275,6 +275,12 @@ def name_prior(name: str) -> str | None:
     return best[2] if best else None
 
 
+def name_priors(mesh: Mesh) -> dict[int, str]:
+    """{material index: part} for the materials whose names say their part (``name_prior``);
+    classification uses them for leftovers instead of merging those into the body."""
+    return {m: p for m, mat in enumerate(mesh.materials) if (p := name_prior(mat.name)) is not None}
+
+
 def material_features(mesh: Mesh, views: ViewSet | None = None) -> dict[str, np.ndarray]:
     """Per-material geometry in the vehicle frame (all (M,) float64, area-weighted over faces).
 

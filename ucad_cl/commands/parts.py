@@ -34,7 +34,11 @@ def register(sub) -> None:
                     "paper's best-view rule and a confidence x area weighted vote). Prints the "
                     "table and writes OUT/NAME.parts.csv, .parts.json and a .parts.png contact "
                     "sheet. Exit status 1 if any mesh failed.")
-    p.add_argument("meshes", nargs="+", metavar="MESH", help="mesh files")
+    p.add_argument("meshes", nargs="*", metavar="MESH",
+                   help="mesh files (with --catalog: mesh ids, sha256 prefixes or paths; "
+                        "none = every accepted mesh)")
+    p.add_argument("--catalog", type=Path, default=None, metavar="PATH",
+                   help="print the stored material -> part tables of a catalogue instead")
     p.add_argument("--segmenter", nargs="+", default=["prior"], metavar="KIND",
                    help="'prior' (default: names, properties, geometry; no model), "
                         "'masks DIR' (DIR/<sha256>/view_<vvv>/<part>.png + confidence.json), or "
@@ -105,11 +109,50 @@ def format_table(table) -> str:
     return "\n".join(lines)
 
 
+def run_catalog(args) -> int:
+    """Stored tables: one block per mesh, same columns as a fresh run."""
+    from ucad_catalog._db import CatalogError
+    from ucad_catalog.reader import CatalogReader
+
+    try:
+        reader = CatalogReader(args.catalog)
+    except CatalogError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    with reader as r:
+        metas = r.meshes(state=None)
+        if args.meshes:
+            keys = [k.lower() for k in args.meshes]
+            metas = [m for m in metas if any(str(m.id) == k or m.sha256.startswith(k)
+                                             or m.path == k or Path(m.path).name.lower() == k
+                                             for k in keys)]
+            if not metas:
+                print(f"error: no catalogued mesh matches {args.meshes}", file=sys.stderr)
+                return 2
+        else:
+            metas = [m for m in metas if m.state == "accepted"]
+        for m in metas:
+            print(f"== {m.id} {m.path} ({m.state}{': ' + m.reason if m.reason else ''})")
+            rows = r.parts(m.sha256)
+            if rows:
+                print(f"{'material':32s} {'part':9s} {'score':>5s} {'iou':>5s} {'view':>4s} "
+                      f"{'decision':15s} {'pixels':>8s}")
+            for p in rows:
+                print(f"{p.name[:32]:32s} {p.part:9s} {p.score:5.2f} {p.iou:5.2f} {p.view:4d} "
+                      f"{p.decision:15s} {p.pixels:8d}")
+    return 0
+
+
 def run(args) -> int:
+    if args.catalog is not None:
+        return run_catalog(args)
+    if not args.meshes:
+        print("error: give MESH files, or --catalog PATH", file=sys.stderr)
+        return 2
     from ..classify import classify_parts
     from ..ingest import IngestError, load_mesh
     from ..render import render_views
-    from ..segment import name_prior
+    from ..segment import name_priors
     from ..sheets import write_png
 
     try:
@@ -126,9 +169,8 @@ def run(args) -> int:
             mesh = load_mesh(path)
             views = render_views(mesh, ring)
             masks = segmenter.segment(mesh, views)
-            priors = {m: p for m, mat in enumerate(mesh.materials)
-                      if (p := name_prior(mat.name)) is not None}
-            table = classify_parts(mesh, views, masks, threshold=args.threshold, priors=priors)
+            table = classify_parts(mesh, views, masks, threshold=args.threshold,
+                                   priors=name_priors(mesh))
             print(f"== {path} ({masks.source}, {views.n_views} views)")
             print(format_table(table))
             write_table(table, stem)

@@ -36,6 +36,9 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     add_camera_args(p)
     p.add_argument("--no-sheet", action="store_true", help="skip the PNG contact sheets")
+    p.add_argument("--edges", action="store_true",
+                   help="also write ControlNet conditioning images: Canny edges of the material "
+                        "maps, white on black, DIR/NAME.edges/NAME_VVV.png")
     p.set_defaults(func=run)
 
 
@@ -58,6 +61,9 @@ def run(args) -> int:
             mesh = load_mesh(path)
             views = render_views(mesh, ring)
             write_viewset_exr(args.out / f"{stem}.views.exr", views, mesh)
+            if args.edges:
+                from ..edges import material_edges, write_conditioning_pngs
+                write_conditioning_pngs(material_edges(views), args.out / f"{stem}.edges", stem)
             if not args.no_sheet:
                 write_png(args.out / f"{stem}.sheet.png",
                           material_sheet(views, [m.name for m in mesh.materials]))
