@@ -476,7 +476,8 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
         elif engine == "ray":
             from .engines import run_ray
             run_ray(todo, options, commit, address=ray_address, progress=progress,
-                    staging=staging, log=log)
+                    staging=staging, log=log, timeout=timeout,
+                    num_cpus=None if ray_address else workers)
         else:
             raise ValueError(f"unknown engine {engine!r}: use local or ray")
         shutil.rmtree(staging, ignore_errors=True)
