@@ -19,11 +19,14 @@ Conventions and units:
   camera (per pixel, from the pixel ray).
 * Background: an RGB triple of uint8 values, or an image (H, W, 3) / (V, H, W, 3) uint8.
 
-Vectorised NumPy, one view at a time (memory ~ 12 * H * W floats per view); measured cheaper than
-the render itself (see ``bench/pose.py``), so no kernel.
+Two paths: ``device=True`` (default) runs ``kernels/shade.cl`` over all views in one launch
+(float32; measured ~0.15 s -> ~0.01 s for 72 views x 256 px, where NumPy shading was the largest
+cost of a catalogue build); ``device=False`` is the vectorised float64 NumPy reference, one view at
+a time, which the kernel is tested against (to within one 8-bit level).
 """
 from __future__ import annotations
 
+import functools
 from typing import Sequence
 
 import numpy as np
@@ -36,7 +39,8 @@ DEFAULT_LIGHT = (-0.4, -0.6, -1.0)
 def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | None = None,
                 light_dir: Sequence[float] = DEFAULT_LIGHT, ambient: float = 0.3,
                 specular: float = 0.25, shininess: float = 32.0,
-                background: Sequence[int] | np.ndarray = (0, 0, 0)) -> np.ndarray:
+                background: Sequence[int] | np.ndarray = (0, 0, 0),
+                device: bool = True) -> np.ndarray:
     """(V, H, W, 3) uint8 sRGB images of ``views`` (rendered from ``mesh``)."""
     V, H, W = views.tri_id.shape
     albedo = _albedo(mesh, colors)
@@ -54,6 +58,9 @@ def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | N
     v0 = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)[:, 0]]
     fmat = np.asarray(mesh.face_material, np.int64)
     cam = views.cameras
+    if device and V * H * W > 0:
+        return _shade_device(views, normals, v0, mesh.face_material, albedo, light, ambient,
+                             specular, shininess, bg)
     # per pixel (same for every view): unit vector to the camera v = -K^-1 (j+.5, i+.5, 1) / |.|
     # and the Blinn-Phong half vector h = normalize(l + v)
     j, i = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
@@ -77,6 +84,74 @@ def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | N
         img = bg[v if bg.shape[0] > 1 else 0].reshape(-1, 3).copy()
         img[fg] = linear_to_srgb8(lit[f] + spec[:, None])
         out[v] = img.reshape(H, W, 3)
+    return out
+
+
+SHADE_PARAMS = np.dtype([("kinv", np.float32, 9), ("light", np.float32, 3),
+                         ("ambient", np.float32), ("specular", np.float32),
+                         ("shininess", np.float32), ("width", np.int32), ("height", np.int32),
+                         ("n_views", np.int32), ("bg", np.uint8, 3), ("pad", np.uint8)])
+
+
+def _shade_device(views, normals, v0, face_material, albedo, light, ambient, specular, shininess,
+                  bg) -> np.ndarray:
+    import pyopencl as cl
+
+    from .runtime import get_runtime
+
+    rt = get_runtime()
+    V, H, W = views.tri_id.shape
+    cam = views.cameras
+    uniform_bg = bg.shape[0] == 1 and bool(np.all(bg[0] == bg[0, 0, 0]))
+    prm = np.zeros(1, SHADE_PARAMS)
+    prm["kinv"] = np.linalg.inv(cam.K).reshape(9)
+    prm["light"] = light
+    prm["ambient"], prm["specular"], prm["shininess"] = ambient, specular, shininess
+    prm["width"], prm["height"], prm["n_views"] = W, H, V
+    prm["bg"] = bg[0, 0, 0] if uniform_bg else 0
+    mf = cl.mem_flags
+    ctx, q = rt.ctx, rt.queue
+
+    def buf(a, dtype):
+        a = np.ascontiguousarray(a, dtype)
+        return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a if a.size else np.zeros(1, dtype))
+
+    d_tri = buf(views.tri_id, np.uint32)
+    d_w2c = buf(cam.w2c[:, :3, :].reshape(V, 12), np.float32)
+    d_n, d_v0 = buf(normals, np.float32), buf(v0, np.float32)
+    d_fm, d_alb = buf(face_material, np.uint16), buf(albedo, np.float32)
+    out = np.empty((V, H, W, 3), np.uint8)
+    d_out = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
+    k = rt.kernel("shade", "shade_pixels", ("-cl-fp32-correctly-rounded-divide-sqrt",))
+    d_thr = buf(srgb8_thresholds(), np.float32)
+    k.set_args(d_tri, d_w2c, d_n, d_v0, d_fm, d_alb, d_thr, prm, d_out)
+    n = V * H * W
+    cl.enqueue_nd_range_kernel(q, k, ((n + 255) // 256 * 256,), (256,))
+    cl.enqueue_copy(q, out, d_out)
+    q.finish()
+    if not uniform_bg:
+        bgmask = views.tri_id == BACKGROUND_TRI
+        out[bgmask] = np.broadcast_to(bg, (V, H, W, 3))[bgmask]
+    return out
+
+
+@functools.lru_cache(maxsize=1)
+def srgb8_thresholds() -> np.ndarray:
+    """(255,) float32: the smallest float32 linear value giving sRGB level k = 1..255 under
+    :func:`linear_to_srgb8` (found by bisection on float32 values, so a comparison with them
+    gives exactly the level ``linear_to_srgb8`` computes in float64 for float32 inputs)."""
+    out = np.empty(255, np.float32)
+    for k in range(1, 256):
+        lo, hi = np.float32(0.0), np.float32(1.0)         # level(lo) < k <= level(hi)
+        while True:
+            mid = np.float32((np.float64(lo) + np.float64(hi)) / 2)
+            if mid in (lo, hi):
+                break
+            if linear_to_srgb8(np.float64(mid)) >= k:
+                hi = mid
+            else:
+                lo = mid
+        out[k - 1] = hi
     return out
 
 

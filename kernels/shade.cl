@@ -1,0 +1,67 @@
+/* shade.cl: flat Lambert + Blinn-Phong shading of rendered triangle-id maps (see ucad_cl/shade.py
+ * for the model, units and conventions; this kernel is its device path, the NumPy code there is
+ * the reference it is tested against, to within one 8-bit level).
+ *
+ * One work-item per pixel of the (V, H, W) batch. Per view: R (3x3, row-major) and t of the
+ * world-to-camera matrix. Per face: unit normal and first vertex (canonical frame), material.
+ */
+#include "common.h"
+
+typedef struct {
+    float kinv[9];          /* K^-1, row-major */
+    float light[3];         /* unit vector toward the light, camera frame */
+    float ambient, specular, shininess;
+    int width, height, n_views;
+    uchar bg_r, bg_g, bg_b, pad;
+} shade_params;
+
+/* Linear value -> sRGB 8-bit level by binary search in the 255 level thresholds (computed in
+ * float64 on the host: level k starts where floor(srgb(x) * 255 + 0.5) becomes k). Exact and
+ * cheaper than pow() per channel on PoCL. */
+static inline uchar srgb8(global const float *thr, float x) {
+    int lo = 0;
+    for (int step = 128; step > 0; step >>= 1)
+        if (lo + step <= 255 && x >= thr[lo + step - 1]) lo += step;
+    return (uchar)lo;
+}
+
+kernel void shade_pixels(global const uint *tri_id, global const float *w2c /* V x 12 */,
+                         global const float *normals /* F x 3 */, global const float *v0 /* F x 3 */,
+                         global const ushort *face_material, global const float *albedo /* M x 3 */,
+                         global const float *thresholds /* 255 */, shade_params prm,
+                         global uchar *rgb) {
+    uint g = get_global_id(0);
+    uint npix = (uint)(prm.width * prm.height);
+    if (g >= npix * (uint)prm.n_views) return;
+    uint view = g / npix, p = g - view * npix;
+    uint t = tri_id[g];
+    global uchar *o = rgb + 3 * (size_t)g;
+    if (t == UCAD_BG_TRI) { o[0] = prm.bg_r; o[1] = prm.bg_g; o[2] = prm.bg_b; return; }
+    global const float *M = w2c + 12 * view;
+    float3 n = (float3)(normals[3 * t], normals[3 * t + 1], normals[3 * t + 2]);
+    float3 a = (float3)(v0[3 * t], v0[3 * t + 1], v0[3 * t + 2]);
+    float3 nc = (float3)(M[0] * n.x + M[1] * n.y + M[2] * n.z,
+                         M[4] * n.x + M[5] * n.y + M[6] * n.z,
+                         M[8] * n.x + M[9] * n.y + M[10] * n.z);
+    float3 pc = (float3)(M[0] * a.x + M[1] * a.y + M[2] * a.z + M[3],
+                         M[4] * a.x + M[5] * a.y + M[6] * a.z + M[7],
+                         M[8] * a.x + M[9] * a.y + M[10] * a.z + M[11]);
+    if (nc.x * pc.x + nc.y * pc.y + nc.z * pc.z > 0.0f) nc = -nc;     /* face the camera */
+    float3 l = (float3)(prm.light[0], prm.light[1], prm.light[2]);
+    float diffuse = fmax(nc.x * l.x + nc.y * l.y + nc.z * l.z, 0.0f);
+    /* unit vector from the surface to the camera: -K^-1 (j + 0.5, i + 0.5, 1) normalised */
+    float j = (float)(p % (uint)prm.width) + 0.5f, i = (float)(p / (uint)prm.width) + 0.5f;
+    float3 r = (float3)(prm.kinv[0] * j + prm.kinv[1] * i + prm.kinv[2],
+                        prm.kinv[3] * j + prm.kinv[4] * i + prm.kinv[5],
+                        prm.kinv[6] * j + prm.kinv[7] * i + prm.kinv[8]);
+    float3 h = l - r / sqrt(r.x * r.x + r.y * r.y + r.z * r.z);
+    h = h / sqrt(h.x * h.x + h.y * h.y + h.z * h.z);
+    int degenerate = n.x == 0.0f && n.y == 0.0f && n.z == 0.0f;
+    float nh = fmax(nc.x * h.x + nc.y * h.y + nc.z * h.z, 0.0f);
+    /* nh^shininess as exp2(shininess * log2(nh)); nh = 0 gives 0 */
+    float spec = degenerate || nh <= 0.0f ? 0.0f : prm.specular * exp2(prm.shininess * log2(nh));
+    uint m = face_material[t];
+    float k = prm.ambient + (1.0f - prm.ambient) * diffuse;
+    for (int c = 0; c < 3; ++c)
+        o[c] = srgb8(thresholds, albedo[3 * m + c] * k + spec);
+}
