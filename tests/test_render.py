@@ -220,6 +220,7 @@ def test_large_triangles_list_overflow_and_chunks(runtime):
     reruns); rendering in view chunks gives identical bytes."""
     import ucad_cl.render as R
 
+    runtime.release_scratch()          # start from the default list capacity
     rng = np.random.default_rng(1)
     n = 400
     v = rng.uniform(-0.45, 0.45, size=(3 * n, 3))

@@ -29,8 +29,6 @@ import json
 import os
 import queue
 import shutil
-import sys
-import tempfile
 import threading
 import time
 from dataclasses import asdict, dataclass, field

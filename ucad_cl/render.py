@@ -87,14 +87,17 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
     mat = np.empty((V, H, W), np.uint16)
     dep = np.empty((V, H, W), np.float32)
     counts = np.empty((V, H, W), np.uint64) if count else None
-    d_keys = cl.Buffer(ctx, mf.READ_WRITE, 8 * chunk * npix)
-    d_tri = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * chunk * npix)
-    d_mat = cl.Buffer(ctx, mf.WRITE_ONLY, 2 * chunk * npix)
-    d_dep = cl.Buffer(ctx, mf.WRITE_ONLY, 4 * chunk * npix)
-    d_count = cl.Buffer(ctx, mf.READ_WRITE, 4)
-    d_pverts = cl.Buffer(ctx, mf.READ_WRITE, 8 * chunk * n_verts)
+    # per-launch buffers are reused across calls (runtime scratch): no allocation and no page
+    # faults on first touch for every mesh
+    d_keys = rt.scratch("raster.keys", 8 * chunk * npix)
+    d_tri = rt.scratch("raster.tri", 4 * chunk * npix)
+    d_mat = rt.scratch("raster.mat", 2 * chunk * npix)
+    d_dep = rt.scratch("raster.depth", 4 * chunk * npix)
+    d_count = rt.scratch("raster.count", 4)
+    d_pverts = rt.scratch("raster.pverts", 8 * chunk * n_verts)
     big_cap = 4096
-    d_big = cl.Buffer(ctx, mf.READ_WRITE, 8 * big_cap)
+    d_big = rt.scratch("raster.big", 8 * big_cap)
+    big_cap = d_big.size // 8
     stats.upload = time.perf_counter() - t0
 
     for v0 in range(0, V, chunk):
@@ -119,8 +122,8 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
             n_big = int(n_big_arr[0])
             if n_big <= big_cap:
                 break
-            big_cap = _round_up(n_big, 4096)
-            d_big = cl.Buffer(ctx, mf.READ_WRITE, 8 * big_cap)
+            d_big = rt.scratch("raster.big", 8 * _round_up(n_big, 4096))
+            big_cap = d_big.size // 8
             stats.reruns += 1
         if n_big:
             cl.enqueue_nd_range_kernel(

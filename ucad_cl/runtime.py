@@ -58,6 +58,7 @@ class Runtime:
     compile_seconds: dict = field(default_factory=dict)
     _programs: dict = field(default_factory=dict)
     _kernels: dict = field(default_factory=dict)
+    _scratch: dict = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     @property
@@ -78,6 +79,22 @@ class Runtime:
         if k is None:
             k = self._kernels[key] = cl.Kernel(self.program(program, options), name)
         return k
+
+    def scratch(self, name: str, nbytes: int):
+        """A device buffer of at least ``nbytes`` reused across calls under ``name`` (it grows,
+        never shrinks). Saves allocating and first-touching large buffers on every call; the
+        contents are undefined. Not thread-safe, like ``kernel``."""
+        import pyopencl as cl
+
+        nbytes = max(int(nbytes), 1)
+        buf = self._scratch.get(name)
+        if buf is None or buf.size < nbytes:
+            buf = self._scratch[name] = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
+        return buf
+
+    def release_scratch(self) -> None:
+        """Drop every scratch buffer (e.g. after a very large render)."""
+        self._scratch.clear()
 
     def program(self, name: str, options: tuple[str, ...] = ()):
         """Built program for ``kernels/<name>.cl``; cached per process and on disk."""

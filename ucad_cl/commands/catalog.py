@@ -31,6 +31,24 @@ def register(sub) -> None:
     p.set_defaults(func=run_export)
 
 
+def open_reader(path):
+    """A CatalogReader for ``path``, or None after printing why it cannot be opened."""
+    from ucad_catalog._db import CatalogError
+    from ucad_catalog.reader import CatalogReader
+    try:
+        return CatalogReader(path)
+    except CatalogError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+
+
+def match_meshes(metas, key: str) -> list:
+    """Catalogued meshes that ``key`` names: id, sha256 prefix, path or file name."""
+    k = key.lower()
+    return [m for m in metas if str(m.id) == key or m.sha256.startswith(k) or m.path == key
+            or Path(m.path).name.lower() == k]
+
+
 def _open(path):
     from ucad_catalog._db import CatalogError
     from ucad_catalog.store import Catalog
@@ -71,20 +89,14 @@ def run_status(args) -> int:
 
 def run_show(args) -> int:
     from ucad_catalog._db import CatalogError
-    from ucad_catalog.reader import CatalogReader
 
-    try:
-        r = CatalogReader(args.catalog)
-    except CatalogError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    r = open_reader(args.catalog)
+    if r is None:
         return 2
     with r:
-        metas = r.meshes(state=None)
-        key = args.id
-        hits = [m for m in metas if str(m.id) == key or m.sha256.startswith(key.lower())
-                or m.path == key or Path(m.path).name == key]
+        hits = match_meshes(r.meshes(state=None), args.id)
         if len(hits) != 1:
-            print(f"error: {len(hits)} meshes match {key!r}", file=sys.stderr)
+            print(f"error: {len(hits)} meshes match {args.id!r}", file=sys.stderr)
             return 2
         m = hits[0]
         print(f"mesh {m.id}  {m.path}\n  sha256 {m.sha256}\n  state {m.state}"

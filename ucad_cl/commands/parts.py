@@ -111,21 +111,16 @@ def format_table(table) -> str:
 
 def run_catalog(args) -> int:
     """Stored tables: one block per mesh, same columns as a fresh run."""
-    from ucad_catalog._db import CatalogError
-    from ucad_catalog.reader import CatalogReader
+    from .catalog import match_meshes, open_reader
 
-    try:
-        reader = CatalogReader(args.catalog)
-    except CatalogError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    reader = open_reader(args.catalog)
+    if reader is None:
         return 2
     with reader as r:
         metas = r.meshes(state=None)
         if args.meshes:
-            keys = [k.lower() for k in args.meshes]
-            metas = [m for m in metas if any(str(m.id) == k or m.sha256.startswith(k)
-                                             or m.path == k or Path(m.path).name.lower() == k
-                                             for k in keys)]
+            hit_ids = {m.id for k in args.meshes for m in match_meshes(metas, k)}
+            metas = [m for m in metas if m.id in hit_ids]
             if not metas:
                 print(f"error: no catalogued mesh matches {args.meshes}", file=sys.stderr)
                 return 2

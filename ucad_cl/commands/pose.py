@@ -6,7 +6,6 @@ and writes a side-by-side PNG: the reference crop | the best render, both at the
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -94,16 +93,15 @@ def run_catalog(args, image, mask) -> int:
     import numpy as np
 
     from ucad_catalog._db import CatalogError
-    from ucad_catalog.reader import CatalogReader
 
     from ..features import HogExtractor, crop_square
     from ..ingest import IngestError, load_mesh
     from ..pose import PoseCandidate, _box_side, reference_mask, search_catalog
 
-    try:
-        reader = CatalogReader(args.catalog)
-    except CatalogError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    from .catalog import open_reader
+
+    reader = open_reader(args.catalog)
+    if reader is None:
         return 2
     with reader as r:
         metas = r.meshes()
