@@ -226,3 +226,16 @@ def test_cli_parts_over_catalogue_and_render_edges(library, tmp_path, runtime, c
     img = cv2.imread(str(pngs[0]), cv2.IMREAD_GRAYSCALE)
     assert set(np.unique(img)) == {0, 255}
     assert main(["render", str(tmp_path / "missing.glb"), "--out", str(out_dir)]) == 1
+
+
+def test_demo_command_builds_and_shows_where_to_look(tmp_path, runtime, capsys):
+    """The README's first command, on a smaller sample."""
+    from ucad_cl.cli import main
+
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--count", "4"]) == 0
+    out = capsys.readouterr().out
+    assert "look at:" in out and "status --catalog" in out
+    sheets = sorted((tmp_path / "demo" / "sheets").glob("*.png"))
+    assert len(sheets) >= 4
+    assert main(["status", "--catalog", str(tmp_path / "demo" / "catalog")]) == 0
+    assert "accepted: 4" in capsys.readouterr().out

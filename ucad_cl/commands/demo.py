@@ -31,7 +31,9 @@ def run(args) -> int:
 
     lib, cat, sheets = args.out / "library", args.out / "catalog", args.out / "sheets"
     print(f"1/3 generating {args.count} vehicles into {lib}")
-    write_library(lib, args.count, seed=args.seed)
+    # 0.55 of 24 vehicles = 13 messy ones: every messy trait once (odd units, orientations,
+    # offsets, merged or thousands of materials, missing wheels, one-material, NaN, empty, truncated)
+    write_library(lib, args.count, seed=args.seed, messy_fraction=0.55)
     print(f"2/3 building the catalogue {cat} (72 views x 256 px per mesh)")
     summary = build(lib, cat, BuildOptions())
     print_summary(summary, cat)
