@@ -138,6 +138,9 @@ def test_crashing_and_hanging_loaders_are_isolated(library, tmp_path, runtime, m
     assert by_name[names[1]]["reason"] == "loader_crashed"
     assert by_name[names[4]]["reason"] == "timeout"
     assert s.accepted == 6 and s.rejected == 4 and len(content) == 10, (s.reasons, content)
+    log = (cat / "logs" / "run-00001.log").read_text()       # the run says what happened
+    assert f"{names[1]} reason=loader_crashed" in log and "reason=timeout" in log
+    assert "finished: 6 accepted, 4 rejected" in log
 
 
 def test_two_workers_give_the_same_catalogue(library, tmp_path, runtime):

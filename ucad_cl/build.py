@@ -456,9 +456,17 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
                 summary.skipped += 1
         log(f"{len(refs)} meshes found, {summary.skipped} unchanged (skipped), "
             f"{len(todo)} to process with the {engine} engine")
+        runlog = RunLog(Path(catalog) / "logs" / f"run-{run_id:05d}.log")
+        runlog.write(f"run {run_id} engine={engine} workers={workers} found={len(refs)} "
+                     f"skipped={summary.skipped} todo={len(todo)} options={options.to_dict()}")
 
         def commit(entry):
             cat.commit_mesh(entry)
+            n = summary.processed + 1
+            runlog.write(f"{n}/{len(todo)} {entry.state} {entry.path}"
+                         + (f" reason={entry.reason}: {entry.detail}" if entry.reason else "")
+                         + f" s={sum((entry.timings or {}).values()):.2f}"
+                         + (f" rss_mb={_tree_rss_mb():.0f}" if n % 50 == 0 else ""))
             if entry.state == "accepted":
                 summary.accepted += 1
             else:
@@ -485,9 +493,44 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
         cat.finish_run(run_id, {"skipped": summary.skipped, "failed": summary.failed,
                                 "meshes_per_s": summary.meshes_per_s,
                                 "stage_seconds": summary.stage_seconds})
+        runlog.write(f"finished: {summary.accepted} accepted, {summary.rejected} rejected "
+                     f"{summary.reasons}, {summary.meshes_per_s:.2f} meshes/s, "
+                     f"peak RSS {summary.peak_rss_mb:.0f} MB")
     finally:
         cat.close()
     return summary
+
+
+class RunLog:
+    """Append-only, line-buffered log of one run (``CATALOG/logs/run-NNNNN.log``): every commit
+    with its reason and seconds, process-tree memory every 50 meshes, worker deaths. Flushed per
+    line, so a killed run still says how far it got and why."""
+
+    def __init__(self, path: Path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(path, "a", buffering=1, encoding="utf-8")
+
+    def write(self, line: str) -> None:
+        self._f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {line}\n")
+
+
+def _tree_rss_mb() -> float:
+    """Resident memory of this process and its children (MB); 0 without psutil."""
+    try:
+        import psutil
+    except ImportError:
+        return 0.0
+    total = 0
+    try:
+        me = psutil.Process()
+        for p in [me] + me.children(recursive=True):
+            try:
+                total += p.memory_info().rss
+            except psutil.Error:
+                pass
+    except psutil.Error:
+        return 0.0
+    return total / 2**20
 
 
 def _run_local(todo, options, commit, *, workers, timeout, recycle_after, progress, staging, log):
