@@ -165,6 +165,17 @@ def test_discover_layouts(tmp_path):
     assert [Path(r.path).stem for r in discover(tmp_path / "m.json")] == ["aaa"]
     with pytest.raises(FileNotFoundError, match="does not exist"):
         discover(tmp_path / "missing")
+    from ucad_cl.build import read_uid_list
+    ann = tmp_path / "annotations.json"
+    ann.write_text(json.dumps({
+        "aaa": {"name": "red car", "categories": [{"name": "cars-vehicles"}], "tags": [{"name": "car"}]},
+        "bbb": {"name": "chair", "categories": [{"name": "furniture-home"}], "tags": []},
+        "ccc": {"name": "truck", "categories": [], "tags": [{"name": "Truck"}]}}))
+    assert read_uid_list(ann) == ["aaa", "bbb", "ccc"]
+    assert read_uid_list(ann, ["car", "truck"]) == ["aaa", "ccc"]
+    assert read_uid_list(ann, ["cars-vehicles"]) == ["aaa"]
+    with pytest.raises(ValueError, match="annotations JSON"):
+        read_uid_list(manifest, ["car"])
 
 
 def test_real_models_build_without_crash(vehicles_dir, tmp_path, runtime):

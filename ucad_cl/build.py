@@ -138,13 +138,31 @@ def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None) -
     return refs
 
 
-def read_uid_list(path: str | os.PathLike) -> list[str]:
-    """Uids from a text file (one per line) or an Objaverse-style annotations JSON (its keys)."""
+def read_uid_list(path: str | os.PathLike, categories: Iterable[str] | None = None) -> list[str]:
+    """Uids from a text file (one per line) or an Objaverse-style annotations JSON
+    (``{uid: {"name", "categories": [{"name": ...}], "tags": [{"name": ...}], ...}}``: its keys).
+    ``categories`` keeps only annotated uids with a category or tag of one of these names
+    (case-insensitive), e.g. ``("car", "vehicle", "truck")``."""
     p = Path(path)
-    if p.suffix.lower() == ".json":
-        data = json.loads(p.read_text(encoding="utf-8"))
-        return list(data.keys() if isinstance(data, dict) else data)
-    return [ln.strip() for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
+    if p.suffix.lower() != ".json":
+        if categories:
+            raise ValueError(f"{p}: --categories needs an annotations JSON, not a uid list")
+        return [ln.strip() for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
+    data = json.loads(p.read_text(encoding="utf-8"))
+    if not isinstance(data, dict):
+        if categories:
+            raise ValueError(f"{p}: --categories needs annotations ({{uid: {{...}}}}), got a list")
+        return [str(u) for u in data]
+    if not categories:
+        return list(data.keys())
+    want = {c.strip().lower() for c in categories}
+
+    def names(items):
+        for it in items or []:
+            yield (it.get("name", "") if isinstance(it, dict) else str(it)).lower()
+
+    return [uid for uid, ann in data.items() if isinstance(ann, dict)
+            and want & set(names(ann.get("categories"))) | want & set(names(ann.get("tags")))]
 
 
 def content_sha256(path: str | os.PathLike) -> str:

@@ -40,6 +40,9 @@ def register(sub) -> None:
     p.add_argument("--no-edges", action="store_true", help="skip Canny edge maps")
     p.add_argument("--uids", type=Path, default=None, metavar="FILE",
                    help="keep only meshes whose file stem is listed (text, or annotations JSON keys)")
+    p.add_argument("--categories", nargs="+", default=None, metavar="NAME",
+                   help="with an annotations JSON as --uids: keep uids with one of these "
+                        "category or tag names (e.g. car vehicle truck)")
     p.add_argument("--limit", type=int, default=None, help="process at most N discovered meshes")
     p.add_argument("--timeout", type=float, default=600.0,
                    help="seconds without progress on one mesh before it is rejected (default 600)")
@@ -62,7 +65,9 @@ def run(args) -> int:
 
     try:
         opts = options_from_args(args)
-        uids = read_uid_list(args.uids) if args.uids else None
+        if args.categories and not args.uids:
+            raise ValueError("--categories needs --uids ANNOTATIONS.json")
+        uids = read_uid_list(args.uids, args.categories) if args.uids else None
         summary = build(args.library, args.catalog, opts, workers=args.workers,
                         engine=args.engine, ray_address=args.address, uids=uids,
                         limit=args.limit, timeout=args.timeout)
