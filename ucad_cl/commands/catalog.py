@@ -43,10 +43,16 @@ def open_reader(path):
 
 
 def match_meshes(metas, key: str) -> list:
-    """Catalogued meshes that ``key`` names: id, sha256 prefix, path or file name."""
+    """Catalogued meshes that ``key`` names, first rule that matches wins: mesh id, path or file
+    name, then sha256 prefix (at least 6 hex digits)."""
     k = key.lower()
-    return [m for m in metas if str(m.id) == key or m.sha256.startswith(k) or m.path == key
-            or Path(m.path).name.lower() == k]
+    for rule in (lambda m: str(m.id) == key,
+                 lambda m: m.path == key or Path(m.path).name.lower() == k,
+                 lambda m: len(k) >= 6 and m.sha256.startswith(k)):
+        hits = [m for m in metas if rule(m)]
+        if hits:
+            return hits
+    return []
 
 
 def _open(path):
@@ -106,11 +112,8 @@ def run_show(args) -> int:
             print("  seconds: " + ", ".join(f"{k} {v:.3f}" for k, v in m.timings.items()))
         parts = r.parts(m.sha256)
         if parts:
-            print(f"  {'material':<32} {'part':<9} {'score':>6} {'iou':>6} {'view':>5} "
-                  f"{'pixels':>8}  decision")
-            for p in parts:
-                print(f"  {p.name[:32]:<32} {p.part:<9} {p.score:>6.3f} {p.iou:>6.3f} {p.view:>5} "
-                      f"{p.pixels:>8}  {p.decision}")
+            from .parts import format_rows
+            print(format_rows(parts, indent="  "))
         for kind in ("views.exr", "parts.png", "features.npy", "edges.npy.gz"):
             try:
                 print(f"  {kind:<13} {r.artifact_path(m.sha256, kind)}")

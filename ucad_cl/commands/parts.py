@@ -101,11 +101,17 @@ def write_table(table, stem: Path) -> None:
 
 
 def format_table(table) -> str:
-    lines = [f"{'material':32s} {'part':9s} {'score':>5s} {'iou':>5s} {'view':>4s} "
+    return format_rows(table.rows)
+
+
+def format_rows(rows, indent: str = "") -> str:
+    """Material -> part rows (anything with name, part, score, iou, view, decision, pixels:
+    a fresh ``MaterialPart`` or a catalogue ``PartRow``) as an aligned text table."""
+    lines = [f"{indent}{'material':32s} {'part':9s} {'score':>5s} {'iou':>5s} {'view':>4s} "
              f"{'decision':15s} {'pixels':>8s}"]
-    for r in table.rows:
-        lines.append(f"{r.name[:32]:32s} {r.part:9s} {r.score:5.2f} {r.iou:5.2f} {r.view:4d} "
-                     f"{r.decision:15s} {r.pixels:8d}")
+    for r in rows:
+        lines.append(f"{indent}{r.name[:32]:32s} {r.part:9s} {r.score:5.2f} {r.iou:5.2f} "
+                     f"{r.view:4d} {r.decision:15s} {r.pixels:8d}")
     return "\n".join(lines)
 
 
@@ -130,11 +136,7 @@ def run_catalog(args) -> int:
             print(f"== {m.id} {m.path} ({m.state}{': ' + m.reason if m.reason else ''})")
             rows = r.parts(m.sha256)
             if rows:
-                print(f"{'material':32s} {'part':9s} {'score':>5s} {'iou':>5s} {'view':>4s} "
-                      f"{'decision':15s} {'pixels':>8s}")
-            for p in rows:
-                print(f"{p.name[:32]:32s} {p.part:9s} {p.score:5.2f} {p.iou:5.2f} {p.view:4d} "
-                      f"{p.decision:15s} {p.pixels:8d}")
+                print(format_rows(rows))
     return 0
 
 
