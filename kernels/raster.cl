@@ -185,6 +185,15 @@ static void NAME(long2 p0, long2 p1, long2 p2, float z0, float z1, float z2,    
 #endif
 #define CONVERT_long(x) (x)
 #define CONVERT_int(x) convert_int2(x)
+/* pixel_span in 32 bits for snapped coordinates (|a|, |b| <= 2^22): same result */
+static inline int2 pixel_span32(int a, int b, int n) {
+    int lo = a - (int)SUB_HALF, hi = b - (int)SUB_HALF;
+    int2 r;
+    r.x = lo <= 0 ? 0 : (lo + (int)SUB_ONE - 1) >> SUB_BITS;
+    r.y = hi < 0 ? -1 : min(hi >> SUB_BITS, n - 1);
+    return r;
+}
+
 static inline int owned_long(long2 a, long2 b) {
     long dx = b.x - a.x, dy = b.y - a.y;
     return dy < 0 || (dy == 0 && dx > 0);
@@ -240,6 +249,10 @@ static void raster_face(global const float *verts, global const uint *faces,
     float zs[MAX_POLY];
     int n;
     if (!clipped) {                                       /* common case: no clipping */
+        /* most small faces cover no pixel centre: leave in 32-bit math, before anything else */
+        int2 xs = pixel_span32(min(q0.x, min(q1.x, q2.x)), max(q0.x, max(q1.x, q2.x)), prm.width);
+        int2 ys = pixel_span32(min(q0.y, min(q1.y, q2.y)), max(q0.y, max(q1.y, q2.y)), prm.height);
+        if (xs.x > xs.y || ys.x > ys.y) return;
         s[0] = (long2)(q0.x, q0.y); s[1] = (long2)(q1.x, q1.y); s[2] = (long2)(q2.x, q2.y);
         n = 3;
     } else {                                              /* Sutherland-Hodgman, 5 planes */
