@@ -192,12 +192,13 @@ def symmetric_pairs(mesh: Mesh, *, tol: float = 0.01, min_match: float = 0.8,
     # a pair needs >= min_match of a's reflected points within tol of b's points, so a's reflected
     # bounding box must meet b's box grown by tol: a necessary test that skips most KD queries
     mats = sorted(pts)
-    box = {m: (pts[m].min(axis=0), pts[m].max(axis=0)) for m in mats}
-    rbox = {}
-    for m in mats:
-        lo_r, hi_r = box[m][0].copy(), box[m][1].copy()
-        lo_r[axis], hi_r[axis] = 2.0 * mid - box[m][1][axis], 2.0 * mid - box[m][0][axis]
-        rbox[m] = (lo_r, hi_r)
+    lo = np.array([pts[m].min(axis=0) for m in mats])
+    hi = np.array([pts[m].max(axis=0) for m in mats])
+    rlo, rhi = lo.copy(), hi.copy()                   # bounding boxes of the reflections
+    rlo[:, axis], rhi[:, axis] = 2.0 * mid - hi[:, axis], 2.0 * mid - lo[:, axis]
+    # all candidate pairs at once: a's reflected box meets b's box grown by tol
+    meets = (np.all(rlo[:, None, :] <= hi[None, :, :] + tol, axis=2)
+             & np.all(rhi[:, None, :] >= lo[None, :, :] - tol, axis=2))
     self_match: dict[int, float] = {}
 
     def self_of(m):
@@ -206,18 +207,14 @@ def symmetric_pairs(mesh: Mesh, *, tol: float = 0.01, min_match: float = 0.8,
         return self_match[m]
 
     cands = []
-    for a in mats:
-        for b in mats:
-            if b <= a:
-                continue
-            if np.any(rbox[a][0] > box[b][1] + tol) or np.any(rbox[a][1] < box[b][0] - tol):
-                continue
-            ab = match(a, b)
-            if ab < min_match:
-                continue
-            ba = match(b, a)
-            if ba >= min_match and ab > self_of(a) and ba > self_of(b):
-                cands.append((-(ab + ba), a, b))
+    for ia, ib in zip(*np.nonzero(np.triu(meets, k=1))):
+        a, b = mats[ia], mats[ib]
+        ab = match(a, b)
+        if ab < min_match:
+            continue
+        ba = match(b, a)
+        if ba >= min_match and ab > self_of(a) and ba > self_of(b):
+            cands.append((-(ab + ba), a, b))
     used, pairs = set(), []
     for _, a, b in sorted(cands):
         if a not in used and b not in used:
