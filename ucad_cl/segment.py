@@ -28,6 +28,7 @@ material -> part labels. Part names are ``ucad_cl.types.PART_NAMES``. Three impl
 """
 from __future__ import annotations
 
+import functools
 import json
 import re
 from pathlib import Path
@@ -251,8 +252,9 @@ NAME_KEYWORDS: tuple[tuple[str, tuple[str, ...]], ...] = (
 )
 
 
+@functools.lru_cache(maxsize=65536)
 def name_prior(name: str) -> str | None:
-    """Part named by a material name, or None.
+    """Part named by a material name, or None (cached: a pure function of the name).
 
     Every keyword of ``NAME_KEYWORDS`` found in the name is a candidate; the one that starts
     earliest in the name wins (names put the part first: ``paint_window_sill`` is paint,
