@@ -46,3 +46,23 @@ def boundary_mask(ids: np.ndarray) -> np.ndarray:
         for dj in (-1, 0, 1):
             out |= pad[..., 1 + di:1 + di + H, 1 + dj:1 + dj + W] != ids
     return out
+
+
+def flat_views(mat_id: np.ndarray):
+    """A ViewSet around hand-made material-id maps (identity cameras, no triangles)."""
+    from ucad_cl.types import CameraRing, ViewSet
+
+    V, H, W = mat_id.shape
+    ring = CameraRing(K=np.eye(3), w2c=np.tile(np.eye(4), (V, 1, 1)), width=W, height=H,
+                      azimuth=np.zeros(V), elevation=np.zeros(V), distance=1.0, near=0.01)
+    return ViewSet(cameras=ring, tri_id=np.zeros((V, H, W), np.uint32),
+                   mat_id=mat_id.astype(np.uint16), depth=np.zeros((V, H, W), np.float32))
+
+
+def flat_mesh(n_mat: int, sha: str = "ab" * 32):
+    """A mesh with ``n_mat`` materials and no faces (classification only needs the maps)."""
+    from ucad_cl.types import Material, Mesh
+
+    return Mesh(path="hand-made", sha256=sha, vertices=np.zeros((0, 3)),
+                faces=np.zeros((0, 3), np.uint32), face_material=np.zeros(0, np.uint16),
+                materials=[Material(name=f"m{i}") for i in range(n_mat)])

@@ -9,7 +9,8 @@ import pytest
 
 from ucad_cl.classify import classify_parts, part_histogram, symmetric_pairs
 from ucad_cl.segment import masks_from_labels
-from ucad_cl.types import PART_NAMES, CameraRing, Material, Mesh, PartMasks, ViewSet
+from tests.reference import flat_mesh, flat_views
+from ucad_cl.types import PART_NAMES, Material, Mesh, PartMasks
 
 
 def numpy_histogram(mat_id, masks, n_ids):
@@ -23,19 +24,6 @@ def numpy_histogram(mat_id, masks, n_ids):
     return out
 
 
-def flat_views(mat_id: np.ndarray) -> ViewSet:
-    V, H, W = mat_id.shape
-    ring = CameraRing(K=np.eye(3), w2c=np.tile(np.eye(4), (V, 1, 1)), width=W, height=H,
-                      azimuth=np.zeros(V), elevation=np.zeros(V), distance=1.0, near=0.01)
-    return ViewSet(cameras=ring, tri_id=np.zeros((V, H, W), np.uint32),
-                   mat_id=mat_id.astype(np.uint16), depth=np.zeros((V, H, W), np.float32))
-
-
-def flat_mesh(n_mat: int) -> Mesh:
-    """A mesh with materials but no faces (classification only needs the maps)."""
-    return Mesh(path="hand-made", sha256="0" * 64, vertices=np.zeros((0, 3)),
-                faces=np.zeros((0, 3), np.uint32), face_material=np.zeros(0, np.uint16),
-                materials=[Material(name=f"m{i}") for i in range(n_mat)])
 
 
 def part_masks(V, H, W, spec: dict, conf=None) -> PartMasks:

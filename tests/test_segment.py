@@ -11,21 +11,10 @@ import pytest
 from ucad_cl.classify import classify_parts
 from ucad_cl.segment import (MasksSegmenter, OnnxSegmenter, PriorSegmenter, material_colors,
                              material_image, name_prior, write_masks)
-from ucad_cl.types import PART_NAMES, CameraRing, Material, Mesh, PartMasks, ViewSet
+from tests.reference import flat_mesh, flat_views
+from ucad_cl.types import PART_NAMES, Mesh, PartMasks
 
 
-def flat_views(mat_id: np.ndarray) -> ViewSet:
-    V, H, W = mat_id.shape
-    ring = CameraRing(K=np.eye(3), w2c=np.tile(np.eye(4), (V, 1, 1)), width=W, height=H,
-                      azimuth=np.zeros(V), elevation=np.zeros(V), distance=1.0, near=0.01)
-    return ViewSet(cameras=ring, tri_id=np.zeros((V, H, W), np.uint32),
-                   mat_id=mat_id.astype(np.uint16), depth=np.zeros((V, H, W), np.float32))
-
-
-def flat_mesh(n_mat: int, sha: str = "ab" * 32) -> Mesh:
-    return Mesh(path="hand-made", sha256=sha, vertices=np.zeros((0, 3)),
-                faces=np.zeros((0, 3), np.uint32), face_material=np.zeros(0, np.uint16),
-                materials=[Material(name=f"m{i}") for i in range(n_mat)])
 
 
 # -- masks folder -------------------------------------------------------------------------------
