@@ -253,3 +253,17 @@ def test_demo_command_builds_and_shows_where_to_look(tmp_path, runtime, capsys):
     assert len(sheets) >= 4
     assert main(["status", "--catalog", str(tmp_path / "demo" / "catalog")]) == 0
     assert "accepted: 4" in capsys.readouterr().out
+
+
+def test_bad_segmenter_specs_fail_before_any_work(library, tmp_path):
+    """A wrong --segmenter is a clear error in the driver (no worker, no catalogue)."""
+    from ucad_cl.cli import main
+
+    for spec, msg in (("onnx:model.onnx", "needs a config"), ("sam", "unknown segmenter"),
+                      ("masks:", "unknown segmenter")):
+        with pytest.raises(ValueError, match=msg):
+            build(library, tmp_path / "cat", BuildOptions(segmenter=spec), progress=False,
+                  log=lambda *a: None)
+    assert not (tmp_path / "cat").exists()
+    assert main(["build", str(library), "--catalog", str(tmp_path / "c2"), "--segmenter",
+                 "onnx:m.onnx"]) == 2

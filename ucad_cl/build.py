@@ -50,7 +50,7 @@ class BuildOptions:
     elevations: tuple[float, ...] = (15.0,)
     fov_deg: float = 40.0
     size: int = 256
-    segmenter: str = "prior"            # 'prior' | 'masks:DIR' | 'onnx:MODEL[:CONFIG]'
+    segmenter: str = "prior"            # 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG'
     threshold: float = 0.5              # part score threshold (UrbanCAD: 0.5)
     min_materials: int = 2
     max_triangles: int = 2_000_000      # reject above this (after decimation, if any)
@@ -293,19 +293,12 @@ def _inject_fault(path: str) -> None:
 
 
 def make_segmenter(spec: str):
-    """'prior' | 'masks:DIR' | 'onnx:MODEL[:CONFIG.json]' -> a Segmenter."""
-    from . import segment
+    """'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG.json' -> a Segmenter (``segment.make_segmenter``)."""
+    from .segment import make_segmenter as factory
 
     kind, _, arg = spec.partition(":")
-    if kind == "prior":
-        return segment.PriorSegmenter()
-    if kind == "masks" and arg:
-        return segment.MasksSegmenter(arg)
-    if kind == "onnx" and arg:
-        model, _, config = arg.partition(":")
-        cfg = json.loads(Path(config).read_text()) if config else None
-        return segment.OnnxSegmenter(model, cfg) if cfg is not None else segment.OnnxSegmenter(model)
-    raise ValueError(f"unknown segmenter {spec!r}: use prior, masks:DIR or onnx:MODEL[:CONFIG]")
+    model, _, config = arg.partition(":") if kind == "onnx" else (arg, "", "")
+    return factory(kind, model or None, config or None)
 
 
 def rejected_entry(ref: MeshRef, sha: str, reason: str, detail: str):
@@ -450,6 +443,7 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     from ucad_catalog.store import Catalog
 
     t_start = time.perf_counter()
+    make_segmenter(options.segmenter)     # a bad --segmenter fails here, not in every worker
     refs = discover(library, uids=uids)
     if limit:
         refs = refs[:limit]

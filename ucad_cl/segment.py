@@ -151,6 +151,21 @@ def material_image(mat_id: np.ndarray) -> np.ndarray:
     return material_colors(int(mat_id.max(initial=0)) + 1)[mat_id]
 
 
+def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict | None = None):
+    """The one factory behind every CLI spelling: ``prior``, ``masks`` with a folder ``arg``, or
+    ``onnx`` with a model ``arg`` and a ``config`` (JSON path or dict). ValueError otherwise."""
+    if kind == "prior" and not arg:
+        return PriorSegmenter()
+    if kind == "masks" and arg:
+        return MasksSegmenter(arg)
+    if kind == "onnx" and arg:
+        if config is None:
+            raise ValueError("the onnx segmenter needs a config JSON (classes, input_size)")
+        return OnnxSegmenter(arg, config)
+    raise ValueError(f"unknown segmenter {kind!r}{' ' + arg if arg else ''}: expected prior, "
+                     "masks DIR or onnx MODEL with a config")
+
+
 class OnnxSegmenter:
     """Runs a user ONNX segmentation model under the contract in the module docstring."""
 

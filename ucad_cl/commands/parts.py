@@ -55,19 +55,12 @@ def register(sub) -> None:
 
 def make_segmenter(spec: list[str], onnx_config: Path | None):
     """Segmenter from the ``--segmenter`` words (raises ValueError with a usage message)."""
-    from ..segment import MasksSegmenter, OnnxSegmenter, PriorSegmenter
+    from ..segment import make_segmenter as factory
 
-    kind = spec[0]
-    if kind == "prior" and len(spec) == 1:
-        return PriorSegmenter()
-    if kind == "masks" and len(spec) == 2:
-        return MasksSegmenter(spec[1])
-    if kind == "onnx" and len(spec) == 2:
-        if onnx_config is None:
-            raise ValueError("--segmenter onnx MODEL needs --onnx-config JSON")
-        return OnnxSegmenter(spec[1], onnx_config)
-    raise ValueError(f"--segmenter {' '.join(spec)!r}: expected 'prior', 'masks DIR' or "
-                     "'onnx MODEL'")
+    if len(spec) > 2:
+        raise ValueError(f"--segmenter {' '.join(spec)!r}: expected 'prior', 'masks DIR' or "
+                         "'onnx MODEL' (with --onnx-config JSON)")
+    return factory(spec[0], spec[1] if len(spec) == 2 else None, onnx_config)
 
 
 def part_sheet(views, table, max_width: int = 2400) -> np.ndarray:
