@@ -51,3 +51,17 @@ def test_pixel_rays_go_through_pixel_centres():
 def test_bad_rings_are_rejected(kwargs):
     with pytest.raises(ValueError):
         make_ring(**kwargs)
+
+
+def test_viewset_select_keeps_maps_and_cameras_together():
+    from ucad_cl.types import ViewSet
+
+    ring = make_ring(azimuth_step=90, elevations=(0.0, 30.0), size=8)
+    V = ring.n_views
+    vs = ViewSet(ring, np.arange(V * 64, dtype=np.uint32).reshape(V, 8, 8),
+                 np.zeros((V, 8, 8), np.uint16), np.ones((V, 8, 8), np.float32))
+    sub = vs.select(np.array([1, 6]))
+    assert sub.n_views == sub.cameras.n_views == 2
+    assert np.array_equal(sub.tri_id, vs.tri_id[[1, 6]])
+    assert np.array_equal(sub.cameras.w2c, ring.w2c[[1, 6]])
+    assert list(sub.cameras.azimuth) == [90.0, 180.0] and list(sub.cameras.elevation) == [0.0, 30.0]

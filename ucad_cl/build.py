@@ -322,18 +322,11 @@ def npy_gz_bytes(a: np.ndarray) -> bytes:
 
 def parts_sheet_png(views, table) -> bytes:
     """Contact sheet of (at most 24 of) the views coloured by part, as PNG bytes."""
-    import copy
-
     import cv2
 
-    from .commands.parts import part_sheet
+    from .sheets import part_sheet
 
-    sel = np.arange(0, views.n_views, max(1, views.n_views // 24))
-    sub = copy.copy(views)
-    sub.mat_id = views.mat_id[sel]
-    sub.cameras = copy.copy(views.cameras)
-    sub.cameras.azimuth, sub.cameras.elevation = (views.cameras.azimuth[sel],
-                                                  views.cameras.elevation[sel])
+    sub = views.select(np.arange(0, views.n_views, max(1, views.n_views // 24)))
     ok, png = cv2.imencode(".png", np.ascontiguousarray(part_sheet(sub, table, 1600)[..., ::-1]))
     return png.tobytes()
 

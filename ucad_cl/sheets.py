@@ -82,19 +82,48 @@ def write_png(path, rgb: np.ndarray) -> Path:
     return path
 
 
+# fixed RGB per part (PART_NAMES order); unseen parts grey
+PART_COLORS = {
+    "body": (200, 40, 40), "window": (60, 160, 230), "wheel": (85, 85, 85),
+    "rim": (170, 170, 190), "light": (255, 220, 60), "chrome": (230, 230, 255),
+    "plate": (255, 255, 255), "interior": (150, 100, 60), "other": (150, 90, 180),
+}
+
+
+def view_labels(cameras) -> list[str]:
+    """'az A el E' under each view of a CameraRing."""
+    return [f"az {a:.0f} el {e:.0f}" for a, e in zip(cameras.azimuth, cameras.elevation)]
+
+
+def with_legend(sheet: np.ndarray, leg: np.ndarray) -> np.ndarray:
+    """``sheet`` with ``leg`` to its right, on the sheets' dark background."""
+    h = max(sheet.shape[0], leg.shape[0])
+    out = np.full((h, sheet.shape[1] + leg.shape[1], 3), 32, np.uint8)
+    out[:sheet.shape[0], :sheet.shape[1]] = sheet
+    out[:leg.shape[0], sheet.shape[1]:] = leg
+    return out
+
+
 def material_sheet(views, material_names: Sequence[str] | None = None, max_width: int = 2400
                    ) -> np.ndarray:
     """Contact sheet of a ViewSet's material-id maps (fixed colour per material) with a legend."""
     n = len(material_names) + 1 if material_names is not None else int(views.mat_id.max()) + 1
     pal = id_palette(n)
-    labels = [f"az {a:.0f} el {e:.0f}" for a, e in zip(views.cameras.azimuth, views.cameras.elevation)]
-    sheet = contact_sheet(pal[views.mat_id], labels, max_width=max_width)
+    sheet = contact_sheet(pal[views.mat_id], view_labels(views.cameras), max_width=max_width)
     if material_names:
         shown = [k for k in range(len(material_names)) if (views.mat_id == k + 1).any()][:64]
         leg = legend([material_names[k] for k in shown], pal[[k + 1 for k in shown]])
-        h = max(sheet.shape[0], leg.shape[0])
-        out = np.full((h, sheet.shape[1] + leg.shape[1], 3), 32, np.uint8)
-        out[:sheet.shape[0], :sheet.shape[1]] = sheet
-        out[:leg.shape[0], sheet.shape[1]:] = leg
-        return out
+        return with_legend(sheet, leg)
     return sheet
+
+
+def part_sheet(views, table, max_width: int = 2400) -> np.ndarray:
+    """Contact sheet of the views coloured by each material's decided part, with a legend."""
+    from .types import PART_NAMES
+
+    lut = np.zeros((len(table.rows) + 1, 3), np.uint8)
+    for r in table.rows:
+        lut[r.material + 1] = PART_COLORS.get(r.part, (110, 110, 110))  # unseen: grey
+    sheet = contact_sheet(lut[views.mat_id], view_labels(views.cameras), max_width=max_width)
+    leg = legend(list(PART_NAMES), np.array([PART_COLORS[p] for p in PART_NAMES], np.uint8))
+    return with_legend(sheet, leg)

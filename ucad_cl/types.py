@@ -120,6 +120,15 @@ class ViewSet:
     def n_views(self) -> int:
         return int(self.tri_id.shape[0])
 
+    def select(self, idx) -> "ViewSet":
+        """The views ``idx`` (indices or a slice), maps and cameras alike."""
+        c = self.cameras
+        ring = CameraRing(K=c.K, w2c=c.w2c[idx], width=c.width, height=c.height,
+                          azimuth=c.azimuth[idx], elevation=c.elevation[idx],
+                          distance=c.distance, near=c.near)
+        return ViewSet(cameras=ring, tri_id=self.tri_id[idx], mat_id=self.mat_id[idx],
+                       depth=self.depth[idx])
+
 
 @dataclass
 class EdgeSet:

@@ -44,11 +44,7 @@ def run(args) -> int:
         for m in accepted[:4]:
             stem = Path(m.path).stem
             views, meta = read_viewset_exr(r.artifact_path(m.sha256, "views.exr"))
-            sel = np.arange(0, views.n_views, max(1, views.n_views // 12))
-            views.tri_id, views.mat_id, views.depth = (views.tri_id[sel], views.mat_id[sel],
-                                                        views.depth[sel])
-            views.cameras.azimuth = views.cameras.azimuth[sel]
-            views.cameras.elevation = views.cameras.elevation[sel]
+            views = views.select(np.arange(0, views.n_views, max(1, views.n_views // 12)))
             write_png(sheets / f"{stem}.materials.png", material_sheet(views, meta["materials"]))
             (sheets / f"{stem}.parts.png").write_bytes(r.artifact_path(m.sha256, "parts.png").read_bytes())
         rejected = r.meshes(state="rejected")

@@ -13,16 +13,8 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
-
 from .render import add_camera_args, ring_from_args
 
-# fixed RGB per part (PART_NAMES order); background black, unseen/other grey
-PART_COLORS = {
-    "body": (200, 40, 40), "window": (60, 160, 230), "wheel": (85, 85, 85),
-    "rim": (170, 170, 190), "light": (255, 220, 60), "chrome": (230, 230, 255),
-    "plate": (255, 255, 255), "interior": (150, 100, 60), "other": (150, 90, 180),
-}
 COLUMNS = ("material", "name", "part", "score", "iou", "view", "decision", "pixels")
 
 
@@ -61,25 +53,6 @@ def make_segmenter(spec: list[str], onnx_config: Path | None):
         raise ValueError(f"--segmenter {' '.join(spec)!r}: expected 'prior', 'masks DIR' or "
                          "'onnx MODEL' (with --onnx-config JSON)")
     return factory(spec[0], spec[1] if len(spec) == 2 else None, onnx_config)
-
-
-def part_sheet(views, table, max_width: int = 2400) -> np.ndarray:
-    """Contact sheet of the views coloured by each material's decided part, with a legend."""
-    from ..sheets import contact_sheet, legend
-    from ..types import PART_NAMES
-
-    lut = np.zeros((len(table.rows) + 1, 3), np.uint8)
-    for r in table.rows:
-        lut[r.material + 1] = PART_COLORS.get(r.part, (110, 110, 110))  # unseen: grey
-    labels = [f"az {a:.0f} el {e:.0f}" for a, e in zip(views.cameras.azimuth,
-                                                       views.cameras.elevation)]
-    sheet = contact_sheet(lut[views.mat_id], labels, max_width=max_width)
-    leg = legend(list(PART_NAMES), np.array([PART_COLORS[p] for p in PART_NAMES], np.uint8))
-    h = max(sheet.shape[0], leg.shape[0])
-    out = np.full((h, sheet.shape[1] + leg.shape[1], 3), 32, np.uint8)
-    out[:sheet.shape[0], :sheet.shape[1]] = sheet
-    out[:leg.shape[0], sheet.shape[1]:] = leg
-    return out
 
 
 def write_table(table, stem: Path) -> None:
@@ -143,7 +116,7 @@ def run(args) -> int:
     from ..ingest import IngestError, load_mesh
     from ..render import render_views
     from ..segment import name_priors
-    from ..sheets import write_png
+    from ..sheets import part_sheet, write_png
 
     try:
         segmenter = make_segmenter(args.segmenter, args.onnx_config)
