@@ -1,6 +1,11 @@
-"""The per-mesh view stack: one multi-part OpenEXR file, one part per view (format version 1).
+"""The per-mesh view stack: one multi-part OpenEXR file, one part per view (format version 2).
 
-Every part ``view_VVV`` (scanline, ZIP compressed, H x W pixels) holds three channels:
+Every part ``view_VVV`` (scanline, ZIP compressed) has the display window of the whole H x W
+image and a *data window* that is the bounding box of the object's pixels in that view (1 x 1 at
+the top-left corner, holding background, when the view is empty). Pixels outside the data window
+are background. (Version 1 stored the whole image; at 256 px the object's box is ~28 % of a view
+on average, and OpenEXR's write cost grows with the pixels stored: 150 -> ~50 ms per mesh of
+72 views.) Three channels:
 
 =======  =====  =====================================================================
 channel  type   meaning
@@ -18,6 +23,7 @@ and these header attributes (all parts, unless noted):
 * ``ucad:fileToNorm`` (m44d): file frame -> canonical frame, so file-frame rays are recoverable;
 * ``ucad:view`` (int), ``ucad:azimuth`` / ``ucad:elevation`` (float, degrees),
   ``ucad:distance`` / ``ucad:near`` (float, canonical units);
+* ``dataWindow`` / ``displayWindow`` (box2i, standard): the stored box and the whole image;
 * ``ucad:formatVersion`` (int), ``ucad:meshSha256`` (string), ``ucad:conventions`` (string);
 * part 0 only: ``ucad:materials`` (string, JSON list of material names, index = id - 1).
 
@@ -34,7 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+BACKGROUND = {"tri": np.uint32(0xFFFFFFFF), "mat": np.uint32(0), "Z": np.float32(np.inf)}
 CONVENTIONS = ("canonical frame: right-handed, +Y up, bbox centred, bbox diagonal 1; "
                "camera: OpenCV (x right, y down, z forward), pixel (i,j) centre at (j+0.5,i+0.5); "
                "azimuth 0 looks from +X, counter-clockwise seen from +Y; "
@@ -55,8 +62,13 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
         mesh.file_to_norm if mesh is not None else np.eye(4)), np.float64)
     sha = mesh_sha256 or (mesh.sha256 if mesh is not None else "")
     parts = []
+    H, W = views.mat_id.shape[1:]
+    display = (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32))
     for v in range(views.n_views):
+        y0, y1, x0, x1 = _object_box(views.mat_id[v])
         header = {
+            "dataWindow": (np.array([x0, y0], np.int32), np.array([x1 - 1, y1 - 1], np.int32)),
+            "displayWindow": display,
             "compression": OpenEXR.ZIP_COMPRESSION,
             "type": OpenEXR.scanlineimage,
             "ucad:formatVersion": FORMAT_VERSION,
@@ -74,10 +86,11 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
         }
         if v == 0:
             header["ucad:materials"] = json.dumps(list(names), ensure_ascii=False)
+        box = (slice(y0, y1), slice(x0, x1))
         channels = {
-            "tri": OpenEXR.Channel(np.ascontiguousarray(views.tri_id[v], np.uint32)),
-            "mat": OpenEXR.Channel(np.ascontiguousarray(views.mat_id[v], np.uint32)),
-            "Z": OpenEXR.Channel(np.ascontiguousarray(views.depth[v], np.float32)),
+            "tri": OpenEXR.Channel(np.ascontiguousarray(views.tri_id[v][box], np.uint32)),
+            "mat": OpenEXR.Channel(np.ascontiguousarray(views.mat_id[v][box], np.uint32)),
+            "Z": OpenEXR.Channel(np.ascontiguousarray(views.depth[v][box], np.float32)),
         }
         parts.append(OpenEXR.Part(header, channels, f"view_{v:03d}"))
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -89,6 +102,25 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+def _object_box(mat_id: np.ndarray) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1), half-open, of the pixels with material id > 0; (0, 1, 0, 1) if none."""
+    fg = mat_id > 0
+    rows = np.flatnonzero(fg.any(axis=1))
+    if rows.size == 0:
+        return 0, 1, 0, 1
+    cols = np.flatnonzero(fg[rows[0]:rows[-1] + 1].any(axis=0))
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def _full_image(part, name: str, dtype) -> np.ndarray:
+    """A channel of ``part`` placed in its display window, background outside the data window."""
+    (dx0, dy0), (dx1, dy1) = (np.asarray(c) for c in part.header["displayWindow"])
+    (x0, y0), (x1, y1) = (np.asarray(c) for c in part.header["dataWindow"])
+    out = np.full((int(dy1 - dy0) + 1, int(dx1 - dx0) + 1), BACKGROUND[name], dtype)
+    out[y0 - dy0:y1 - dy0 + 1, x0 - dx0:x1 - dx0 + 1] = part.channels[name].pixels
+    return out
 
 
 def read_viewset_exr(path):
@@ -107,9 +139,12 @@ def read_viewset_exr(path):
     if not parts or "ucad:w2c" not in parts[0].header:
         raise ValueError(f"{path}: OpenEXR file without ucad view headers")
     h0 = parts[0].header
-    tri = np.stack([p.channels["tri"].pixels.astype(np.uint32) for p in parts])
-    mat = np.stack([p.channels["mat"].pixels.astype(np.uint16) for p in parts])
-    depth = np.stack([p.channels["Z"].pixels.astype(np.float32) for p in parts])
+    try:
+        tri = np.stack([_full_image(p, "tri", np.uint32) for p in parts])
+        mat = np.stack([_full_image(p, "mat", np.uint16) for p in parts])
+        depth = np.stack([_full_image(p, "Z", np.float32) for p in parts])
+    except (KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: view stack parts lack channel or window data ({exc})") from exc
     ring = CameraRing(
         K=np.asarray(h0["ucad:K"], np.float64),
         w2c=np.stack([np.asarray(p.header["ucad:w2c"], np.float64) for p in parts]),

@@ -21,6 +21,7 @@ Times are Unix seconds (float). No OpenCL here.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -171,13 +172,17 @@ class Catalog:
                                "ORDER BY id DESC LIMIT 1", (str(path),)).fetchone()
         return None if row is None else (row[0], int(row[1]), float(row[2]))
 
-    def commit_mesh(self, entry: CatalogEntry) -> int:
-        """Store the artifacts, then all rows of ``entry`` in one transaction; returns mesh id."""
+    def commit_mesh(self, entry: CatalogEntry, *, move_files: bool = False) -> int:
+        """Store the artifacts, then all rows of ``entry`` in one transaction; returns mesh id.
+
+        ``move_files``: file artifacts (``Path``) are the caller's to give away (a build's staging
+        files): they are renamed into the object store instead of copied when they are on the
+        catalogue's file system (and removed when the object already exists)."""
         if self._run_id is None:
             raise CatalogError(f"{self.root}: commit_mesh({entry.path!r}) before begin_run")
         entry.validate()
         opt_hash = entry.options_hash or self._run_hash
-        stored = {kind: self._put_object(data, kind, entry.path)
+        stored = {kind: self._put_object(data, kind, entry.path, move=move_files)
                   for kind, data in sorted(entry.artifacts.items())}
         conn = self._db
         conn.execute("BEGIN IMMEDIATE")
@@ -325,8 +330,10 @@ class Catalog:
             raise CatalogError(f"catalogue {self.root} is closed")
         return self._conn
 
-    def _put_object(self, data: bytes | str | Path, kind: str, owner: str) -> tuple[str, int]:
-        """Write ``data`` (bytes or a file) as a content-addressed object; (sha256, bytes)."""
+    def _put_object(self, data: bytes | str | Path, kind: str, owner: str,
+                    move: bool = False) -> tuple[str, int]:
+        """Write ``data`` (bytes or a file) as a content-addressed object; (sha256, bytes).
+        ``move``: a file is renamed into place when possible (see ``commit_mesh``)."""
         if isinstance(data, (str, Path)):
             sha, n = _hash_file(Path(data))
         else:
@@ -334,12 +341,16 @@ class Catalog:
             sha, n = hashlib.sha256(data).hexdigest(), len(data)
         final = object_path(self.root, sha)
         if final.is_file() and final.stat().st_size == n:
+            if move and not isinstance(data, bytes):
+                Path(data).unlink(missing_ok=True)
             return sha, n                            # already stored (renamed only when complete)
         shard = final.parent
         if not shard.is_dir():
             shard.mkdir(parents=True, exist_ok=True)
             if self.durable:
                 _fsync_dir(shard.parent)
+        if move and not isinstance(data, bytes) and self._move_into(Path(data), final, sha, n):
+            return sha, n
         tmp = shard / f"{_TMP_PREFIX}{sha}.{os.getpid()}.{uuid.uuid4().hex[:8]}"
         try:
             with open(tmp, "wb") as f:
@@ -364,6 +375,28 @@ class Catalog:
         if self.durable:
             _fsync_dir(shard)
         return sha, n
+
+
+    def _move_into(self, src: Path, final: Path, sha: str, n: int) -> bool:
+        """Rename the hashed file ``src`` to ``final`` (same file system only); False if not."""
+        try:
+            if self.durable:                         # its bytes on disk before the name is
+                fd = os.open(src, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+            st = src.stat()
+            if st.st_size != n:
+                raise CatalogError(f"artifact file {src} changed while it was being stored")
+            os.replace(src, final)
+        except OSError as exc:
+            if exc.errno == errno.EXDEV:             # another file system: copy instead
+                return False
+            raise
+        if self.durable:
+            _fsync_dir(final.parent)
+        return True
 
 
 def _init_schema(conn: sqlite3.Connection) -> None:

@@ -12,23 +12,28 @@ typedef struct {
     float light[3];         /* unit vector toward the light, camera frame */
     float ambient, specular, shininess;
     int width, height, n_views;
+    int int_shininess;      /* shininess when it is an integer in [1, 1024], else 0 */
     uchar bg_r, bg_g, bg_b, pad;
 } shade_params;
 
-/* Linear value -> sRGB 8-bit level by binary search in the 255 level thresholds (computed in
- * float64 on the host: level k starts where floor(srgb(x) * 255 + 0.5) becomes k). Exact and
- * cheaper than pow() per channel on PoCL. */
-static inline uchar srgb8(global const float *thr, float x) {
-    int lo = 0;
-    for (int step = 128; step > 0; step >>= 1)
-        if (lo + step <= 255 && x >= thr[lo + step - 1]) lo += step;
-    return (uchar)lo;
+/* Linear value -> sRGB 8-bit level, exactly: the number of the 255 level thresholds (computed in
+ * float64 on the host: level k starts where floor(srgb(x) * 255 + 0.5) becomes k) that are <= x.
+ * A 4096-entry table gives a level that is never above the answer for the bucket of x (the
+ * host builds it one bucket low, so float rounding of the bucket index cannot overshoot), then at
+ * most a few comparisons step up to it: cheaper on PoCL than a binary search or pow(). */
+#define SRGB_BUCKETS 4096
+static inline uchar srgb8(global const float *thr, global const uchar *start, float x) {
+    float c = fmin(fmax(x, 0.0f), 1.0f);                   /* NaN -> 0 (fmax returns 0) */
+    int lvl = start[(int)(c * (float)(SRGB_BUCKETS - 1))];
+    while (lvl < 255 && x >= thr[lvl]) ++lvl;
+    return (uchar)lvl;
 }
 
 kernel void shade_pixels(global const uint *tri_id, global const float *w2c /* V x 12 */,
                          global const float *normals /* F x 3 */, global const float *v0 /* F x 3 */,
                          global const ushort *face_material, global const float *albedo /* M x 3 */,
-                         global const float *thresholds /* 255 */, shade_params prm,
+                         global const float *thresholds /* 255 */,
+                         global const uchar *bucket_start /* SRGB_BUCKETS */, shade_params prm,
                          global uchar *rgb) {
     uint g = get_global_id(0);
     uint npix = (uint)(prm.width * prm.height);
@@ -58,10 +63,24 @@ kernel void shade_pixels(global const uint *tri_id, global const float *w2c /* V
     h = h / sqrt(h.x * h.x + h.y * h.y + h.z * h.z);
     int degenerate = n.x == 0.0f && n.y == 0.0f && n.z == 0.0f;
     float nh = fmax(nc.x * h.x + nc.y * h.y + nc.z * h.z, 0.0f);
-    /* nh^shininess as exp2(shininess * log2(nh)); nh = 0 gives 0 */
-    float spec = degenerate || nh <= 0.0f ? 0.0f : prm.specular * exp2(prm.shininess * log2(nh));
+    /* nh^shininess: by repeated squaring for an integer exponent (the usual case; exp2/log2
+     * are scalar library calls on PoCL and cost more than the rest of the kernel), else as
+     * exp2(shininess * log2(nh)); nh = 0 gives 0 */
+    float spec = 0.0f;
+    if (!degenerate && nh > 0.0f) {
+        if (prm.int_shininess > 0) {
+            float r = 1.0f, b = nh;
+            for (int e = prm.int_shininess; e > 0; e >>= 1) {
+                if (e & 1) r *= b;
+                b *= b;
+            }
+            spec = prm.specular * r;
+        } else {
+            spec = prm.specular * exp2(prm.shininess * log2(nh));
+        }
+    }
     uint m = face_material[t];
     float k = prm.ambient + (1.0f - prm.ambient) * diffuse;
     for (int c = 0; c < 3; ++c)
-        o[c] = srgb8(thresholds, albedo[3 * m + c] * k + spec);
+        o[c] = srgb8(thresholds, bucket_start, albedo[3 * m + c] * k + spec);
 }

@@ -356,6 +356,30 @@ def test_failed_commit_leaves_no_rows_and_gc_collects_orphans(tmp_path):
         assert cat.verify() == []
 
 
+def test_move_files_renames_staged_artifacts_into_the_store(tmp_path):
+    """``move_files``: a staged file becomes the object (same bytes, source gone); a second
+    file with content already stored is just removed; without it the file is copied."""
+    root = tmp_path / "cat"
+    staging = root / "staging"
+    payload = np.random.default_rng(0).bytes(3 * (1 << 20) + 17)     # several copy chunks
+    with Catalog.open(root) as cat:
+        staging.mkdir()
+        cat.begin_run({}, "test")
+        for i, move in ((0, True), (1, True), (2, False)):
+            src = staging / f"m{i}.views.exr"
+            src.write_bytes(payload)
+            e = make_entry(i)
+            e.artifacts["views.exr"] = src
+            cat.commit_mesh(e, move_files=move)
+            assert src.exists() is (not move)
+        obj = root / "objects" / _sha(payload)[:2] / _sha(payload)
+        assert obj.read_bytes() == payload
+        assert cat.verify() == []
+    with CatalogReader(root) as r:
+        assert all(r.artifact_path(m.sha256, "views.exr").read_bytes() == payload
+                   for m in r.meshes())
+
+
 # ---------------------------------------------------------------------------- policy
 def test_needs_processing_policy(tmp_path):
     opts_a, opts_b = {"size": 8, "runtime": {"jobs": 1}}, {"size": 16}

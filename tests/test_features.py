@@ -130,6 +130,39 @@ def test_crop_square_box_and_padding():
     assert m[0].sum() == 200
 
 
+def test_crop_square_equals_index_gather_reference_at_every_border():
+    """The crop is the square's pixels with indices clamped into the image (edge repeat), then
+    INTER_AREA: compared with that definition written as a NumPy index gather, for boxes that
+    touch each border, and pads that push the square past all four."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    H, W = 37, 53
+    images = rng.integers(0, 256, (12, H, W, 3), dtype=np.uint8)
+    masks = np.zeros((12, H, W), bool)
+    boxes = [(0, 5, 0, 7), (30, 37, 46, 53), (0, 37, 10, 12), (14, 16, 0, 53), (3, 9, 20, 31),
+             (0, 37, 0, 53)] * 2
+    for b, (y0, y1, x0, x1) in enumerate(boxes):
+        masks[b, y0:y1, x0:x1] = True
+    for pad in (0.0, 0.1, 0.8):
+        crops, mcrops = crop_square(images, masks, 16, pad)
+        for b in range(len(boxes)):
+            rows = np.flatnonzero(masks[b].any(axis=1))
+            cols = np.flatnonzero(masks[b].any(axis=0))
+            side = int(np.ceil(max(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1) * (1 + 2 * pad)))
+            top = int(np.floor((rows[0] + rows[-1] + 1) / 2 - side / 2))
+            left = int(np.floor((cols[0] + cols[-1] + 1) / 2 - side / 2))
+            ri = np.clip(np.arange(top, top + side), 0, H - 1)
+            ci = np.clip(np.arange(left, left + side), 0, W - 1)
+            ref = cv2.resize(images[b][np.ix_(ri, ci)], (16, 16), interpolation=cv2.INTER_AREA)
+            mref = cv2.resize(masks[b][np.ix_(ri, ci)].astype(np.float32), (16, 16),
+                              interpolation=cv2.INTER_AREA)
+            assert np.array_equal(crops[b], ref), (pad, b)
+            assert np.array_equal(mcrops[b], mref), (pad, b)
+    no_masks = crop_square(images, masks, 16, 0.1, with_masks=False)
+    assert no_masks[1] is None and np.array_equal(no_masks[0], crop_square(images, masks, 16)[0])
+
+
 def test_crop_errors_name_the_problem():
     img = np.zeros((2, 8, 8, 3), np.uint8)
     mask = np.zeros((2, 8, 8), bool)

@@ -120,8 +120,32 @@ def test_device_shading_matches_numpy_reference(runtime):
     mesh = make_vehicle(4, "suv").mesh()
     views = render_views(mesh, make_ring(azimuth_step=45, elevations=(10.0, 50.0), size=(96, 80)))
     for kw in ({}, {"background": (10, 200, 30), "specular": 0.6, "shininess": 8.0},
+               {"specular": 0.8, "shininess": 12.5}, {"specular": 0.9, "shininess": 1.0},
                {"background": np.random.default_rng(0).integers(0, 255, (80, 96, 3), np.uint8)}):
         ref = shade_views(mesh, views, device=False, **kw).astype(int)
         dev = shade_views(mesh, views, device=True, **kw).astype(int)
         assert np.abs(ref - dev).max() <= 1
         assert (ref != dev).mean() < 0.01
+
+
+def test_srgb_bucket_table_is_a_tight_lower_bound():
+    """kernels/shade.cl starts from ``srgb8_bucket_start[int(x * 4095)]`` and steps up by the
+    exact thresholds: the start must never exceed the level of any float32 x in the bucket
+    (checked on every float32 next to each bucket boundary and on a dense sweep), and stays
+    within a few levels of it (the kernel's loop is short)."""
+    from ucad_cl.shade import SRGB_BUCKETS, linear_to_srgb8, srgb8_bucket_start, srgb8_thresholds
+
+    thr = srgb8_thresholds()
+    start = srgb8_bucket_start()
+    edges = (np.arange(SRGB_BUCKETS) / (SRGB_BUCKETS - 1)).astype(np.float32)
+    xs = np.concatenate([np.linspace(0, 1, 2_000_001, dtype=np.float32), edges,
+                         np.nextafter(edges, np.float32(-1)), np.nextafter(edges, np.float32(2)),
+                         thr, np.nextafter(thr, np.float32(-1))])
+    xs = np.clip(xs, 0, 1).astype(np.float32)
+    bucket = (xs * np.float32(SRGB_BUCKETS - 1)).astype(np.int32)   # float32 product, truncated
+    level = np.searchsorted(thr, xs, side="right")
+    assert np.all(start[bucket] <= level)
+    assert (level - start[bucket]).max() <= 4
+    sample = xs[::997]
+    assert np.array_equal(np.searchsorted(thr, sample, side="right"),
+                          linear_to_srgb8(sample.astype(np.float64)))

@@ -466,7 +466,7 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
                      f"skipped={summary.skipped} todo={len(todo)} options={options.to_dict()}")
 
         def commit(entry):
-            cat.commit_mesh(entry)
+            cat.commit_mesh(entry, move_files=True)
             n = summary.processed + 1
             runlog.write(f"{n}/{len(todo)} {entry.state} {entry.path}"
                          + (f" reason={entry.reason}: {entry.detail}" if entry.reason else "")

@@ -58,9 +58,10 @@ def view_features(extractor: FeatureExtractor, images: np.ndarray, views: ViewSe
 
 # ----------------------------------------------------------------------------- cropping
 
-def crop_square(images: np.ndarray, masks: np.ndarray, size: int, pad: float = 0.1
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Square, padded crops around each mask, resized: ((B,S,S,3) uint8, (B,S,S) float32 mask)."""
+def crop_square(images: np.ndarray, masks: np.ndarray, size: int, pad: float = 0.1, *,
+                with_masks: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Square, padded crops around each mask, resized: ((B,S,S,3) uint8, (B,S,S) float32 mask,
+    or None when ``with_masks`` is False)."""
     images, masks = _check_batch(images, masks)
     if size < 1:
         raise ValueError(f"crop size must be >= 1, got {size}")
@@ -68,7 +69,7 @@ def crop_square(images: np.ndarray, masks: np.ndarray, size: int, pad: float = 0
         raise ValueError(f"pad must be >= 0, got {pad}")
     B, H, W = masks.shape
     crops = np.empty((B, size, size, 3), np.uint8)
-    mcrops = np.empty((B, size, size), np.float32)
+    mcrops = np.empty((B, size, size), np.float32) if with_masks else None
     for b in range(B):
         rows = np.flatnonzero(masks[b].any(axis=1))
         cols = np.flatnonzero(masks[b].any(axis=0))
@@ -78,12 +79,19 @@ def crop_square(images: np.ndarray, masks: np.ndarray, size: int, pad: float = 0
         side = int(math.ceil(max(y1 - y0 + 1, x1 - x0 + 1) * (1.0 + 2.0 * pad)))
         top = int(math.floor((y0 + y1 + 1) / 2.0 - side / 2.0))
         left = int(math.floor((x0 + x1 + 1) / 2.0 - side / 2.0))
-        ri = np.clip(np.arange(top, top + side), 0, H - 1)
-        ci = np.clip(np.arange(left, left + side), 0, W - 1)
-        crops[b] = cv2.resize(images[b][np.ix_(ri, ci)], (size, size),
-                              interpolation=cv2.INTER_AREA)
-        mcrops[b] = cv2.resize(masks[b][np.ix_(ri, ci)].astype(np.float32), (size, size),
-                               interpolation=cv2.INTER_AREA)
+        # the part of the square inside the image, edge pixels repeated outside it
+        r0, r1 = max(top, 0), min(top + side, H)
+        c0, c1 = max(left, 0), min(left + side, W)
+        border = (r0 - top, top + side - r1, c0 - left, left + side - c1)
+
+        def square(a):
+            a = a[r0:r1, c0:c1]
+            return cv2.copyMakeBorder(a, *border, cv2.BORDER_REPLICATE) if any(border) else a
+
+        crops[b] = cv2.resize(square(images[b]), (size, size), interpolation=cv2.INTER_AREA)
+        if with_masks:
+            mcrops[b] = cv2.resize(square(masks[b].view(np.uint8)).astype(np.float32),
+                                   (size, size), interpolation=cv2.INTER_AREA)
     return crops, mcrops
 
 
@@ -164,7 +172,8 @@ class HogExtractor:
                           self.clip, self.sil_weight, self.min_grad)], HOG_PARAMS_DTYPE)
 
     def extract(self, images: np.ndarray, masks: np.ndarray) -> Features:
-        crops, mcrops = crop_square(images, masks, self.size, self.pad)
+        crops, mcrops = crop_square(images, masks, self.size, self.pad,
+                                    with_masks=self.silhouette > 0)
         return Features(feats=self.describe(crops, mcrops), kind=self.kind)
 
     def describe(self, crops: np.ndarray, mask_crops: np.ndarray | None = None) -> np.ndarray:
@@ -253,7 +262,7 @@ class OnnxExtractor:
         self.input_name = self.session.get_inputs()[0].name
 
     def extract(self, images: np.ndarray, masks: np.ndarray) -> Features:
-        crops, _ = crop_square(images, masks, self.size, self.pad)
+        crops, _ = crop_square(images, masks, self.size, self.pad, with_masks=False)
         x = crops.transpose(0, 3, 1, 2).astype(np.float32) / np.float32(255.0)
         x = ((x - self.mean) / self.std).astype(np.float32)
         y = np.asarray(self.session.run(None, {self.input_name: x})[0], np.float32)

@@ -90,7 +90,8 @@ def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | N
 SHADE_PARAMS = np.dtype([("kinv", np.float32, 9), ("light", np.float32, 3),
                          ("ambient", np.float32), ("specular", np.float32),
                          ("shininess", np.float32), ("width", np.int32), ("height", np.int32),
-                         ("n_views", np.int32), ("bg", np.uint8, 3), ("pad", np.uint8)])
+                         ("n_views", np.int32), ("int_shininess", np.int32),
+                         ("bg", np.uint8, 3), ("pad", np.uint8)])
 
 
 def _shade_device(views, normals, v0, face_material, albedo, light, ambient, specular, shininess,
@@ -108,6 +109,7 @@ def _shade_device(views, normals, v0, face_material, albedo, light, ambient, spe
     prm["light"] = light
     prm["ambient"], prm["specular"], prm["shininess"] = ambient, specular, shininess
     prm["width"], prm["height"], prm["n_views"] = W, H, V
+    prm["int_shininess"] = int(shininess) if float(shininess).is_integer() and 1 <= shininess <= 1024 else 0
     prm["bg"] = bg[0, 0, 0] if uniform_bg else 0
     mf = cl.mem_flags
     ctx, q = rt.ctx, rt.queue
@@ -124,7 +126,8 @@ def _shade_device(views, normals, v0, face_material, albedo, light, ambient, spe
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
     k = rt.kernel("shade", "shade_pixels", ("-cl-fp32-correctly-rounded-divide-sqrt",))
     d_thr = buf(srgb8_thresholds(), np.float32)
-    k.set_args(d_tri, d_w2c, d_n, d_v0, d_fm, d_alb, d_thr, prm, d_out)
+    d_start = buf(srgb8_bucket_start(), np.uint8)
+    k.set_args(d_tri, d_w2c, d_n, d_v0, d_fm, d_alb, d_thr, d_start, prm, d_out)
     n = V * H * W
     cl.enqueue_nd_range_kernel(q, k, ((n + 255) // 256 * 256,), (256,))
     cl.enqueue_copy(q, out, d_out)
@@ -153,6 +156,19 @@ def srgb8_thresholds() -> np.ndarray:
                 lo = mid
         out[k - 1] = hi
     return out
+
+
+SRGB_BUCKETS = 4096          # kernels/shade.cl
+
+
+@functools.lru_cache(maxsize=1)
+def srgb8_bucket_start() -> np.ndarray:
+    """(SRGB_BUCKETS,) uint8: a lower bound of the sRGB level of every value in each bucket
+    ``b = int(x * (SRGB_BUCKETS - 1))`` (x in [0, 1]): the level at the start of bucket b - 1, so
+    float rounding in the bucket index never makes it too high; the kernel then steps up with
+    ``srgb8_thresholds``."""
+    lo = np.maximum(np.arange(SRGB_BUCKETS) - 1, 0) / (SRGB_BUCKETS - 1)
+    return np.searchsorted(srgb8_thresholds(), lo.astype(np.float32), side="right").astype(np.uint8)
 
 
 def face_normals(mesh: Mesh) -> np.ndarray:
