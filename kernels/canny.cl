@@ -2,7 +2,8 @@
  * OpenCV's cv::Canny(src, dst, low, high, apertureSize = 3, L2gradient).
  *
  * Layout. Images are (B, H, W) uint8 planes; colour images (B, H, W, 3) are first split into
- * (B, 3, H, W) planes by canny_planes. The map/output is (B, H, W). The batch is the last NDRange
+ * (B, 3, H, W) planes by canny_planes (or made from id maps and a colour table by
+ * canny_id_planes). The map/output is (B, H, W). The batch is the last NDRange
  * dimension (the only one for the trace). Build options: -DCANNY_CHANNELS=1|3, -DCANNY_L2=0|1,
  * -DCANNY_ROWS=rows per work-item (one program per combination, cached by the host).
  *
@@ -242,6 +243,24 @@ kernel void canny_planes(global const uchar *src, const canny_params p, global u
     const int count = min(VSPAN, W - x0);
     for (int i = 0; i < count; ++i) {
         d[i] = s[3 * i]; d[n + i] = s[3 * i + 1]; d[2 * n + i] = s[3 * i + 2];
+    }
+}
+
+/* (B, H, W) uint16 ids -> (B, 3, H, W) planes of the colours lut[id] (RGB in the low 3 bytes,
+ * R lowest): the colour image of a material-id map without building it on the host. Same
+ * NDRange as canny_planes; only used with CANNY_CHANNELS == 3. */
+kernel void canny_id_planes(global const ushort *ids, global const uint *lut, const canny_params p,
+                            global uchar *planes) {
+    const int x0 = get_global_id(0) * VSPAN, y = get_global_id(1), b = get_global_id(2);
+    const int W = p.width, H = p.height;
+    if (x0 >= W || y >= H) return;
+    const size_t n = (size_t)W * H, i0 = (size_t)y * W + x0;
+    global const ushort *s = ids + (size_t)b * n + i0;
+    global uchar *d = planes + (size_t)b * 3 * n + i0;
+    const int count = min(VSPAN, W - x0);
+    for (int i = 0; i < count; ++i) {
+        const uint c = lut[s[i]];
+        d[i] = (uchar)c; d[n + i] = (uchar)(c >> 8); d[2 * n + i] = (uchar)(c >> 16);
     }
 }
 

@@ -257,6 +257,84 @@ def test_colouring_separates_touching_ids_strongly():
         (r, g, b) for r in (0, 255) for g in (0, 255) for b in (0, 255)}
 
 
+@pytest.mark.parametrize("shape", [(3, 37, 53), (2, 5, 3), (1, 64, 64)])
+def test_canny_of_colour_table_equals_opencv_on_the_colour_images(runtime, shape):
+    """material_edges' device path (ids + colour table looked up by canny_id_planes) equals
+    cv2.Canny of the host-built colour image, image by image; ids with gaps (absent ids)."""
+    rng = np.random.default_rng(sum(shape))
+    small = rng.choice(np.array([0, 3, 4, 9, 200], np.uint16), (shape[0], 6, 6))
+    ids = np.stack([cv2.resize(m, shape[:0:-1], interpolation=cv2.INTER_NEAREST) for m in small])
+    table = E.colour_table(ids)
+    col = colour_ids(ids)
+    assert np.array_equal(table[ids][..., :3], col)
+    for l2 in (False, True):
+        ours = E.canny_of_colours(ids, table, 10, 20, l2)
+        for b in range(shape[0]):
+            assert np.array_equal(ours[b], cv2.Canny(col[b], 10, 20, L2gradient=l2)), (b, l2)
+    with pytest.raises(ValueError, match="covering every id"):
+        E.canny_of_colours(ids, table[:5], 10, 20)
+
+
+def test_colour_table_gives_present_ids_the_greedy_colours_of_present_ids_only():
+    """Absent ids touch nothing, so adding them to the greedy order changes no present id."""
+    rng = np.random.default_rng(11)
+    ids = (rng.integers(0, 12, (2, 20, 20)) * 7).astype(np.uint16)
+    pairs = E._touching_pairs(ids)
+    present = sorted(int(u) for u in np.unique(ids))
+    nb = {u: set() for u in present}
+    for a, b in pairs:
+        nb[int(a)].add(int(b))
+        nb[int(b)].add(int(a))
+    levels = 2
+    while levels ** 3 < max(len(v) for v in nb.values()) + 1:
+        levels += 1
+    pal, chosen = E.palette(levels), {}
+    for u in present:
+        used = {chosen[n] for n in nb[u] if n in chosen}
+        chosen[u] = next(i for i in range(len(pal)) if i not in used)
+    table = E.colour_table(ids)
+    for u in present:
+        assert tuple(table[u, :3]) == tuple(pal[chosen[u]]), u
+
+
+def test_boxed_pairs_and_repair_equal_whole_image_definitions():
+    """_touching_pairs and _repair_missed_boundaries work inside per-view boxes of non-zero ids;
+    compared with the whole-image definitions on maps with empty views, objects touching the
+    border and edge maps with stray pixels everywhere."""
+    rng = np.random.default_rng(2)
+    V, H, W = 6, 30, 41
+    ids = np.zeros((V, H, W), np.uint16)
+    ids[1, 5:9, 7:20] = rng.integers(0, 4, (4, 13))
+    ids[2, :, 30:] = rng.integers(1, 3, (H, 11))
+    ids[3] = rng.integers(0, 3, (H, W))
+    ids[4, 29, 40] = 5
+    ids[5, 0, 0] = 1
+    edges = np.where(rng.random((V, H, W)) < 0.2, 255, 0).astype(np.uint8)
+
+    def ref_pairs(ids):
+        codes = []
+        for a, b in ((ids[..., :, 1:], ids[..., :, :-1]), (ids[..., 1:, :], ids[..., :-1, :])):
+            d = a != b
+            codes.append((np.minimum(a[d], b[d]).astype(np.uint32) << 16)
+                         | np.maximum(a[d], b[d]).astype(np.uint32))
+        u = np.unique(np.concatenate(codes))
+        return np.stack([u >> 16, u & 0xFFFF], 1)
+
+    def ref_repair(ids, edges):
+        near = E._dilate8(edges > 0)
+        mh = (ids[:, :, 1:] != ids[:, :, :-1]) & ~near[:, :, 1:] & ~near[:, :, :-1]
+        mv = (ids[:, 1:, :] != ids[:, :-1, :]) & ~near[:, 1:, :] & ~near[:, :-1, :]
+        edges[:, :, :-1][mh] = 255
+        edges[:, :-1, :][mv] = 255
+        return int(mh.sum() + mv.sum())
+
+    assert np.array_equal(E._touching_pairs(ids), ref_pairs(ids))
+    ours, ref = edges.copy(), edges.copy()
+    assert E._repair_missed_boundaries(ids, ours) == ref_repair(ids, ref)
+    assert np.array_equal(ours, ref)
+    assert E._touching_pairs(np.zeros((2, 4, 4), np.uint16)).shape == (0, 2)
+
+
 def test_write_conditioning_pngs(tmp_path, runtime):
     ids = np.zeros((2, 16, 20), np.uint16); ids[:, 4:10, 5:15] = 3
     es = material_edges(_viewset(ids))

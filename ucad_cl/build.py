@@ -316,8 +316,9 @@ def npy_bytes(a: np.ndarray) -> bytes:
 
 
 def npy_gz_bytes(a: np.ndarray) -> bytes:
-    """Deterministic gzip (mtime 0) of an .npy file."""
-    return gzip.compress(npy_bytes(a), compresslevel=6, mtime=0)
+    """Deterministic gzip (mtime 0) of an .npy file. Level 1: a mesh's packed edge maps in 2 ms
+    (56 kB) instead of 6 ms (44 kB) at level 6."""
+    return gzip.compress(npy_bytes(a), compresslevel=1, mtime=0)
 
 
 def parts_sheet_png(views, table) -> bytes:

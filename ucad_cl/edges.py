@@ -13,7 +13,8 @@ Thresholds follow OpenCV exactly: low > high are swapped; with ``l2`` both are c
 and squared when positive; both are then floored to integers; a pixel is a candidate when its
 magnitude is > low and an edge seed when > high (magnitude |dx| + |dy|, or dx^2 + dy^2 for l2).
 
-Device work per batch (kernels/canny.cl): [canny_planes: colour to planes], canny_gradient_nms
+Device work per batch (kernels/canny.cl): [canny_planes: colour to planes, or canny_id_planes:
+id maps + colour table to planes], canny_gradient_nms
 (Sobel, magnitude, direction, NMS and thresholds fused; 16 x ROWS pixel strips, 16-lane integer
 vectors), canny_trace (hysteresis, one work-item per image, depth-first worklist). Programs are
 built once per (channels, l2, ROWS) and cached; device buffers are kept for the two most recent
@@ -149,23 +150,34 @@ def _buffers(rt, shape: tuple[int, int, int, int]) -> _Buffers:
     return bufs
 
 
-def _run_canny(batch: np.ndarray, lo: int, hi: int, l2: bool, out: np.ndarray) -> None:
+def _run_canny(batch: np.ndarray, lo: int, hi: int, l2: bool, out: np.ndarray,
+               lut: np.ndarray | None = None) -> None:
+    """Canny of ``batch`` (B, H, W, C) uint8 into ``out``; with ``lut`` ((N,) uint32 colours,
+    R in the low byte), ``batch`` is (B, H, W) uint16 ids of the colour image lut[ids]."""
     import pyopencl as cl
 
     rt = get_runtime()
     q = rt.queue
-    B, H, W, C = batch.shape
+    B, H, W = batch.shape[:3]
+    C = 3 if lut is not None else batch.shape[3]
     opts = (f"-DCANNY_CHANNELS={C}", f"-DCANNY_L2={int(l2)}", f"-DCANNY_ROWS={ROWS}")
     k_nms = rt.kernel("canny", "canny_gradient_nms", opts)
     k_trace = rt.kernel("canny", "canny_trace", opts)
-    bufs = _buffers(rt, batch.shape)
+    bufs = _buffers(rt, (B, H, W, C))           # src: 3 bytes a pixel, room for 2-byte ids
     prm = np.array([(W, H, B, C, lo, hi, int(l2), 0)], PARAMS_DTYPE)
     t0 = time.perf_counter()
     cl.enqueue_copy(q, bufs.src, batch)
     t1 = time.perf_counter()
     spans = -(-W // VSPAN)
     planes = bufs.src
-    if C == 3:
+    if lut is not None:
+        d_lut = cl.Buffer(rt.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=lut)
+        k_planes = rt.kernel("canny", "canny_id_planes", opts)
+        k_planes.set_args(bufs.src, d_lut, prm, bufs.planes)
+        cl.enqueue_nd_range_kernel(q, k_planes, (_round_up(spans, LOCAL_PLANES), H, B),
+                                   (LOCAL_PLANES, 1, 1))
+        planes = bufs.planes
+    elif C == 3:
         k_planes = rt.kernel("canny", "canny_planes", opts)
         k_planes.set_args(bufs.src, prm, bufs.planes)
         cl.enqueue_nd_range_kernel(q, k_planes, (_round_up(spans, LOCAL_PLANES), H, B),
@@ -201,7 +213,8 @@ def material_edges(views: ViewSet, *, low: float = 10.0, high: float = 20.0,
     palette entry no touching id already has). The palette is {0, 255/(L-1), ..., 255}^3 with the
     smallest L >= 2 such that L^3 exceeds the largest number of ids touching one id, the 8 corner
     colours first; so touching ids differ by at least 255/(L-1) in some channel (127 for L = 3).
-    Every view is coloured with the same table, then ``canny`` runs on the batch.
+    Every view is coloured with the same table, then Canny runs on the batch (the device looks
+    the colours up: ``canny_of_colours``).
 
     Guarantee: every 4-neighbour pair (p, q) with different ids has an edge pixel within one pixel
     (8-neighbourhood) of p or q. Canny alone cannot promise this for any colouring: inside a
@@ -215,19 +228,53 @@ def material_edges(views: ViewSet, *, low: float = 10.0, high: float = 20.0,
     if ids.ndim != 3 or ids.dtype != np.uint16:
         raise ValueError(f"material_edges: mat_id must be a (V, H, W) uint16 array, got "
                          f"{ids.dtype} {ids.shape}")
-    colours = colour_ids(ids)
-    edges = canny(colours, low, high, l2)          # (V, H, W, 3): always a batch
+    edges = canny_of_colours(ids, colour_table(ids), low, high, l2)
     repaired = _repair_missed_boundaries(ids, edges)
     last_stats.extra["repaired"] = repaired
     return EdgeSet(edges=edges)
 
 
+def canny_of_colours(ids: np.ndarray, table: np.ndarray, low: float, high: float,
+                     l2: bool = False) -> np.ndarray:
+    """``canny(table[ids][..., :3])`` for (B, H, W) uint16 ids and a (N, 4) uint8 colour table
+    (RGB + padding, e.g. ``colour_table``) without building the colour images on the host: the
+    device looks the colours up (``canny_id_planes``). Same result, bit for bit."""
+    ids = np.ascontiguousarray(ids)
+    if ids.ndim != 3 or ids.dtype != np.uint16 or 0 in ids.shape:
+        raise ValueError(f"canny_of_colours: ids must be a non-empty (B, H, W) uint16 array, "
+                         f"got {ids.dtype} {ids.shape}")
+    table = np.ascontiguousarray(table, np.uint8)
+    if table.ndim != 2 or table.shape[1] != 4 or int(ids.max()) >= table.shape[0]:
+        raise ValueError(f"canny_of_colours: table must be (N, 4) uint8 covering every id, got "
+                         f"{table.shape} for ids up to {int(ids.max())}")
+    B, H, W = ids.shape
+    if H > MAX_SIDE or W > MAX_SIDE:
+        raise ValueError(f"canny: image side {max(H, W)} exceeds {MAX_SIDE}")
+    lo, hi = opencv_thresholds(low, high, l2)
+    lut = table.view(np.uint32).ravel()
+    out = np.empty((B, H, W), np.uint8)
+    per = max(1, MAX_CHUNK_PIXELS // (H * W))
+    for b0 in range(0, B, per):
+        b1 = min(B, b0 + per)
+        _run_canny(ids[b0:b1], lo, hi, bool(l2), out[b0:b1], lut=lut)
+    return out
+
+
 def colour_ids(ids: np.ndarray) -> np.ndarray:
     """(..., H, W) uint16 ids -> (..., H, W, 3) uint8 colours; touching ids differ strongly."""
     ids = np.asarray(ids)
+    packed = colour_table(ids).view(np.uint32).ravel().take(ids)
+    return np.ascontiguousarray(packed.view(np.uint8).reshape(*ids.shape, 4)[..., :3])
+
+
+def colour_table(ids: np.ndarray) -> np.ndarray:
+    """(max id + 1, 4) uint8: RGB (+ padding) of each id by the greedy colouring of
+    ``material_edges``. Ids absent from ``ids`` touch nothing, so their colour (the first
+    palette entry) changes no other id's."""
+    ids = np.asarray(ids)
     pairs = _touching_pairs(ids)
-    uniq = np.flatnonzero(np.bincount(ids.ravel(), minlength=1))
-    neighbours: dict[int, set[int]] = {int(u): set() for u in uniq}
+    top = int(ids.max()) if ids.size else 0
+    neighbours: dict[int, set[int]] = {u: set() for u in range(top + 1)}
     for a, b in pairs:
         neighbours[int(a)].add(int(b))
         neighbours[int(b)].add(int(a))
@@ -236,14 +283,13 @@ def colour_ids(ids: np.ndarray) -> np.ndarray:
     while levels ** 3 < degree + 1:
         levels += 1
     pal = palette(levels)
-    lut = np.zeros((65536, 4), np.uint8)            # RGB + padding, gathered as one uint32
+    lut = np.zeros((top + 1, 4), np.uint8)          # RGB + padding, gathered as one uint32
     chosen: dict[int, int] = {}
-    for u in sorted(neighbours):
+    for u in range(top + 1):
         used = {chosen[n] for n in neighbours[u] if n in chosen}
         chosen[u] = next(i for i in range(len(pal)) if i not in used)
         lut[u, :3] = pal[chosen[u]]
-    packed = lut.view(np.uint32).ravel().take(ids)
-    return np.ascontiguousarray(packed.view(np.uint8).reshape(*ids.shape, 4)[..., :3])
+    return lut
 
 
 def palette(levels: int) -> np.ndarray:
@@ -258,12 +304,32 @@ def palette(levels: int) -> np.ndarray:
 def _touching_pairs(ids: np.ndarray) -> np.ndarray:
     """(K, 2) sorted unique (a < b) id pairs that are 4-neighbours somewhere."""
     codes = []
-    for a, b in ((ids[..., :, 1:], ids[..., :, :-1]), (ids[..., 1:, :], ids[..., :-1, :])):
-        diff = a != b
-        lo, hi = np.minimum(a[diff], b[diff]), np.maximum(a[diff], b[diff])
-        codes.append((lo.astype(np.uint32) << 16) | hi.astype(np.uint32))
-    u = np.unique(np.concatenate(codes))
+    for img in _boxes(ids, 1):
+        for a, b in ((img[:, 1:], img[:, :-1]), (img[1:, :], img[:-1, :])):
+            diff = a != b
+            lo, hi = np.minimum(a[diff], b[diff]), np.maximum(a[diff], b[diff])
+            codes.append((lo.astype(np.uint32) << 16) | hi.astype(np.uint32))
+    u = np.unique(np.concatenate(codes)) if codes else np.zeros(0, np.uint32)
     return np.stack([u >> 16, u & 0xFFFF], 1).astype(ids.dtype)
+
+
+def _boxes(ids: np.ndarray, margin: int, *others: np.ndarray):
+    """Per image of ``ids`` (..., H, W): the crop to the box of its non-zero ids grown by
+    ``margin`` pixels (clipped to the image), as views, with the same crop of each of
+    ``others``; images of zeros only are skipped. Everything outside such a box is id 0, so
+    neighbour relations between different ids all lie inside it (margin 1)."""
+    flat = ids.reshape(-1, *ids.shape[-2:])
+    rest = [o.reshape(-1, *o.shape[-2:]) for o in others]
+    H, W = flat.shape[1:]
+    for k, img in enumerate(flat):
+        rows = np.flatnonzero(img.any(axis=1))
+        if rows.size == 0:
+            continue
+        y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, H)
+        cols = np.flatnonzero(img[y0:y1].any(axis=0))
+        x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, W)
+        box = (slice(y0, y1), slice(x0, x1))
+        yield (img[box], *(o[k][box] for o in rest)) if others else img[box]
 
 
 def _dilate8(mask: np.ndarray) -> np.ndarray:
@@ -278,13 +344,19 @@ def _dilate8(mask: np.ndarray) -> np.ndarray:
 
 
 def _repair_missed_boundaries(ids: np.ndarray, edges: np.ndarray) -> int:
-    """Mark the left/upper pixel of every id boundary pair with no edge within 1 px; count."""
-    near = _dilate8(edges > 0)
-    miss_h = (ids[:, :, 1:] != ids[:, :, :-1]) & ~near[:, :, 1:] & ~near[:, :, :-1]
-    miss_v = (ids[:, 1:, :] != ids[:, :-1, :]) & ~near[:, 1:, :] & ~near[:, :-1, :]
-    edges[:, :, :-1][miss_h] = 255
-    edges[:, :-1, :][miss_v] = 255
-    return int(miss_h.sum() + miss_v.sum())
+    """Mark the left/upper pixel of every id boundary pair with no edge within 1 px; count.
+
+    Works per view inside the box of non-zero ids grown by 2 pixels: every boundary pair lies
+    within 1 pixel of that box, so every edge pixel within 1 pixel of a pair lies inside it."""
+    missed = 0
+    for img, e in _boxes(ids, 2, edges):
+        near = _dilate8((e > 0)[None])[0]
+        miss_h = (img[:, 1:] != img[:, :-1]) & ~near[:, 1:] & ~near[:, :-1]
+        miss_v = (img[1:, :] != img[:-1, :]) & ~near[1:, :] & ~near[:-1, :]
+        e[:, :-1][miss_h] = 255
+        e[:-1, :][miss_v] = 255
+        missed += int(miss_h.sum() + miss_v.sum())
+    return missed
 
 
 def write_conditioning_pngs(edges: EdgeSet, out_dir, stem: str) -> list[Path]:
