@@ -71,6 +71,39 @@ def test_histogram_rejects_bad_input(runtime):
         part_histogram(mat, np.zeros((2, 17, 4, 4), bool))
     with pytest.raises(ValueError, match="bool"):
         part_histogram(mat, np.zeros((2, 1, 4, 4), np.uint8))
+    bits = np.zeros((2, 4, 4), np.uint16)
+    with pytest.raises(ValueError, match="either"):
+        part_histogram(mat, np.zeros((2, 1, 4, 4), bool), bits=bits, n_parts=1)
+    with pytest.raises(ValueError, match="n_parts"):
+        part_histogram(mat, bits=bits)
+    with pytest.raises(ValueError, match="does not match"):
+        part_histogram(mat, bits=bits[:1], n_parts=1)
+    with pytest.raises(ValueError, match="uint16"):
+        part_histogram(mat, bits=bits.astype(np.uint8), n_parts=1)
+    bits[1, 2, 3] = 1 << 3                                # part 3 of 3 parts (0..2): no row
+    with pytest.raises(ValueError, match="beyond the 3 parts"):
+        part_histogram(mat, bits=bits, n_parts=3)
+
+
+@pytest.mark.parametrize("use_local", [True, False])
+def test_histogram_of_packed_bits_and_stacked_views(runtime, use_local):
+    """bits input = masks input; a list of maps counts as their concatenation along views."""
+    rng = np.random.default_rng(11)
+    V, H, W, P, n_ids = 4, 29, 41, 12, 70
+    mat = rng.integers(0, n_ids, (V, H, W)).astype(np.uint16)
+    mat[:, 3:20, 5:30] = 9
+    core = np.where(rng.random((V, H, W)) < 0.6, mat, 0).astype(np.uint16)
+    masks = rng.random((V, P, H, W)) < 0.4
+    bits = sum(masks[:, p].astype(np.uint16) << p for p in range(P)).astype(np.uint16)
+    want = numpy_histogram(np.concatenate([mat, core]), np.concatenate([masks, masks]), n_ids)
+    kw = dict(n_ids=n_ids, use_local=use_local, local_size=8, pixels_per_item=100)
+    np.testing.assert_array_equal(part_histogram(mat, masks, **kw), want[:V])
+    np.testing.assert_array_equal(part_histogram(mat, bits=bits, n_parts=P, **kw), want[:V])
+    np.testing.assert_array_equal(
+        part_histogram([mat, core], bits=[bits, bits], n_parts=P, **kw), want)
+    np.testing.assert_array_equal(                        # again: reused device buffers
+        part_histogram([mat[:1], mat[1:], core], bits=[bits, bits[:2], bits[2:]], n_parts=P,
+                       **kw), want)
 
 
 # -- decision rules and hard cases --------------------------------------------------------------
@@ -334,6 +367,55 @@ def test_classify_is_deterministic(rendered_real):
     a = classify_parts(mesh, views, pm)
     b = classify_parts(mesh, views, pm)
     assert a == b
+
+
+def _other_form(pm: PartMasks) -> PartMasks:
+    """The same masks built from the other form (bits <-> masks), copies of the arrays."""
+    if pm.packed:
+        return PartMasks(list(pm.parts), pm.masks.copy(), pm.confidence.copy(), pm.source)
+    return PartMasks.from_bits(list(pm.parts), pm.bits.copy(), pm.confidence.copy(), pm.source)
+
+
+def test_bits_and_masks_give_identical_tables(runtime):
+    """Packed and unpacked PartMasks classify alike (every field of every row, exactly), on
+    disjoint (ground-truth, prior) and overlapping (degraded) masks of generated vehicles; a
+    packed PartMasks is never unpacked by classification."""
+    from ucad_cl.segment import PriorSegmenter, name_priors
+
+    for k, (mesh, views, truth) in enumerate(_synth_cases(3)):
+        gt = masks_from_labels(views, truth, confidence=0.9)
+        prior = PriorSegmenter().segment(mesh, views)
+        deg = degrade(masks_from_labels(views, truth, confidence=0.9), 50 + k)   # overlapping
+        assert gt.packed and prior.packed and not deg.packed
+        for pm in (gt, prior, deg):
+            packed = pm.packed
+            a = classify_parts(mesh, views, pm, priors=name_priors(mesh))
+            assert pm.packed == packed                     # no (V, P, H, W) masks were built
+            other = _other_form(pm)
+            assert other.packed != packed
+            b = classify_parts(mesh, views, other, priors=name_priors(mesh))
+            assert a == b and len(a.rows) == len(mesh.materials)
+
+
+def test_classify_rejects_bad_packed_masks(runtime):
+    mat = np.zeros((2, 8, 8), np.uint16)
+    mat[:, 2:4, 2:4] = 1
+    views, mesh = flat_views(mat), flat_mesh(1)
+    bits = (mat == 1).astype(np.uint16)
+    conf = np.ones((2, 1), np.float32)
+    with pytest.raises(ValueError, match="does not match the views"):
+        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits[:, :4], conf))
+    with pytest.raises(ValueError, match="uint16"):
+        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits.astype(bool), conf))
+    with pytest.raises(ValueError, match="1..16 parts"):
+        classify_parts(mesh, views, PartMasks.from_bits([f"p{i}" for i in range(17)], bits,
+                                                        np.ones((2, 17), np.float32)))
+    with pytest.raises(ValueError, match=r"confidence must be \(2, 1\)"):
+        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits, conf[:1]))
+    with pytest.raises(ValueError, match="beyond the 1 parts"):
+        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits * 2, conf))
+    (r,) = classify_parts(mesh, views, PartMasks.from_bits(["body"], bits, conf)).rows
+    assert (r.part, r.score, r.pixels) == ("body", 1.0, 8)
 
 
 def test_classify_rejects_bad_masks(runtime):

@@ -10,11 +10,59 @@ import pytest
 
 from ucad_cl.classify import classify_parts
 from ucad_cl.segment import (MasksSegmenter, OnnxSegmenter, PriorSegmenter, material_colors,
-                             material_image, name_prior, write_masks)
+                             material_counts, material_features, material_image,
+                             masks_from_labels, name_prior, write_masks)
 from tests.reference import flat_mesh, flat_views
 from ucad_cl.types import PART_NAMES, Mesh, PartMasks
 
 
+# -- PartMasks: two forms of the same masks ----------------------------------------------------
+def test_part_masks_bits_and_masks_round_trip():
+    rng = np.random.default_rng(3)
+    V, P, H, W = 4, 16, 9, 11                            # 16 parts: every bit of the packing
+    masks = rng.random((V, P, H, W)) < 0.3
+    masks[2, 5] = False
+    masks[:, 15] = False                                 # the top bit never set
+    conf = np.where(masks.any(axis=(2, 3)), np.float32(0.5), np.float32(0))
+    parts = [f"p{i}" for i in range(P)]
+    a = PartMasks(parts, masks, conf, "m")               # positional, as before
+    assert not a.packed and a.masks is masks
+    bits = a.bits
+    assert bits.dtype == np.uint16 and bits.shape == (V, H, W)
+    want = sum(masks[:, p].astype(np.uint16) << p for p in range(P))
+    np.testing.assert_array_equal(bits, want)
+    assert a.bits is bits                                # derived once, cached
+    b = PartMasks.from_bits(parts, bits, conf, source="b")
+    assert b.packed and b.shape == (V, P, H, W) == a.shape and b.source == "b"
+    np.testing.assert_array_equal(b.nonempty(), masks.any(axis=(2, 3)))
+    assert b.packed                                      # nonempty() does not unpack
+    np.testing.assert_array_equal(a.nonempty(), masks.any(axis=(2, 3)))
+    got = b.masks
+    assert got.dtype == np.bool_ and b.masks is got and not b.packed
+    np.testing.assert_array_equal(got, masks)
+    # assigning one form drops the other
+    a.masks = masks[::-1].copy()
+    np.testing.assert_array_equal(a.bits, bits[::-1])
+    b.bits = bits[:, ::-1].copy()
+    assert b.packed
+    np.testing.assert_array_equal(b.masks, masks[:, :, ::-1])
+    none = PartMasks.from_bits(parts, np.zeros((0, H, W), np.uint16), np.zeros((0, P)))
+    assert none.nonempty().shape == (0, P) and none.masks.shape == (0, P, H, W)
+    with pytest.raises(ValueError, match="P <= 16"):
+        PartMasks(parts + ["x"], np.zeros((1, 17, 2, 2), bool), np.zeros((1, 17))).bits
+
+
+def test_masks_from_labels_paints_each_material_with_its_part():
+    mat = np.array([[[0, 1, 2], [3, 3, 1]], [[2, 2, 0], [0, 0, 0]]], np.uint16)
+    labels = {0: "window", 1: "body", 2: "window", 5: "rim"}     # material 5 not in the views
+    pm = masks_from_labels(flat_views(mat), labels, confidence=0.75)
+    assert pm.packed and pm.parts == list(PART_NAMES)
+    for p, part in enumerate(PART_NAMES):
+        ids = [m + 1 for m, lab in labels.items() if lab == part]
+        np.testing.assert_array_equal(pm.masks[:, p], np.isin(mat, ids))
+    want = np.where(pm.masks.any(axis=(2, 3)), np.float32(0.75), np.float32(0))
+    np.testing.assert_array_equal(pm.confidence, want)
+    assert pm.confidence.dtype == np.float32
 
 
 # -- masks folder -------------------------------------------------------------------------------
@@ -313,3 +361,154 @@ def test_cli_parts_writes_table_and_sheet(vehicles_dir, tmp_path, runtime):
     assert sheet is not None and sheet.shape[0] >= 64
     assert main(["parts", "x.glb", "--segmenter", "onnx", "m.onnx"]) == 2       # no config
     assert main(["parts", str(vehicles_dir / "missing.glb"), "--out", str(out)]) == 1
+
+
+# -- the packed prior segmenter against the code it replaced -----------------------------------
+def reference_prior_segment(prob, mat_id):
+    """The unpacked implementation (before packed masks), kept as the reference: per-pixel part
+    index, (V, P, H, W) masks, per (view, part) pixel count and summed probability bincounts."""
+    M = prob.shape[0]
+    part_of = np.argmax(prob, axis=1)
+    lut = np.full(M + 1, -1, np.int64)
+    lut[1:] = part_of
+    pix = lut[mat_id]
+    pprob = np.zeros(M + 1)
+    pprob[1:] = prob[np.arange(M), part_of]
+    pp = pprob[mat_id]
+    P = len(PART_NAMES)
+    V = pix.shape[0]
+    masks = pix[:, None] == np.arange(P)[None, :, None, None]
+    key = (np.arange(V)[:, None, None] * (P + 1) + (pix + 1)).ravel()
+    cnt = np.bincount(key, minlength=V * (P + 1)).reshape(V, P + 1)[:, 1:]
+    sums = np.bincount(key, weights=pp.ravel(), minlength=V * (P + 1)).reshape(V, P + 1)[:, 1:]
+    conf = np.where(cnt > 0, sums / np.maximum(cnt, 1), 0.0).astype(np.float32)
+    return masks, conf
+
+
+def reference_material_features(mesh, views=None):
+    """``material_features`` before it was made cheaper (two np.unique, two cross products,
+    np.add.at), kept as the reference: the new one must give bit-identical arrays."""
+    M = len(mesh.materials)
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces, np.int64)
+    fm = np.asarray(mesh.face_material, np.int64)
+    out = {k: np.zeros(M) for k in ("area", "h", "abs_u", "abs_w", "wheel_zone", "end_zone",
+                                     "upper", "centre_w", "plate_zone", "cabin", "roof", "flat",
+                                     "visible", "exposure")}
+    if f.shape[0] == 0:
+        return out
+    tri = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    c = tri.mean(axis=1)
+    lo, hi = v[np.unique(f)].min(axis=0), v[np.unique(f)].max(axis=0)
+    mid, half = 0.5 * (lo + hi), np.maximum(0.5 * (hi - lo), 1e-12)
+    la, wa = (0, 2) if half[0] >= half[2] else (2, 0)
+    h = (c[:, 1] - lo[1]) / (2 * half[1])
+    au = np.abs(c[:, la] - mid[la]) / half[la]
+    aw = np.abs(c[:, wa] - mid[wa]) / half[wa]
+    tot = np.bincount(fm, weights=area, minlength=M)
+    tot_safe = np.maximum(tot, 1e-30)
+
+    def share(mask):
+        return np.bincount(fm, weights=area * mask, minlength=M) / tot_safe
+
+    out["area"] = tot / max(tot.sum(), 1e-30)
+    out["h"] = share(h)
+    out["abs_u"] = share(au)
+    out["abs_w"] = share(aw)
+    out["wheel_zone"] = share((h < 0.42) & (au > 0.35) & (au < 0.9) & (aw > 0.5))
+    out["plate_zone"] = share((au > 0.9) & (aw < 0.4) & (h < 0.6))
+    out["cabin"] = share((au < 0.5) & (aw < 0.55) & (h > 0.15) & (h < 0.7))
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ny = np.abs(n[:, 1]) / np.maximum(np.linalg.norm(n, axis=1), 1e-30)
+    out["roof"] = share((ny > 0.85) & (h > 0.8))
+    unit = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    outer = np.zeros((M, 3, 3))
+    np.add.at(outer, fm, area[:, None, None] * unit[:, :, None] * unit[:, None, :])
+    out["flat"] = np.linalg.eigvalsh(outer / tot_safe[:, None, None])[:, -1]
+    out["end_zone"] = share((au > 0.82) & (h > 0.1) & (h < 0.85))
+    out["upper"] = share(h > 0.55)
+    out["centre_w"] = share(aw < 0.35)
+    if views is not None:
+        vis = np.bincount(views.mat_id.ravel(), minlength=M + 1)[1:M + 1].astype(np.float64)
+        out["visible"] = vis / max(vis.sum(), 1.0)
+        out["exposure"] = out["visible"] / np.maximum(out["area"], 1e-9)
+    return out
+
+
+def _with_extras(mesh: Mesh) -> Mesh:
+    """``mesh`` plus unreferenced vertices far outside it and a material without faces."""
+    from ucad_cl.types import Material
+
+    far = np.array([[9.0, -7.0, 5.0], [-8.0, 6.0, -9.0]])
+    return replace(mesh, vertices=np.concatenate([mesh.vertices, far]),
+                   materials=[*mesh.materials, Material(name="unused")])
+
+
+def test_prior_segment_equals_unpacked_reference(synth_rendered):
+    for mesh, views, _ in synth_rendered:
+        for m in (mesh, _anonymous(mesh)):
+            seg = PriorSegmenter()
+            pm = seg.segment(m, views)
+            assert pm.packed and pm.bits.dtype == np.uint16 and pm.bits.shape == views.mat_id.shape
+            masks, conf = reference_prior_segment(seg.guess(m, views), views.mat_id)
+            np.testing.assert_array_equal(pm.masks, masks)
+            assert pm.confidence.dtype == np.float32
+            np.testing.assert_array_equal(pm.confidence.view(np.uint32), conf.view(np.uint32))
+    # views where some parts and some materials are absent, one view all background
+    mesh, views, _ = synth_rendered[1]
+    sub = views.select([0, 1, 2])                        # index list: copies, fixture intact
+    sub.mat_id[1] = 0
+    sub.mat_id[2][sub.mat_id[2] == sub.mat_id[2].max()] = 0
+    mesh = _with_extras(mesh)
+    seg = PriorSegmenter()
+    pm = seg.segment(mesh, sub)
+    masks, conf = reference_prior_segment(seg.guess(mesh, sub), sub.mat_id)
+    np.testing.assert_array_equal(pm.masks, masks)
+    np.testing.assert_array_equal(pm.confidence.view(np.uint32), conf.view(np.uint32))
+    assert not pm.nonempty()[1].any() and not pm.confidence[1].any()
+
+
+def test_material_features_equal_reference(synth_rendered):
+    for mesh, views, _ in synth_rendered[:3]:
+        for m in (mesh, _with_extras(mesh)):
+            for vs in (None, views):
+                want = reference_material_features(m, vs)
+                got = material_features(m, vs)
+                assert got.keys() == want.keys()
+                for k in want:
+                    assert got[k].dtype == want[k].dtype
+                    np.testing.assert_array_equal(got[k], want[k], err_msg=k)
+            counts = material_counts(views, len(m.materials) + 1)
+            got = material_features(m, views, view_counts=counts)
+            for k, w in reference_material_features(m, views).items():
+                np.testing.assert_array_equal(got[k], w, err_msg=k)
+    empty = flat_mesh(2)
+    assert all(not a.any() for a in material_features(empty).values())
+
+
+def test_material_counts_per_view():
+    mat = np.array([[[0, 1, 1], [3, 3, 3]], [[2, 0, 0], [0, 0, 0]]], np.uint16)
+    np.testing.assert_array_equal(material_counts(flat_views(mat), 5),
+                                  [[1, 2, 0, 3, 0], [5, 0, 1, 0, 0]])
+    with pytest.raises(ValueError, match="material id 3"):
+        material_counts(flat_views(mat), 3)
+    assert material_counts(flat_views(np.zeros((2, 0, 4), np.uint16)), 3).shape == (2, 3)
+
+
+def test_material_counts_equal_numpy_bincount_on_hard_maps():
+    """ViewSet.material_counts (OpenCV histogram per view) against np.bincount: thousands of
+    ids, ids at the top of the uint16 range, empty views, odd sizes; cached; padded to n_ids."""
+    rng = np.random.default_rng(4)
+    for mat in (rng.integers(0, 2001, (5, 33, 47)).astype(np.uint16),
+                np.where(rng.random((3, 17, 9)) < 0.5, 65534, 0).astype(np.uint16),
+                np.zeros((4, 8, 8), np.uint16),
+                rng.integers(0, 3, (2, 1, 1)).astype(np.uint16)):
+        views = flat_views(mat)
+        n = int(mat.max()) + 1
+        ref = np.stack([np.bincount(m.ravel(), minlength=n) for m in mat])
+        got = views.material_counts()
+        assert got.dtype == np.int64 and np.array_equal(got, ref)
+        assert views.material_counts() is not got                  # callers get their own copy
+        assert np.array_equal(views.material_counts(n + 3)[:, :n], ref)
+        assert not views.material_counts(n + 3)[:, n:].any()

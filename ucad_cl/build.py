@@ -39,7 +39,7 @@ import numpy as np
 
 from .ingest import SUPPORTED_SUFFIXES
 
-CODE_VERSION = "1"        # bump when a change alters results: it enters the options hash
+CODE_VERSION = "2"        # bump when a change alters results: it enters the options hash
 
 
 @dataclass(frozen=True)
@@ -266,7 +266,8 @@ class Pipeline:
         artifacts["parts.png"] = parts_sheet_png(views, table)
         lap("write")
         from .pose import _box_side
-        view_stats = [{"visible_pixels": int(np.count_nonzero(views.mat_id[v])),
+        visible = views.material_counts()[:, 1:].sum(axis=1)
+        view_stats = [{"visible_pixels": int(visible[v]),
                        "box_side": float(_box_side(views.mat_id[v] > 0))}
                       for v in range(views.n_views)]
         return CatalogEntry.from_results(

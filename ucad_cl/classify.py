@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -63,11 +63,12 @@ def classify_parts(mesh: Mesh, views: ViewSet, masks: PartMasks, *, threshold: f
     n_mat = len(mesh.materials)
     V = views.mat_id.shape[0]
     core = core_ids(views.mat_id, core_radius)
-    both = part_histogram(np.concatenate([views.mat_id, core]),
-                          np.concatenate([masks.masks, masks.masks]), n_ids=n_mat + 1)
+    # full and core maps in one launch, both against the packed masks
+    both = part_histogram([views.mat_id, core], bits=[masks.bits, masks.bits],
+                          n_parts=len(parts), n_ids=n_mat + 1)
     hist, core_hist = both[:V].astype(np.int64), both[V:].astype(np.int64)
     conf = np.asarray(masks.confidence, np.float64)
-    nonempty = masks.masks.any(axis=(2, 3))
+    nonempty = masks.nonempty()
     view_conf = np.where(nonempty.any(axis=1),
                          (conf * nonempty).sum(axis=1) / np.maximum(nonempty.sum(axis=1), 1), 0.0)
     part_area = hist[:, :, 1:].sum(axis=1)  # (V, P) |part| per view, background included
@@ -83,39 +84,58 @@ def classify_parts(mesh: Mesh, views: ViewSet, masks: PartMasks, *, threshold: f
                                         r.decision, r.pixels) for r in rows])
 
 
-def part_histogram(mat_id: np.ndarray, masks: np.ndarray, *, n_ids: int | None = None,
+def part_histogram(mat_id: np.ndarray | Sequence[np.ndarray], masks: np.ndarray | None = None,
+                   *, bits: np.ndarray | Sequence[np.ndarray] | None = None,
+                   n_parts: int | None = None, n_ids: int | None = None,
                    local_size: int = LOCAL_SIZE, pixels_per_item: int = PIXELS_PER_ITEM,
                    use_local: bool | None = None) -> np.ndarray:
     """(V, n_ids, 1 + P) uint32: column 0 = |id| per view, column 1 + p = |id ∩ part p|.
 
-    mat_id: (V, H, W) uint16; masks: (V, P, H, W) bool. ``n_ids`` defaults to max id + 1.
+    mat_id: (V, H, W) uint16 material maps, or a list of such arrays (same H, W) counted as one
+    stack of V views (stacked in device memory: no host-side concatenation). The part masks of
+    those V views, one of: ``masks`` (V, P, H, W) bool, or ``bits`` with ``n_parts`` = P: packed
+    (V, H, W) uint16 masks (bit p set = pixel in mask p, see ``PartMasks``; no bit >= P may be
+    set), or a list of those stacked like ``mat_id``. ``n_ids`` defaults to max id + 1.
     |part p| in view v is ``hist[v, :, 1 + p].sum()`` (the background row 0 included).
     """
     import pyopencl as cl
 
-    mat_id = np.asarray(mat_id)
-    masks = np.asarray(masks)
-    if mat_id.ndim != 3 or mat_id.dtype != np.uint16:
-        raise ValueError(f"mat_id must be a (V, H, W) uint16 array, got {mat_id.dtype} "
-                         f"{mat_id.shape}")
-    if masks.ndim != 4 or masks.dtype != np.bool_:
-        raise ValueError(f"masks must be a (V, P, H, W) bool array, got {masks.dtype} "
-                         f"{masks.shape}")
-    V, H, W = mat_id.shape
-    P = masks.shape[1]
-    if masks.shape != (V, P, H, W):
-        raise ValueError(f"masks shape {masks.shape} does not match the views {(V, P, H, W)}")
+    mats = _view_stack(mat_id, "mat_id")
+    V, H, W = sum(a.shape[0] for a in mats), *mats[0].shape[1:]
+    if (masks is None) == (bits is None):
+        raise ValueError("give the part masks either as masks or as bits")
+    if masks is not None:
+        masks = np.asarray(masks)
+        if masks.ndim != 4 or masks.dtype != np.bool_:
+            raise ValueError(f"masks must be a (V, P, H, W) bool array, got {masks.dtype} "
+                             f"{masks.shape}")
+        P = masks.shape[1]
+        if masks.shape != (V, P, H, W):
+            raise ValueError(f"masks shape {masks.shape} does not match the views "
+                             f"{(V, P, H, W)}")
+    else:
+        if n_parts is None:
+            raise ValueError("bits need n_parts")
+        P = int(n_parts)
+        bits = _view_stack(bits, "bits")
+        shape = (sum(b.shape[0] for b in bits), *bits[0].shape[1:])
+        if shape != (V, H, W):
+            raise ValueError(f"bits shape {shape} does not match the views {(V, H, W)}")
     if not 1 <= P <= MAX_PARTS:
         raise ValueError(f"need 1..{MAX_PARTS} part masks, got {P}")
-    top = int(mat_id.max()) + 1 if mat_id.size else 1
+    top = max((int(a.max()) for a in mats if a.size), default=0) + 1
     n_ids = top if n_ids is None else int(n_ids)
     if n_ids < top:
         raise ValueError(f"material id {top - 1} present but n_ids={n_ids}")
     if V == 0 or H * W == 0:
         return np.zeros((V, n_ids, 1 + P), np.uint32)
-    # bit p = pixel in mask p (a sum of distinct powers of two is their bitwise or)
-    bits = np.einsum("vphw,p->vhw", masks.view(np.uint8), (1 << np.arange(P)).astype(np.uint16),
-                     dtype=np.uint16)
+    if masks is not None:
+        # bit p = pixel in mask p (a sum of distinct powers of two is their bitwise or)
+        bits = [np.einsum("vphw,p->vhw", masks.view(np.uint8),
+                          (1 << np.arange(P)).astype(np.uint16), dtype=np.uint16)]
+    elif P < MAX_PARTS and max(int(b.max()) for b in bits if b.size) >> P:
+        # the kernel would count a bit >= P into the next id's row
+        raise ValueError(f"bits has bits set beyond the {P} parts")
     rt = get_runtime()
     n_pix = H * W
     items = -(-n_pix // pixels_per_item)
@@ -124,23 +144,44 @@ def part_histogram(mat_id: np.ndarray, masks: np.ndarray, *, n_ids: int | None =
     table_bytes = 4 * n_ids * (1 + P)
     if use_local is None:
         use_local = table_bytes <= rt.device.local_mem_size // 2
-    mf = cl.mem_flags
-    d_mat = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(mat_id))
-    d_bits = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=bits)
-    out = np.zeros((V, n_ids, 1 + P), np.uint32)
-    d_hist = cl.Buffer(rt.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=out)
+    # reused device buffers (runtime scratch): no allocation and no first touch per call
+    q = rt.queue
+    d_mat = rt.scratch("parts.mat_id", 2 * V * n_pix)
+    d_bits = rt.scratch("parts.bits", 2 * V * n_pix)
+    for d, chunks in ((d_mat, mats), (d_bits, bits)):
+        off = 0
+        for a in chunks:
+            if a.size:
+                cl.enqueue_copy(q, d, np.ascontiguousarray(a), dst_offset=off)
+            off += a.nbytes
+    out = np.empty((V, n_ids, 1 + P), np.uint32)
+    d_hist = rt.scratch("parts.hist", out.nbytes)
+    cl.enqueue_fill_buffer(q, d_hist, np.uint32(0), 0, out.nbytes)
     t0 = time.perf_counter()
     if use_local:
         knl = rt.kernel("parts", "material_part_histogram")
-        knl(rt.queue, (gx, V), (local_size, 1), d_mat, d_bits, prm, d_hist,
+        knl(q, (gx, V), (local_size, 1), d_mat, d_bits, prm, d_hist,
             cl.LocalMemory(table_bytes))
     else:
         knl = rt.kernel("parts", "material_part_histogram_global")
-        knl(rt.queue, (gx, V), (local_size, 1), d_mat, d_bits, prm, d_hist)
-    cl.enqueue_copy(rt.queue, out, d_hist)
-    rt.queue.finish()
+        knl(q, (gx, V), (local_size, 1), d_mat, d_bits, prm, d_hist)
+    cl.enqueue_copy(q, out, d_hist)
+    q.finish()
     last_timing["histogram"] = time.perf_counter() - t0
     return out
+
+
+def _view_stack(x, name: str) -> list[np.ndarray]:
+    """``x`` as a non-empty list of (V_i, H, W) uint16 arrays of one H, W (the view stack)."""
+    arrays = [np.asarray(a) for a in x] if isinstance(x, (list, tuple)) else [np.asarray(x)]
+    if not arrays:
+        raise ValueError(f"{name}: empty list of views")
+    for a in arrays:
+        if a.ndim != 3 or a.dtype != np.uint16:
+            raise ValueError(f"{name} must be a (V, H, W) uint16 array, got {a.dtype} {a.shape}")
+        if a.shape[1:] != arrays[0].shape[1:]:
+            raise ValueError(f"{name}: views of sizes {a.shape[1:]} and {arrays[0].shape[1:]}")
+    return arrays
 
 
 last_timing: dict[str, float] = {}
@@ -178,15 +219,19 @@ def symmetric_pairs(mesh: Mesh, *, tol: float = 0.01, min_match: float = 0.8,
         return []
     n_mat = len(mesh.materials)
     fm = np.asarray(mesh.face_material)
-    pts, trees = {}, {}
+    order = np.argsort(fm, kind="stable")                 # faces grouped by material
+    bounds = np.searchsorted(fm[order], np.arange(n_mat + 1))
+    pts, refl, trees = {}, {}, {}
     for m in range(n_mat):
-        idx = np.unique(f[fm == m])
-        if idx.size:
+        if bounds[m + 1] > bounds[m]:
+            idx = np.unique(f[order[bounds[m]:bounds[m + 1]]])
             pts[m] = v[_sample(idx, max_samples)]
-            trees[m] = cKDTree(pts[m])
+            refl[m] = reflect(pts[m])
 
     def match(a, b):
-        d, _ = trees[b].query(reflect(pts[a]), distance_upper_bound=tol)
+        if b not in trees:
+            trees[b] = cKDTree(pts[b])
+        d, _ = trees[b].query(refl[a], distance_upper_bound=tol)
         return float(np.mean(np.isfinite(d)))
 
     # a pair needs >= min_match of a's reflected points within tol of b's points, so a's reflected
@@ -199,6 +244,15 @@ def symmetric_pairs(mesh: Mesh, *, tol: float = 0.01, min_match: float = 0.8,
     # all candidate pairs at once: a's reflected box meets b's box grown by tol
     meets = (np.all(rlo[:, None, :] <= hi[None, :, :] + tol, axis=2)
              & np.all(rhi[:, None, :] >= lo[None, :, :] - tol, axis=2))
+    grow = tol * (1.0 + 1e-6)                         # looser than tol: stays a necessary test
+
+    def may_match(a, ib):
+        """Necessary for match(a, b) >= min_match: that share of a's reflected points lies in
+        b's box grown by tol (a point within tol of b's points is in that box); ~5x cheaper
+        than the KD query it saves."""
+        inside = np.all((refl[a] >= lo[ib] - grow) & (refl[a] <= hi[ib] + grow), axis=1)
+        return float(np.mean(inside)) >= min_match
+
     self_match: dict[int, float] = {}
 
     def self_of(m):
@@ -209,6 +263,8 @@ def symmetric_pairs(mesh: Mesh, *, tol: float = 0.01, min_match: float = 0.8,
     cands = []
     for ia, ib in zip(*np.nonzero(np.triu(meets, k=1))):
         a, b = mats[ia], mats[ib]
+        if not (may_match(a, ib) and may_match(b, ia)):
+            continue
         ab = match(a, b)
         if ab < min_match:
             continue
@@ -225,23 +281,35 @@ def symmetric_pairs(mesh: Mesh, *, tol: float = 0.01, min_match: float = 0.8,
 
 # ----------------------------------------------------------------------------------------------
 def _validate(mesh: Mesh, views: ViewSet, masks: PartMasks) -> list[str]:
-    m = np.asarray(masks.masks)
-    if m.ndim != 4 or m.dtype != np.bool_:
-        raise ValueError(f"PartMasks.masks must be (V, P, H, W) bool, got {m.dtype} {m.shape}")
+    """Checks shapes and dtypes (of whichever form of the masks ``masks`` holds: no unpacking)."""
     V, H, W = views.mat_id.shape
-    if m.shape[0] != V or m.shape[2:] != (H, W):
-        raise ValueError(f"PartMasks.masks shape {m.shape} does not match the views "
+    if not masks.packed:
+        m = np.asarray(masks.masks)
+        if m.ndim != 4 or m.dtype != np.bool_:
+            raise ValueError(f"PartMasks.masks must be (V, P, H, W) bool, got {m.dtype} "
+                             f"{m.shape}")
+        if len(masks.parts) != m.shape[1]:
+            raise ValueError(f"PartMasks has {len(masks.parts)} part names for {m.shape[1]} "
+                             "masks")
+    else:
+        b = np.asarray(masks.bits)
+        if b.ndim != 3 or b.dtype != np.uint16:
+            raise ValueError(f"PartMasks.bits must be (V, H, W) uint16, got {b.dtype} {b.shape}")
+        if not 1 <= len(masks.parts) <= MAX_PARTS:
+            raise ValueError(f"PartMasks.bits holds 1..{MAX_PARTS} parts, got "
+                             f"{len(masks.parts)} part names")
+    shape = masks.shape
+    if shape[0] != V or shape[2:] != (H, W):
+        raise ValueError(f"PartMasks.masks shape {shape} does not match the views "
                          f"({V}, P, {H}, {W})")
-    if len(masks.parts) != m.shape[1]:
-        raise ValueError(f"PartMasks has {len(masks.parts)} part names for {m.shape[1]} masks")
     unknown = [p for p in masks.parts if p not in PART_NAMES]
     if unknown:
         raise ValueError(f"unknown part names {unknown}; expected names from {PART_NAMES}")
     if len(set(masks.parts)) != len(masks.parts):
         raise ValueError(f"duplicate part names in {masks.parts}")
     c = np.asarray(masks.confidence)
-    if c.shape != m.shape[:2]:
-        raise ValueError(f"PartMasks.confidence must be {m.shape[:2]}, got {c.shape}")
+    if c.shape != shape[:2]:
+        raise ValueError(f"PartMasks.confidence must be {shape[:2]}, got {c.shape}")
     if not np.all(np.isfinite(c)) or c.min(initial=0) < 0 or c.max(initial=0) > 1:
         raise ValueError("PartMasks.confidence must be finite and inside [0, 1]")
     top = int(views.mat_id.max()) if views.mat_id.size else 0

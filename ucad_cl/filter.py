@@ -75,10 +75,11 @@ def filter_views(mesh: Mesh, views: ViewSet, *, dominant_fraction: float = 0.97,
     if mat_id.dtype != np.uint16:
         raise ValueError(f"views.mat_id must be uint16, got {mat_id.dtype}")
     n_mat = len(mesh.materials)
-    counts = np.bincount(mat_id.ravel(), minlength=n_mat + 1).astype(np.int64)
-    if counts.size > n_mat + 1:
-        raise ValueError(f"views.mat_id holds material id {counts.size - 1} but the mesh has "
-                         f"{n_mat} materials (ids 1..{n_mat})")
+    try:
+        counts = views.material_counts(n_mat + 1).sum(axis=0)
+    except ValueError:
+        raise ValueError(f"views.mat_id holds material id {int(mat_id.max())} but the mesh has "
+                         f"{n_mat} materials (ids 1..{n_mat})") from None
     visible = counts[1:]
     total = int(visible.sum())
     if total == 0:

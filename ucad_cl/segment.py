@@ -1,8 +1,9 @@
 """Part segmenters: rendered views of a mesh -> per-view part masks (``PartMasks``).
 
 Every segmenter has one method, ``segment(mesh, views) -> PartMasks`` with masks (V, P, H, W)
-bool and confidence (V, P) float32 in [0, 1]; ``classify.classify_parts`` turns those into
-material -> part labels. Part names are ``ucad_cl.types.PART_NAMES``. Three implementations:
+bool or packed (V, H, W) uint16 bits (see ``PartMasks``) and confidence (V, P) float32 in [0, 1];
+``classify.classify_parts`` turns those into material -> part labels. Part names are
+``ucad_cl.types.PART_NAMES``. Three implementations:
 
 * ``MasksSegmenter(root)``: masks made elsewhere (e.g. ControlNet + Grounded SAM on a GPU box),
   read from the folder layout written by ``write_masks``::
@@ -46,16 +47,14 @@ class Segmenter(Protocol):
 def masks_from_labels(views: ViewSet, labels: dict[int, str], *, confidence: float = 1.0,
                       source: str = "labels") -> PartMasks:
     """Part masks painting material index m's pixels with part ``labels[m]`` (ground truth, ...)."""
-    lut = np.full(int(views.mat_id.max(initial=0)) + 2 + max(labels, default=0), -1, np.int64)
+    lut = np.zeros(int(views.mat_id.max(initial=0)) + 2 + max(labels, default=0), np.uint16)
     for m, part in labels.items():
         if part not in PART_NAMES:
             raise ValueError(f"material {m}: unknown part {part!r}; expected one of {PART_NAMES}")
-        lut[m + 1] = PART_NAMES.index(part)
-    pix = lut[views.mat_id]                                           # (V, H, W), -1 = none
-    masks = np.stack([pix == p for p in range(len(PART_NAMES))], axis=1)
-    conf = np.where(masks.any(axis=(2, 3)), np.float32(confidence), np.float32(0))
-    return PartMasks(parts=list(PART_NAMES), masks=masks, confidence=conf.astype(np.float32),
-                     source=source)
+        lut[m + 1] = 1 << PART_NAMES.index(part)
+    pm = PartMasks.from_bits(list(PART_NAMES), lut[views.mat_id], None, source=source)
+    pm.confidence = np.where(pm.nonempty(), np.float32(confidence), np.float32(0))
+    return pm
 
 
 # ---------------------------------------------------------------------------------------------
@@ -116,11 +115,12 @@ def write_masks(root: str | Path, sha: str, masks: PartMasks) -> Path:
     base = Path(root) / sha
     base.mkdir(parents=True, exist_ok=True)
     table: dict[str, dict[str, float]] = {}
-    for v in range(masks.masks.shape[0]):
+    nonempty = masks.nonempty()
+    for v in range(nonempty.shape[0]):
         for p, part in enumerate(masks.parts):
             if part not in PART_NAMES:
                 raise ValueError(f"unknown part {part!r}; expected one of {PART_NAMES}")
-            if not masks.masks[v, p].any():
+            if not nonempty[v, p]:
                 continue
             d = base / f"view_{v:03d}"
             d.mkdir(exist_ok=True)
@@ -298,7 +298,14 @@ def name_priors(mesh: Mesh) -> dict[int, str]:
     return {m: p for m, mat in enumerate(mesh.materials) if (p := name_prior(mat.name)) is not None}
 
 
-def material_features(mesh: Mesh, views: ViewSet | None = None) -> dict[str, np.ndarray]:
+def material_counts(views: ViewSet, n_ids: int) -> np.ndarray:
+    """(V, n_ids) int64: pixels of every material id (0 = background) in each view
+    (``ViewSet.material_counts``). ValueError when the views hold an id >= ``n_ids``."""
+    return views.material_counts(n_ids)
+
+
+def material_features(mesh: Mesh, views: ViewSet | None = None, *,
+                      view_counts: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Per-material geometry in the vehicle frame (all (M,) float64, area-weighted over faces).
 
     Vehicle frame: h = height above the bbox bottom / bbox height in [0, 1]; u = position along the
@@ -310,6 +317,7 @@ def material_features(mesh: Mesh, views: ViewSet | None = None) -> dict[str, np.
     facing up or down within 32 degrees, high on the vehicle), flat (largest eigenvalue of the
     area-weighted normal scatter: 1 for a plane), visible
     (share of visible pixels over all views) and exposure (visible share / surface share).
+    ``view_counts``: the views' ``material_counts(views, M + 1)`` when the caller has them.
     """
     M = len(mesh.materials)
     v = np.asarray(mesh.vertices, np.float64)
@@ -322,9 +330,13 @@ def material_features(mesh: Mesh, views: ViewSet | None = None) -> dict[str, np.
     if f.shape[0] == 0:
         return out
     tri = v[f]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    c = tri.mean(axis=1)
-    lo, hi = v[np.unique(f)].min(axis=0), v[np.unique(f)].max(axis=0)
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])       # 2 * area * unit normal
+    norm = np.linalg.norm(n, axis=1)
+    area = 0.5 * norm
+    c = (tri[:, 0] + tri[:, 1] + tri[:, 2]) / 3                       # = tri.mean(axis=1)
+    used = np.zeros(v.shape[0], bool)
+    used[f.ravel()] = True
+    lo, hi = v[used].min(axis=0), v[used].max(axis=0)                # referenced vertices only
     mid, half = 0.5 * (lo + hi), np.maximum(0.5 * (hi - lo), 1e-12)
     la, wa = (0, 2) if half[0] >= half[2] else (2, 0)
     h = (c[:, 1] - lo[1]) / (2 * half[1])
@@ -343,18 +355,25 @@ def material_features(mesh: Mesh, views: ViewSet | None = None) -> dict[str, np.
     out["wheel_zone"] = share((h < 0.42) & (au > 0.35) & (au < 0.9) & (aw > 0.5))
     out["plate_zone"] = share((au > 0.9) & (aw < 0.4) & (h < 0.6))
     out["cabin"] = share((au < 0.5) & (aw < 0.55) & (h > 0.15) & (h < 0.7))
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    ny = np.abs(n[:, 1]) / np.maximum(np.linalg.norm(n, axis=1), 1e-30)
+    safe = np.maximum(norm, 1e-30)
+    ny = np.abs(n[:, 1]) / safe
     out["roof"] = share((ny > 0.85) & (h > 0.8))
-    unit = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
-    outer = np.zeros((M, 3, 3))
-    np.add.at(outer, fm, area[:, None, None] * unit[:, :, None] * unit[:, None, :])
+    unit = n / safe[:, None]
+    # per-material sums of area * u u^T: one weighted bincount per entry (in face order, as a
+    # scatter-add would sum them)
+    scatter = (area[:, None, None] * unit[:, :, None] * unit[:, None, :]).reshape(-1, 9)
+    outer = np.stack([np.bincount(fm, weights=scatter[:, k], minlength=M) for k in range(9)],
+                     axis=1).reshape(M, 3, 3)
     out["flat"] = np.linalg.eigvalsh(outer / tot_safe[:, None, None])[:, -1]
     out["end_zone"] = share((au > 0.82) & (h > 0.1) & (h < 0.85))
     out["upper"] = share(h > 0.55)
     out["centre_w"] = share(aw < 0.35)
     if views is not None:
-        vis = np.bincount(views.mat_id.ravel(), minlength=M + 1)[1:M + 1].astype(np.float64)
+        if view_counts is None:
+            vis = np.bincount(views.mat_id.ravel(), minlength=M + 1)[1:M + 1]
+        else:
+            vis = np.asarray(view_counts).sum(axis=0)[1:M + 1]
+        vis = vis.astype(np.float64)
         out["visible"] = vis / max(vis.sum(), 1.0)
         out["exposure"] = out["visible"] / np.maximum(out["area"], 1e-9)
     return out
@@ -393,11 +412,13 @@ class PriorSegmenter:
     def __init__(self, use_names: bool = True):
         self.use_names = use_names
 
-    def guess(self, mesh: Mesh, views: ViewSet | None = None) -> np.ndarray:
-        """(M, len(PART_NAMES)) float64 per-material part probabilities (rows sum to 1)."""
+    def guess(self, mesh: Mesh, views: ViewSet | None = None, *,
+              view_counts: np.ndarray | None = None) -> np.ndarray:
+        """(M, len(PART_NAMES)) float64 per-material part probabilities (rows sum to 1).
+        ``view_counts``: ``material_counts(views, M + 1)`` when the caller has them."""
         M, P = len(mesh.materials), len(PART_NAMES)
         idx = {p: i for i, p in enumerate(PART_NAMES)}
-        g = material_features(mesh, views)
+        g = material_features(mesh, views, view_counts=view_counts)
         logit = np.zeros((M, P))
         logit[:, idx["body"]] += 0.5
         logit[:, idx["other"]] += 0.3
@@ -450,21 +471,21 @@ class PriorSegmenter:
         return z / z.sum(axis=1, keepdims=True)
 
     def segment(self, mesh: Mesh, views: ViewSet) -> PartMasks:
-        prob = self.guess(mesh, views)
-        M = prob.shape[0]
+        M, P = len(mesh.materials), len(PART_NAMES)
+        cnt = material_counts(views, M + 1)                        # (V, M + 1) pixels per id
+        prob = self.guess(mesh, views, view_counts=cnt)
         part_of = np.argmax(prob, axis=1)                          # ties -> PART_NAMES order
-        lut = np.full(M + 1, -1, np.int64)
-        lut[1:] = part_of
-        pix = lut[views.mat_id]
-        pprob = np.zeros(M + 1)
-        pprob[1:] = prob[np.arange(M), part_of]
-        pp = pprob[views.mat_id]
-        P = len(PART_NAMES)
-        V = pix.shape[0]
-        masks = pix[:, None] == np.arange(P)[None, :, None, None]
-        # per (view, part): pixel count and summed probability, one bincount each
-        key = (np.arange(V)[:, None, None] * (P + 1) + (pix + 1)).ravel()
-        cnt = np.bincount(key, minlength=V * (P + 1)).reshape(V, P + 1)[:, 1:]
-        sums = np.bincount(key, weights=pp.ravel(), minlength=V * (P + 1)).reshape(V, P + 1)[:, 1:]
-        conf = np.where(cnt > 0, sums / np.maximum(cnt, 1), 0.0).astype(np.float32)
-        return PartMasks(parts=list(PART_NAMES), masks=masks, confidence=conf, source="prior")
+        # packed masks: one gather of each material id's part bit (id 0 = background: none)
+        lut = np.zeros(M + 1, np.uint16)
+        lut[1:] = np.left_shift(1, part_of).astype(np.uint16)
+        bits = lut.take(views.mat_id)
+        # confidence of (view, part) = the part's probability averaged over its pixels, from the
+        # per-view pixel counts of the material ids: (V, M + 1) @ (M + 1, P) matrices
+        member = np.zeros((M + 1, P), np.int64)
+        member[np.arange(1, M + 1), part_of] = 1
+        weight = np.zeros((M + 1, P))
+        weight[np.arange(1, M + 1), part_of] = prob[np.arange(M), part_of]
+        n = cnt @ member                                           # (V, P) pixels per part
+        sums = cnt.astype(np.float64) @ weight
+        conf = np.where(n > 0, sums / np.maximum(n, 1), 0.0).astype(np.float32)
+        return PartMasks.from_bits(list(PART_NAMES), bits, conf, source="prior")
