@@ -10,8 +10,8 @@ import pytest
 
 from ucad_cl.classify import classify_parts
 from ucad_cl.segment import (MasksSegmenter, OnnxSegmenter, PriorSegmenter, material_colors,
-                             material_counts, material_features, material_image,
-                             masks_from_labels, name_prior, write_masks)
+                             material_features, material_image, masks_from_labels, name_prior,
+                             write_masks)
 from tests.reference import flat_mesh, flat_views
 from ucad_cl.types import PART_NAMES, Mesh, PartMasks
 
@@ -479,8 +479,8 @@ def test_material_features_equal_reference(synth_rendered):
                 for k in want:
                     assert got[k].dtype == want[k].dtype
                     np.testing.assert_array_equal(got[k], want[k], err_msg=k)
-            counts = material_counts(views, len(m.materials) + 1)
-            got = material_features(m, views, view_counts=counts)
+            views.material_counts()                      # the counts cached on the ViewSet
+            got = material_features(m, views)
             for k, w in reference_material_features(m, views).items():
                 np.testing.assert_array_equal(got[k], w, err_msg=k)
     empty = flat_mesh(2)
@@ -489,11 +489,11 @@ def test_material_features_equal_reference(synth_rendered):
 
 def test_material_counts_per_view():
     mat = np.array([[[0, 1, 1], [3, 3, 3]], [[2, 0, 0], [0, 0, 0]]], np.uint16)
-    np.testing.assert_array_equal(material_counts(flat_views(mat), 5),
+    np.testing.assert_array_equal(flat_views(mat).material_counts(5),
                                   [[1, 2, 0, 3, 0], [5, 0, 1, 0, 0]])
     with pytest.raises(ValueError, match="material id 3"):
-        material_counts(flat_views(mat), 3)
-    assert material_counts(flat_views(np.zeros((2, 0, 4), np.uint16)), 3).shape == (2, 3)
+        flat_views(mat).material_counts(3)
+    assert flat_views(np.zeros((2, 0, 4), np.uint16)).material_counts(3).shape == (2, 3)
 
 
 def test_material_counts_equal_numpy_bincount_on_hard_maps():

@@ -298,14 +298,7 @@ def name_priors(mesh: Mesh) -> dict[int, str]:
     return {m: p for m, mat in enumerate(mesh.materials) if (p := name_prior(mat.name)) is not None}
 
 
-def material_counts(views: ViewSet, n_ids: int) -> np.ndarray:
-    """(V, n_ids) int64: pixels of every material id (0 = background) in each view
-    (``ViewSet.material_counts``). ValueError when the views hold an id >= ``n_ids``."""
-    return views.material_counts(n_ids)
-
-
-def material_features(mesh: Mesh, views: ViewSet | None = None, *,
-                      view_counts: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def material_features(mesh: Mesh, views: ViewSet | None = None) -> dict[str, np.ndarray]:
     """Per-material geometry in the vehicle frame (all (M,) float64, area-weighted over faces).
 
     Vehicle frame: h = height above the bbox bottom / bbox height in [0, 1]; u = position along the
@@ -317,7 +310,6 @@ def material_features(mesh: Mesh, views: ViewSet | None = None, *,
     facing up or down within 32 degrees, high on the vehicle), flat (largest eigenvalue of the
     area-weighted normal scatter: 1 for a plane), visible
     (share of visible pixels over all views) and exposure (visible share / surface share).
-    ``view_counts``: the views' ``material_counts(views, M + 1)`` when the caller has them.
     """
     M = len(mesh.materials)
     v = np.asarray(mesh.vertices, np.float64)
@@ -369,11 +361,9 @@ def material_features(mesh: Mesh, views: ViewSet | None = None, *,
     out["upper"] = share(h > 0.55)
     out["centre_w"] = share(aw < 0.35)
     if views is not None:
-        if view_counts is None:
-            vis = np.bincount(views.mat_id.ravel(), minlength=M + 1)[1:M + 1]
-        else:
-            vis = np.asarray(view_counts).sum(axis=0)[1:M + 1]
-        vis = vis.astype(np.float64)
+        seen = views.material_counts().sum(axis=0)[1:M + 1]       # ids above M are ignored
+        vis = np.zeros(M)
+        vis[:seen.size] = seen
         out["visible"] = vis / max(vis.sum(), 1.0)
         out["exposure"] = out["visible"] / np.maximum(out["area"], 1e-9)
     return out
@@ -412,13 +402,11 @@ class PriorSegmenter:
     def __init__(self, use_names: bool = True):
         self.use_names = use_names
 
-    def guess(self, mesh: Mesh, views: ViewSet | None = None, *,
-              view_counts: np.ndarray | None = None) -> np.ndarray:
-        """(M, len(PART_NAMES)) float64 per-material part probabilities (rows sum to 1).
-        ``view_counts``: ``material_counts(views, M + 1)`` when the caller has them."""
+    def guess(self, mesh: Mesh, views: ViewSet | None = None) -> np.ndarray:
+        """(M, len(PART_NAMES)) float64 per-material part probabilities (rows sum to 1)."""
         M, P = len(mesh.materials), len(PART_NAMES)
         idx = {p: i for i, p in enumerate(PART_NAMES)}
-        g = material_features(mesh, views, view_counts=view_counts)
+        g = material_features(mesh, views)
         logit = np.zeros((M, P))
         logit[:, idx["body"]] += 0.5
         logit[:, idx["other"]] += 0.3
@@ -472,8 +460,8 @@ class PriorSegmenter:
 
     def segment(self, mesh: Mesh, views: ViewSet) -> PartMasks:
         M, P = len(mesh.materials), len(PART_NAMES)
-        cnt = material_counts(views, M + 1)                        # (V, M + 1) pixels per id
-        prob = self.guess(mesh, views, view_counts=cnt)
+        cnt = views.material_counts(M + 1)                         # (V, M + 1) pixels per id
+        prob = self.guess(mesh, views)
         part_of = np.argmax(prob, axis=1)                          # ties -> PART_NAMES order
         # packed masks: one gather of each material id's part bit (id 0 = background: none)
         lut = np.zeros(M + 1, np.uint16)
