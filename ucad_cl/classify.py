@@ -44,9 +44,9 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .runtime import get_runtime
-from .types import PART_NAMES, Mesh, MaterialPart, PartMasks, PartTable, ViewSet
+from .types import PART_NAMES, Mesh, MaterialPart, PartMasks, PartTable, ViewSet, pack_masks
 
-MAX_PARTS = 16              # part masks are packed into uint16 bit sets
+MAX_PARTS = PartMasks.MAX_PARTS  # part masks are packed into uint16 bit sets
 PIXELS_PER_ITEM = 1024      # contiguous pixels per work-item; measured in bench/parts.py
 LOCAL_SIZE = 16             # work-items per group; measured in bench/parts.py
 PARAMS_DTYPE = np.dtype([("n_pixels", np.uint32), ("n_views", np.uint32), ("n_ids", np.uint32),
@@ -130,9 +130,7 @@ def part_histogram(mat_id: np.ndarray | Sequence[np.ndarray], masks: np.ndarray 
     if V == 0 or H * W == 0:
         return np.zeros((V, n_ids, 1 + P), np.uint32)
     if masks is not None:
-        # bit p = pixel in mask p (a sum of distinct powers of two is their bitwise or)
-        bits = [np.einsum("vphw,p->vhw", masks.view(np.uint8),
-                          (1 << np.arange(P)).astype(np.uint16), dtype=np.uint16)]
+        bits = [pack_masks(masks)]
     elif P < MAX_PARTS and max(int(b.max()) for b in bits if b.size) >> P:
         # the kernel would count a bit >= P into the next id's row
         raise ValueError(f"bits has bits set beyond the {P} parts")

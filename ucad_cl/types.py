@@ -169,6 +169,17 @@ class EdgeSet:
     edges: np.ndarray
 
 
+def pack_masks(masks: np.ndarray) -> np.ndarray:
+    """(V, P, H, W) bool masks, P <= 16 -> (V, H, W) uint16, bit p set = pixel in mask p."""
+    m = np.asarray(masks)
+    if m.ndim != 4 or m.dtype != np.bool_ or m.shape[1] > PartMasks.MAX_PARTS:
+        raise ValueError(f"masks must be (V, P <= {PartMasks.MAX_PARTS}, H, W) bool to pack, "
+                         f"got {m.dtype} {m.shape}")
+    # a sum of distinct powers of two is their bitwise or
+    return np.einsum("vphw,p->vhw", m.view(np.uint8),
+                     (1 << np.arange(m.shape[1])).astype(np.uint16), dtype=np.uint16)
+
+
 class PartMasks:
     """Segmenter output: for every view, a pixel mask and a confidence per part of ``parts``.
 
@@ -221,14 +232,7 @@ class PartMasks:
     @property
     def bits(self) -> np.ndarray:
         if self._bits is None:
-            m = np.asarray(self._masks)
-            if m.ndim != 4 or m.dtype != np.bool_ or m.shape[1] > self.MAX_PARTS:
-                raise ValueError(f"masks must be (V, P <= {self.MAX_PARTS}, H, W) bool to pack, "
-                                 f"got {m.dtype} {m.shape}")
-            # bit p = pixel in mask p (a sum of distinct powers of two is their bitwise or)
-            self._bits = np.einsum("vphw,p->vhw", m.view(np.uint8),
-                                   (1 << np.arange(m.shape[1])).astype(np.uint16),
-                                   dtype=np.uint16)
+            self._bits = pack_masks(self._masks)
         return self._bits
 
     @bits.setter
