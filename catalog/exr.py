@@ -61,11 +61,14 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
     f2n = np.asarray(file_to_norm if file_to_norm is not None else (
         mesh.file_to_norm if mesh is not None else np.eye(4)), np.float64)
     sha = mesh_sha256 or (mesh.sha256 if mesh is not None else "")
+    from ucad_cl.types import nonzero_box
+
     parts = []
     H, W = views.mat_id.shape[1:]
     display = (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32))
     for v in range(views.n_views):
-        y0, y1, x0, x1 = _object_box(views.mat_id[v])
+        # the object's box (material id > 0); an empty view stores its top-left pixel
+        y0, y1, x0, x1 = nonzero_box(views.mat_id[v]) or (0, 1, 0, 1)
         header = {
             "dataWindow": (np.array([x0, y0], np.int32), np.array([x1 - 1, y1 - 1], np.int32)),
             "displayWindow": display,
@@ -102,16 +105,6 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
         if tmp.exists():
             tmp.unlink()
     return path
-
-
-def _object_box(mat_id: np.ndarray) -> tuple[int, int, int, int]:
-    """(y0, y1, x0, x1), half-open, of the pixels with material id > 0; (0, 1, 0, 1) if none."""
-    fg = mat_id > 0
-    rows = np.flatnonzero(fg.any(axis=1))
-    if rows.size == 0:
-        return 0, 1, 0, 1
-    cols = np.flatnonzero(fg[rows[0]:rows[-1] + 1].any(axis=0))
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
 
 
 def _full_image(part, name: str, dtype) -> np.ndarray:

@@ -376,7 +376,6 @@ class Catalog:
             _fsync_dir(shard)
         return sha, n
 
-
     def _move_into(self, src: Path, final: Path, sha: str, n: int) -> bool:
         """Rename the hashed file ``src`` to ``final`` (same file system only); False if not."""
         try:

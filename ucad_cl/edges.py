@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .runtime import get_runtime
-from .types import EdgeSet, ViewSet
+from .types import EdgeSet, ViewSet, nonzero_box
 
 PARAMS_DTYPE = np.dtype([("width", np.int32), ("height", np.int32), ("n_images", np.int32),
                          ("channels", np.int32), ("low", np.int32), ("high", np.int32),
@@ -320,15 +320,11 @@ def _boxes(ids: np.ndarray, margin: int, *others: np.ndarray):
     neighbour relations between different ids all lie inside it (margin 1)."""
     flat = ids.reshape(-1, *ids.shape[-2:])
     rest = [o.reshape(-1, *o.shape[-2:]) for o in others]
-    H, W = flat.shape[1:]
     for k, img in enumerate(flat):
-        rows = np.flatnonzero(img.any(axis=1))
-        if rows.size == 0:
+        b = nonzero_box(img, margin)
+        if b is None:
             continue
-        y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, H)
-        cols = np.flatnonzero(img[y0:y1].any(axis=0))
-        x0, x1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, W)
-        box = (slice(y0, y1), slice(x0, x1))
+        box = (slice(b[0], b[1]), slice(b[2], b[3]))
         yield (img[box], *(o[k][box] for o in rest)) if others else img[box]
 
 

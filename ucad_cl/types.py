@@ -148,6 +148,18 @@ class ViewSet:
                        depth=self.depth[idx])
 
 
+def nonzero_box(img: np.ndarray, margin: int = 0) -> tuple[int, int, int, int] | None:
+    """(y0, y1, x0, x1), half-open, of the non-zero pixels of a (H, W) image grown by ``margin``
+    pixels and clipped to the image; None when every pixel is zero."""
+    rows = np.flatnonzero(img.any(axis=1))
+    if rows.size == 0:
+        return None
+    H, W = img.shape
+    y0, y1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + 1 + margin, H)
+    cols = np.flatnonzero(img[y0:y1].any(axis=0))
+    return y0, y1, max(int(cols[0]) - margin, 0), min(int(cols[-1]) + 1 + margin, W)
+
+
 def _id_counts(mat_id: np.ndarray) -> np.ndarray:
     """(V, max id + 1) int64 pixel counts of each id per view of (V, H, W) uint16 maps."""
     V = mat_id.shape[0]
