@@ -1,7 +1,9 @@
 """Rendering throughput and error: ucad-cl's OpenCL rasterizer vs Open3D's RaycastingScene (Embree).
 
 Both produce the same material-id / triangle-id / depth maps of the same mesh through the same
-pixel centres, in the same run. Each (implementation, mesh, size) is measured in a fresh
+pixel centres, in the same run. ucad-cl is measured on both kernel paths: 'serial' (one work-item
+per view, explicit 16-lane vectors; the default on CPU devices) and 'parallel' (one work-item per
+face and view, atomic min; the default on GPUs); speed-up is against Open3D. Each (implementation, mesh, size) is measured in a fresh
 subprocess so that the peak resident memory (ru_maxrss) belongs to it alone; times are medians
 of --repeats runs after one warm-up. Open3D's rays are generated once per ring outside the timed
 region (in its favour). Compile time is reported apart: 'cold' with every kernel cache disabled,
@@ -68,14 +70,15 @@ def child(impl: str, n_tris: int, size: int, views: int, repeats: int) -> dict:
     ring = make_ring(azimuth_step=360.0 / views, elevations=(15.0,), size=size)
     out = {"impl": impl, "tris": mesh.n_faces, "size": size, "views": ring.n_views}
     times = []
-    if impl == "ucad-cl":
+    if impl.startswith("ucad-"):
         from ucad_cl.render import render_views
+        path = impl.split("-", 1)[1]
         t0 = time.perf_counter()
-        res = render_views(mesh, ring)
+        res = render_views(mesh, ring, path=path)
         out["first_call_s"] = time.perf_counter() - t0
         for _ in range(repeats):
             t0 = time.perf_counter()
-            res = render_views(mesh, ring)
+            res = render_views(mesh, ring, path=path)
             times.append(time.perf_counter() - t0)
         mat = res.mat_id
     else:
@@ -105,7 +108,7 @@ def compile_times(tmp) -> dict:
     """First-call time with all caches disabled (cold compile) and with caches (new process)."""
     out = {}
     for label, extra in (("cold", {"POCL_KERNEL_CACHE": "0", "PYOPENCL_NO_CACHE": "1"}), ("cached", {})):
-        r, _ = run_child("ucad-cl", 10_000, 128, 8, 1, tmp, extra)
+        r, _ = run_child("ucad-serial", 10_000, 128, 8, 1, tmp, extra)
         out[label] = r["first_call_s"] - r["seconds"]
     return out
 
@@ -117,6 +120,8 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512])
     ap.add_argument("--views", type=int, default=72)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--paths", nargs="+", default=["serial", "parallel"],
+                    choices=["serial", "parallel"], help="ucad-cl kernel paths to measure")
     ap.add_argument("--quick", action="store_true", help="10k/100k tris, 128/256 px, 3 repeats")
     args = ap.parse_args()
     if args.child:
@@ -134,21 +139,22 @@ def main() -> None:
         ct = compile_times(tmp)
         print(f"kernel compile (first call minus steady call): cold {ct['cold']:.2f} s, "
               f"cached {ct['cached']:.3f} s\n")
-        hdr = (f"{'tris':>8} {'px':>4} {'impl':>8} {'views/s':>9} {'Mpix/s':>8} {'Mtri/s':>8} "
+        hdr = (f"{'tris':>8} {'px':>4} {'impl':>13} {'views/s':>9} {'Mpix/s':>8} {'Mtri/s':>8} "
                f"{'peakMB':>7} {'speedup':>8} {'disagree%':>10}")
         print(hdr)
         print("-" * len(hdr))
         for n in args.tris:
             for s in args.sizes:
-                ours, m1 = run_child("ucad-cl", n, s, args.views, args.repeats, tmp)
+                ours = [run_child(f"ucad-{p}", n, s, args.views, args.repeats, tmp)
+                        for p in args.paths]
                 peer, m2 = run_child("open3d", n, s, args.views, args.repeats, tmp)
-                dis = 100.0 * float((m1 != m2).mean())
-                for r in (ours, peer):
+                for r, m in ours + [(peer, m2)]:
                     vps = r["views"] / r["seconds"]
                     sp = peer["seconds"] / r["seconds"]
-                    print(f"{r['tris']:>8} {s:>4} {r['impl'][:8]:>8} {vps:>9.1f} "
+                    dis = 100.0 * float((m != m2).mean())
+                    print(f"{r['tris']:>8} {s:>4} {r['impl']:>13} {vps:>9.1f} "
                           f"{vps * s * s / 1e6:>8.1f} {vps * r['tris'] / 1e6:>8.1f} "
-                          f"{r['peak_rss_mb']:>7.0f} {sp:>7.2f}x {dis if r is ours else 0:>10.3f}")
+                          f"{r['peak_rss_mb']:>7.0f} {sp:>7.2f}x {dis:>10.3f}")
                 sys.stdout.flush()
 
 

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from ucad_cl.cameras import make_ring
-from ucad_cl.render import coverage_counts, render_views
+from ucad_cl.render import coverage_counts, raster_path, render_views
 from ucad_cl.types import Material, Mesh
 from tests.reference import boundary_mask, raycast_views
 
@@ -113,7 +113,8 @@ def test_far_tiny_huge_models_normalise_and_render(runtime, tmp_path, offset, sc
     assert (a != b).mean() < 1e-3
 
 
-def test_zero_area_and_sliver_triangles(runtime):
+@pytest.mark.parametrize("path", ["serial", "parallel"])
+def test_zero_area_and_sliver_triangles(runtime, path):
     v = np.array([[-0.3, -0.3, 0], [0.3, -0.3, 0], [0.0, 0.3, 0],      # a normal triangle
                   [0.1, 0.1, 0.1], [0.2, 0.2, 0.1], [0.3, 0.3, 0.1],   # collinear (zero area)
                   [-0.4, 0.0, 0.05], [0.4, 1e-7, 0.05], [0.4, 0.0, 0.05],  # sliver
@@ -123,7 +124,7 @@ def test_zero_area_and_sliver_triangles(runtime):
     ring = make_ring(azimuth_step=30, elevations=(0.0, 30.0), size=128)
     views, _ = assert_matches_raycast(mesh, ring)
     assert not np.isin(views.tri_id, [1, 2, 3]).any(), "zero-area faces must cover nothing"
-    counts = coverage_counts(make_mesh(v, f[1:4], [1, 2, 3]), ring)
+    counts = coverage_counts(make_mesh(v, f[1:4], [1, 2, 3]), ring, path=path)
     assert counts.sum() == 0
 
 
@@ -175,12 +176,15 @@ def test_camera_inside_model_guard_band(runtime):
     assert (views.mat_id > 0).all(), "from inside a closed box every pixel sees a wall"
 
 
-def test_subdivided_plane_is_covered_exactly_once(runtime):
-    """A grid of triangles whose vertices and edges pass exactly through pixel centres."""
-    size, step = 64, 4
+@pytest.mark.parametrize("path", ["serial", "parallel"])
+@pytest.mark.parametrize("step", [1, 2, 4])
+def test_subdivided_plane_is_covered_exactly_once(runtime, path, step):
+    """A grid of triangles whose vertices and edges pass exactly through pixel centres; with
+    steps of 1 pixel every triangle takes the serial path's branch-free tiny case."""
+    size = 64
     f = 0.5 * size            # fov 90 degrees: f = size / 2, so x = (px - cx) / f at z = 1
     K_cam_dist = 1.0
-    n = size // step - 2      # grid spans pixel centres 0.5 .. 56.5
+    n = 56 // step            # grid spans pixel centres 0.5 .. 56.5
     g = (np.arange(n + 1) * step + 0.5 - size / 2) / f
     X, Y = np.meshgrid(g, g)
     verts_cam = np.stack([X.ravel(), Y.ravel(), np.full(X.size, K_cam_dist)], 1)
@@ -191,7 +195,7 @@ def test_subdivided_plane_is_covered_exactly_once(runtime):
     R, t = ring.w2c[0, :3, :3], ring.w2c[0, :3, 3]
     verts = (verts_cam - t) @ R            # camera -> canonical
     mesh = make_mesh(verts, faces, np.zeros(len(faces)))
-    counts = coverage_counts(mesh, ring)[0]
+    counts = coverage_counts(mesh, ring, path=path)[0]
     inside = np.zeros((size, size), bool)
     inside[0:n * step, 0:n * step] = True
     # top-left rule: centres on the grid's left/top border are in, on its right/bottom border out
@@ -200,7 +204,7 @@ def test_subdivided_plane_is_covered_exactly_once(runtime):
     # the same with the second half of the faces mirrored (opposite winding)
     faces2 = faces.copy()
     faces2[::2] = faces2[::2, ::-1]
-    counts2 = coverage_counts(make_mesh(verts, faces2, np.zeros(len(faces))), ring)[0]
+    counts2 = coverage_counts(make_mesh(verts, faces2, np.zeros(len(faces))), ring, path=path)[0]
     assert np.array_equal(counts, counts2)
 
 
@@ -216,8 +220,8 @@ def test_nan_and_empty_meshes_raise_clear_errors(runtime):
 
 
 def test_large_triangles_list_overflow_and_chunks(runtime):
-    """Hundreds of screen-filling triangles overflow the large-triangle list (it grows and the pass
-    reruns); rendering in view chunks gives identical bytes."""
+    """Hundreds of screen-filling triangles overflow the parallel path's large-triangle list (it
+    grows and the pass reruns); both paths, and rendering in view chunks, give identical bytes."""
     import ucad_cl.render as R
 
     runtime.release_scratch()          # start from the default list capacity
@@ -227,10 +231,80 @@ def test_large_triangles_list_overflow_and_chunks(runtime):
     mesh = make_mesh(v, np.arange(3 * n).reshape(n, 3), np.arange(n) % 7)
     ring = make_ring(azimuth_step=30, elevations=(10.0, 60.0), size=96)
     views, _ = assert_matches_raycast(mesh, ring)
+    parallel = render_views(mesh, ring, path="parallel")
     assert R.last_stats.big_triangles > 4096 and R.last_stats.reruns >= 1
-    chunked = render_views(mesh, ring, max_key_bytes=3 * 96 * 96 * 8)
-    assert R.last_stats.chunks == 8
-    assert np.array_equal(chunked.tri_id, views.tri_id) and np.array_equal(chunked.depth, views.depth)
+    assert _digest(parallel) == _digest(views)
+    for path in ("serial", "parallel"):
+        chunked = render_views(mesh, ring, max_key_bytes=3 * 96 * 96 * 8, path=path)
+        assert R.last_stats.chunks == 8
+        assert _digest(chunked) == _digest(views)
+
+
+def _soup(seed: int, n: int, size_range: tuple[float, float]) -> Mesh:
+    """Random triangles with edge lengths spread log-uniformly over ``size_range``."""
+    rng = np.random.default_rng(seed)
+    centre = rng.uniform(-0.4, 0.4, size=(n, 1, 3))
+    scale = np.exp(rng.uniform(*np.log(size_range), size=(n, 1, 1)))
+    v = (centre + scale * rng.normal(size=(n, 3, 3))).reshape(-1, 3)
+    return make_mesh(v, np.arange(3 * n).reshape(n, 3), rng.integers(0, 9, n), f"soup{seed}")
+
+
+def _same_bytes_cases():
+    box = trimesh.creation.box((0.8, 0.5, 0.6)).subdivide().subdivide()
+    sphere = trimesh.creation.icosphere(5, radius=0.45)
+    v = np.array([[-0.4, -0.3, 0.1], [0.4, -0.2, -0.1], [0.0, 0.4, 0.05]])
+    return {
+        "toy_car": (lambda: toy_car(), dict(azimuth_step=30, elevations=(10.0, 45.0), size=128)),
+        "soup_tiny": (lambda: _soup(1, 20000, (1e-4, 3e-3)), dict(azimuth_step=45, size=128)),
+        "soup_all_sizes": (lambda: _soup(2, 3000, (1e-4, 0.5)), dict(azimuth_step=45, size=96)),
+        "sphere_near_plane": (lambda: make_mesh(sphere.vertices, sphere.faces,
+                                                np.arange(len(sphere.faces)) % 4),
+                              dict(azimuth_step=60, elevations=(0.0, 35.0), size=128,
+                                   distance=1.0, near=0.8)),
+        "camera_inside_box": (lambda: make_mesh(box.vertices, box.faces,
+                                                np.arange(len(box.faces)) % 5),
+                              dict(azimuth_step=90, elevations=(10.0,), size=96, distance=0.1,
+                                   near=0.001)),
+        "coplanar_duplicates": (lambda: make_mesh(v, [[0, 1, 2], [2, 0, 1], [1, 0, 2]], [0, 1, 2]),
+                                dict(azimuth_step=40, elevations=(5.0, 50.0), size=96)),
+        "odd_size": (lambda: toy_car(), dict(azimuth_step=60, elevations=(20.0,), size=(97, 61))),
+    }
+
+
+@pytest.mark.parametrize("case", sorted(_same_bytes_cases()))
+def test_serial_and_parallel_paths_give_identical_bytes(runtime, case):
+    """The CPU (serial, branch-free tiny triangles) and GPU (parallel, atomic) kernels compute the
+    same keys: identical triangle ids, material ids and depth bits."""
+    make, ring_kw = _same_bytes_cases()[case]
+    mesh, ring = make(), make_ring(**ring_kw)
+    a = render_views(mesh, ring, path="serial")
+    b = render_views(mesh, ring, path="parallel")
+    assert (a.mat_id > 0).any()
+    for name in ("tri_id", "mat_id", "depth"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert np.array_equal(x.view(np.uint8), y.view(np.uint8)), \
+            f"{case}: {name} differs at {int((x != y).sum())} pixels"
+
+
+def test_synth_vehicle_paths_identical_at_bench_density(runtime):
+    """A 100k-triangle vehicle at 128 px, where most triangles cover 0-4 pixel centres."""
+    synth = pytest.importorskip("ucad_cl.synth")
+    mesh = synth.make_vehicle(7, "sedan", target_triangles=100_000).mesh()
+    ring = make_ring(azimuth_step=30, elevations=(15.0, 40.0), size=128)
+    assert _digest(render_views(mesh, ring, path="serial")) == \
+        _digest(render_views(mesh, ring, path="parallel"))
+
+
+def test_raster_path_choice(runtime, monkeypatch):
+    import pyopencl as cl
+
+    cpu = bool(runtime.device.type & cl.device_type.CPU)
+    assert raster_path() == ("serial" if cpu else "parallel")
+    monkeypatch.setenv("UCAD_RASTER_PATH", "parallel")
+    assert raster_path() == "parallel"
+    monkeypatch.setenv("UCAD_RASTER_PATH", "bogus")
+    with pytest.raises(ValueError, match="bogus"):
+        raster_path()
 
 
 def _digest(views) -> str:
@@ -245,18 +319,19 @@ def test_deterministic_across_runs_local_sizes_and_threads(runtime):
     ring = make_ring(azimuth_step=30, elevations=(10.0, 45.0), size=128)
     d0 = _digest(render_views(mesh, ring))
     assert _digest(render_views(mesh, ring)) == d0
-    assert _digest(render_views(mesh, ring, local_size=16)) == d0
+    assert _digest(render_views(mesh, ring, local_size=16, path="parallel")) == d0
     script = ("import sys; sys.path.insert(0, %r); from tests.test_render import toy_car, _digest;"
               "from ucad_cl.cameras import make_ring; from ucad_cl.render import render_views;"
               "from ucad_cl.runtime import get_runtime;"
-              "print(get_runtime().device.max_compute_units, _digest(render_views(toy_car(),"
-              " make_ring(azimuth_step=30, elevations=(10.0, 45.0), size=128))))"
+              "ring = make_ring(azimuth_step=30, elevations=(10.0, 45.0), size=128);"
+              "print(get_runtime().device.max_compute_units, "
+              "*[_digest(render_views(toy_car(), ring, path=p)) for p in ('serial', 'parallel')])"
               % os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     for threads in ("1", "2"):
         env = dict(os.environ, POCL_MAX_PTHREAD_COUNT=threads, POCL_CPU_MAX_CU_NUM=threads)
         out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
                              text=True, check=True).stdout.split()
-        assert out == [threads, d0]
+        assert out == [threads, d0, d0]
 
 
 def test_two_million_triangles_in_bounded_memory(runtime):
