@@ -486,6 +486,8 @@ kernel void raster_views_serial(global const float *verts, global const uint *fa
         int16 row = (ny == 0) & (nx <= 3), col = ~row & (nx == 0) & (ny <= 3);
         int16 tiny = (live & ~clipped & ~work) | (work & (row | col | ((nx <= 1) & (ny <= 1))));
         work &= tiny;
+        uint others = lane_mask(live & ~tiny);
+        if (!others && !lane_mask(work)) continue;   /* no lane covers a pixel centre */
         float16 z0 = GATHER16(float16, zv, i0), z1 = GATHER16(float16, zv, i1);
         float16 z2 = GATHER16(float16, zv, i2);
         /* canonical rotation: first the vertex with the smallest (y, x); keeps the winding */
@@ -528,7 +530,7 @@ kernel void raster_views_serial(global const float *verts, global const uint *fa
                 *p = min(*p, upsample(zbits[c][l], f0 + l));
 #endif
             }
-        for (uint m = lane_mask(live & ~tiny); m; m &= m - 1)
+        for (uint m = others; m; m &= m - 1)
             raster_face(verts, faces, P, pverts, n_verts, prm, f0 + 31 - clz(m & (0u - m)), view,
                         0, 1, MODE_OWNER, keys, 0, 0);
     }
