@@ -185,7 +185,8 @@ static void NAME(long2 p0, long2 p1, long2 p2, float z0, float z1, float z2,    
 #ifdef UCAD_COUNT_COVERAGE    /* test build: count how often each pixel centre is covered */
 #define PLOT(ptr, z, face, exclusive) atom_add((ptr), 1UL)
 #else
-#define PLOT(ptr, z, face, exclusive) keep_min((ptr), ((ulong)as_uint(z) << 32) | (ulong)(face), (exclusive))
+#define PLOT(ptr, z, face, exclusive) \
+    keep_min((ptr), ((ulong)as_uint(z) << 32) | (ulong)(face), (exclusive))
 #endif
 static inline void keep_min(global ulong *p, ulong key, int exclusive) {
     if (exclusive) *p = min(*p, key);
