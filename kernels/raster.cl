@@ -26,9 +26,9 @@
  * vertices in a canonical rotation (first the vertex with the smallest (y, x)) so that duplicate
  * faces listed in another vertex order get identical depths.
  *
- * Work split. project_vertices: clip code, snapped position and depth of every (vertex, view),
- * once. Then one of two paths, which give identical bytes (the same keys, computed by the same
- * expressions; tests/test_render.py checks it):
+ * Work split. project_vertices: clip code and snapped position (and, for the serial path, depth)
+ * of every (vertex, view), once. Then one of two paths, which give identical bytes (the same
+ * keys, computed by the same expressions; tests/test_render.py checks it):
  *  - parallel (GPUs): raster_small, one work-item per (face, view). A triangle whose clipped
  *    bounding box exceeds BIG_PIXELS pixels is appended to a list instead, and raster_big spreads
  *    each listed triangle over LANES work-items (rows interleaved). If the list overflows, the host

@@ -249,33 +249,35 @@ def _soup(seed: int, n: int, size_range: tuple[float, float]) -> Mesh:
     return make_mesh(v, np.arange(3 * n).reshape(n, 3), rng.integers(0, 9, n), f"soup{seed}")
 
 
-def _same_bytes_cases():
-    box = trimesh.creation.box((0.8, 0.5, 0.6)).subdivide().subdivide()
-    sphere = trimesh.creation.icosphere(5, radius=0.45)
-    v = np.array([[-0.4, -0.3, 0.1], [0.4, -0.2, -0.1], [0.0, 0.4, 0.05]])
-    return {
-        "toy_car": (lambda: toy_car(), dict(azimuth_step=30, elevations=(10.0, 45.0), size=128)),
-        "soup_tiny": (lambda: _soup(1, 20000, (1e-4, 3e-3)), dict(azimuth_step=45, size=128)),
-        "soup_all_sizes": (lambda: _soup(2, 3000, (1e-4, 0.5)), dict(azimuth_step=45, size=96)),
-        "sphere_near_plane": (lambda: make_mesh(sphere.vertices, sphere.faces,
-                                                np.arange(len(sphere.faces)) % 4),
-                              dict(azimuth_step=60, elevations=(0.0, 35.0), size=128,
-                                   distance=1.0, near=0.8)),
-        "camera_inside_box": (lambda: make_mesh(box.vertices, box.faces,
-                                                np.arange(len(box.faces)) % 5),
-                              dict(azimuth_step=90, elevations=(10.0,), size=96, distance=0.1,
-                                   near=0.001)),
-        "coplanar_duplicates": (lambda: make_mesh(v, [[0, 1, 2], [2, 0, 1], [1, 0, 2]], [0, 1, 2]),
-                                dict(azimuth_step=40, elevations=(5.0, 50.0), size=96)),
-        "odd_size": (lambda: toy_car(), dict(azimuth_step=60, elevations=(20.0,), size=(97, 61))),
-    }
+def _cycled(tm: trimesh.Trimesh, n_materials: int) -> Mesh:
+    """``tm`` with face materials 0, 1, ..., n_materials - 1, 0, 1, ..."""
+    return make_mesh(tm.vertices, tm.faces, np.arange(len(tm.faces)) % n_materials)
 
 
-@pytest.mark.parametrize("case", sorted(_same_bytes_cases()))
+_TRI = np.array([[-0.4, -0.3, 0.1], [0.4, -0.2, -0.1], [0.0, 0.4, 0.05]])
+# case -> (mesh builder, camera ring arguments); meshes are built only by the test that uses them
+SAME_BYTES_CASES = {
+    "toy_car": (toy_car, dict(azimuth_step=30, elevations=(10.0, 45.0), size=128)),
+    "soup_tiny": (lambda: _soup(1, 20000, (1e-4, 3e-3)), dict(azimuth_step=45, size=128)),
+    "soup_all_sizes": (lambda: _soup(2, 3000, (1e-4, 0.5)), dict(azimuth_step=45, size=96)),
+    "sphere_near_plane": (lambda: _cycled(trimesh.creation.icosphere(5, radius=0.45), 4),
+                          dict(azimuth_step=60, elevations=(0.0, 35.0), size=128, distance=1.0,
+                               near=0.8)),
+    "camera_inside_box": (lambda: _cycled(trimesh.creation.box((0.8, 0.5, 0.6)).subdivide()
+                                          .subdivide(), 5),
+                          dict(azimuth_step=90, elevations=(10.0,), size=96, distance=0.1,
+                               near=0.001)),
+    "coplanar_duplicates": (lambda: make_mesh(_TRI, [[0, 1, 2], [2, 0, 1], [1, 0, 2]], [0, 1, 2]),
+                            dict(azimuth_step=40, elevations=(5.0, 50.0), size=96)),
+    "odd_size": (toy_car, dict(azimuth_step=60, elevations=(20.0,), size=(97, 61))),
+}
+
+
+@pytest.mark.parametrize("case", sorted(SAME_BYTES_CASES))
 def test_serial_and_parallel_paths_give_identical_bytes(runtime, case):
     """The CPU (serial, branch-free tiny triangles) and GPU (parallel, atomic) kernels compute the
     same keys: identical triangle ids, material ids and depth bits."""
-    make, ring_kw = _same_bytes_cases()[case]
+    make, ring_kw = SAME_BYTES_CASES[case]
     mesh, ring = make(), make_ring(**ring_kw)
     a = render_views(mesh, ring, path="serial")
     b = render_views(mesh, ring, path="parallel")

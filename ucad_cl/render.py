@@ -113,6 +113,7 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
     # faults on first touch for every mesh
     d_keys = rt.scratch("raster.keys", 8 * chunk * npix)
     d_pverts = rt.scratch("raster.pverts", 8 * chunk * n_verts)
+    # depths are stored for the serial path only (store_depth = 0 leaves the stand-in unwritten)
     d_pdepth = rt.scratch("raster.pdepth", 4 * chunk * n_verts) if serial else d_pverts
     if serial:   # one index array per corner, for 16-lane gathers
         corners = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(c))
