@@ -7,7 +7,7 @@ material names REPLACED by ``Material.000``...), the prior segmenter + ``classif
 the manifest's material -> part mapping. Accuracy counts visible materials (not 'unseen'), and
 also all materials. The same with the real names, for comparison.
 
-Table 2: the histogram pass (``kernels/parts.cl``) in views/s for several local sizes and
+Table 2: the histogram pass (``ucad_cl/kernels/parts.cl``) in views/s for several local sizes and
 pixels-per-item, side by side with the NumPy peer (``np.bincount`` per view and part), medians of
 ``--repeats`` runs (total = host packing + upload + kernel + read back; kernel = enqueue to read
 back), plus the first call per configuration and peak host memory. The first call includes
@@ -34,7 +34,7 @@ from ucad_cl.cameras import make_ring  # noqa: E402
 from ucad_cl.classify import classify_parts, last_timing, part_histogram  # noqa: E402
 from ucad_cl.render import render_views  # noqa: E402
 from ucad_cl.segment import PriorSegmenter  # noqa: E402
-from ucad_cl.types import PART_NAMES  # noqa: E402
+from ucad_cl.artifacts import PART_NAMES  # noqa: E402
 
 SKIP = {"ferrari_458.glb"}      # same model as ferrari_458_nodraco.glb
 

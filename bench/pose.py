@@ -52,7 +52,7 @@ from ucad_cl.features import HogExtractor, crop_square, l2_rows  # noqa: E402
 from ucad_cl.pose import estimate_pose, pose_ring, _az_diff     # noqa: E402
 from ucad_cl.render import render_views                         # noqa: E402
 from ucad_cl.shade import shade_views                           # noqa: E402
-from ucad_cl.types import Features                              # noqa: E402
+from ucad_cl.artifacts import Features                              # noqa: E402
 
 REAL = ["o3dv_car.glb", "ferrari_348_lowpoly.glb", "cesium_milk_truck.glb", "a_frame_car/car.obj",
         "openmaterial_vehicle/vehicle_example.gltf", "godot_truck_town_vehicles.glb"]

@@ -50,7 +50,7 @@ def boundary_mask(ids: np.ndarray) -> np.ndarray:
 
 def flat_views(mat_id: np.ndarray):
     """A ViewSet around hand-made material-id maps (identity cameras, no triangles)."""
-    from ucad_cl.types import CameraRing, ViewSet
+    from ucad_cl.artifacts import CameraRing, ViewSet
 
     V, H, W = mat_id.shape
     ring = CameraRing(K=np.eye(3), w2c=np.tile(np.eye(4), (V, 1, 1)), width=W, height=H,
@@ -61,7 +61,7 @@ def flat_views(mat_id: np.ndarray):
 
 def flat_mesh(n_mat: int, sha: str = "ab" * 32):
     """A mesh with ``n_mat`` materials and no faces (classification only needs the maps)."""
-    from ucad_cl.types import Material, Mesh
+    from ucad_cl.artifacts import Material, Mesh
 
     return Mesh(path="hand-made", sha256=sha, vertices=np.zeros((0, 3)),
                 faces=np.zeros((0, 3), np.uint32), face_material=np.zeros(0, np.uint16),

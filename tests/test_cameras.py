@@ -54,7 +54,7 @@ def test_bad_rings_are_rejected(kwargs):
 
 
 def test_viewset_select_keeps_maps_and_cameras_together():
-    from ucad_cl.types import ViewSet
+    from ucad_cl.artifacts import ViewSet
 
     ring = make_ring(azimuth_step=90, elevations=(0.0, 30.0), size=8)
     V = ring.n_views

@@ -459,7 +459,7 @@ def test_wal_reader_in_parallel_with_writer_process(tmp_path):
 
 def test_reader_imports_no_pyopencl(tmp_path):
     from ucad_catalog.exr import write_viewset_exr
-    from ucad_cl.types import CameraRing, ViewSet
+    from ucad_cl.artifacts import CameraRing, ViewSet
 
     a, b = make_entry(0), make_entry(1)
     arr = _arrays(b)
@@ -677,7 +677,7 @@ def test_pipeline_results_through_exr_and_reader(tmp_path):
     from ucad_cl.cameras import make_ring
     from ucad_cl.render import render_views
     from ucad_cl.synth import make_vehicle
-    from ucad_cl.types import MaterialPart, PartTable, Verdict
+    from ucad_cl.artifacts import MaterialPart, PartTable, Verdict
 
     car = make_vehicle(3)
     mesh = car.mesh()

@@ -10,7 +10,7 @@ import pytest
 from ucad_cl.classify import classify_parts, part_histogram, symmetric_pairs
 from ucad_cl.segment import masks_from_labels
 from tests.reference import flat_mesh, flat_views
-from ucad_cl.types import PART_NAMES, Material, Mesh, PartMasks
+from ucad_cl.artifacts import PART_NAMES, Material, Mesh, PartMasks
 
 
 def numpy_histogram(mat_id, masks, n_ids):

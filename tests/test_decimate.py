@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ucad_cl.decimate import decimate
-from ucad_cl.types import Material, Mesh
+from ucad_cl.artifacts import Material, Mesh
 
 VEHICLES = Path(__file__).resolve().parents[2] / "shared/data/vehicles"
 

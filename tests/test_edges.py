@@ -7,7 +7,7 @@ import pytest
 
 from ucad_cl import edges as E
 from ucad_cl.edges import canny, colour_ids, material_edges, write_conditioning_pngs
-from ucad_cl.types import CameraRing, EdgeSet, ViewSet
+from ucad_cl.artifacts import CameraRing, EdgeSet, ViewSet
 
 THRESHOLDS = [(50, 150), (0, 0), (100, 100), (150, 50), (10.7, 20.2), (-5, 3), (255, 400),
               (2039, 2041), (1e4, 2e4), (0.5, float("inf"))]

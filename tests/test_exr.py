@@ -69,7 +69,7 @@ def test_empty_views_and_object_boxes_round_trip(runtime, tmp_path):
     border and views of one pixel come back exactly."""
     import OpenEXR
 
-    from ucad_cl.types import ViewSet
+    from ucad_cl.artifacts import ViewSet
 
     rng = np.random.default_rng(5)
     V, H, W = 4, 9, 11

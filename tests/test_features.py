@@ -12,7 +12,7 @@ from ucad_cl.features import HogExtractor, OnnxExtractor, box_mask, crop_square,
 def hog_reference(crops: np.ndarray, *, cell: int, bins: int, signed: bool, eps: float,
                   clip: float, min_grad: float = 0.0, sil=None, sil_weight: float = 0.0
                   ) -> np.ndarray:
-    """Float64 NumPy version of kernels/features.cl (written from its header comment)."""
+    """Float64 NumPy version of ucad_cl/kernels/features.cl (written from its header comment)."""
     x = crops.astype(np.int64)                                  # (B, S, S, 3), exact integers
     p = np.pad(x, ((0, 0), (1, 1), (1, 1), (0, 0)), mode="edge")
     gx = p[:, 1:-1, 2:] - p[:, 1:-1, :-2]

@@ -6,7 +6,7 @@ import pytest
 
 from ucad_cl.filter import filter_mesh, filter_views
 from ucad_cl.ingest import load_mesh
-from ucad_cl.types import CameraRing, Material, Mesh, ViewSet
+from ucad_cl.artifacts import CameraRing, Material, Mesh, ViewSet
 
 from .conftest import VEHICLES
 

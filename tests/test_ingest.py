@@ -13,7 +13,7 @@ import pytest
 
 from ucad_cl import ingest
 from ucad_cl.ingest import IngestError, load_mesh, load_mesh_isolated
-from ucad_cl.types import IngestReport
+from ucad_cl.artifacts import IngestReport
 
 from .conftest import VEHICLES
 

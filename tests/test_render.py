@@ -12,7 +12,7 @@ import trimesh
 
 from ucad_cl.cameras import make_ring
 from ucad_cl.render import coverage_counts, raster_path, render_views
-from ucad_cl.types import Material, Mesh
+from ucad_cl.artifacts import Material, Mesh
 from tests.reference import boundary_mask, raycast_views
 
 pytest.importorskip("embreex")

@@ -13,7 +13,7 @@ from ucad_cl.segment import (MasksSegmenter, OnnxSegmenter, PriorSegmenter, mate
                              material_features, material_image, masks_from_labels, name_prior,
                              write_masks)
 from tests.reference import flat_mesh, flat_views
-from ucad_cl.types import PART_NAMES, Mesh, PartMasks
+from ucad_cl.artifacts import PART_NAMES, Mesh, PartMasks
 
 
 # -- PartMasks: two forms of the same masks ----------------------------------------------------
@@ -438,7 +438,7 @@ def reference_material_features(mesh, views=None):
 
 def _with_extras(mesh: Mesh) -> Mesh:
     """``mesh`` plus unreferenced vertices far outside it and a material without faces."""
-    from ucad_cl.types import Material
+    from ucad_cl.artifacts import Material
 
     far = np.array([[9.0, -7.0, 5.0], [-8.0, 6.0, -9.0]])
     return replace(mesh, vertices=np.concatenate([mesh.vertices, far]),

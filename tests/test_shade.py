@@ -8,7 +8,7 @@ import trimesh
 from ucad_cl.cameras import make_ring
 from ucad_cl.render import render_views
 from ucad_cl.shade import linear_to_srgb8, shade_views
-from ucad_cl.types import Material, Mesh
+from ucad_cl.artifacts import Material, Mesh
 
 
 def _mesh(tm: trimesh.Trimesh, fmat, colors) -> Mesh:
@@ -111,7 +111,7 @@ def test_bad_arguments_name_the_problem(runtime):
 
 
 def test_device_shading_matches_numpy_reference(runtime):
-    """kernels/shade.cl against the float64 NumPy path: every channel within one 8-bit level."""
+    """ucad_cl/kernels/shade.cl against the float64 NumPy path: every channel within one 8-bit level."""
     from ucad_cl.cameras import make_ring
     from ucad_cl.render import render_views
     from ucad_cl.shade import shade_views
@@ -129,7 +129,7 @@ def test_device_shading_matches_numpy_reference(runtime):
 
 
 def test_srgb_bucket_table_is_a_tight_lower_bound():
-    """kernels/shade.cl starts from ``srgb8_bucket_start[int(x * 4095)]`` and steps up by the
+    """ucad_cl/kernels/shade.cl starts from ``srgb8_bucket_start[int(x * 4095)]`` and steps up by the
     exact thresholds: the start must never exceed the level of any float32 x in the bucket
     (checked on every float32 next to each bucket boundary and on a dense sweep), and stays
     within a few levels of it (the kernel's loop is short)."""

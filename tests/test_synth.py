@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from ucad_cl import synth
 from ucad_cl.synth import KINDS, MESSY_TRAITS, make_vehicle, majority_part, write_library
-from ucad_cl.types import PART_NAMES, Material, Mesh
+from ucad_cl.artifacts import PART_NAMES, Material, Mesh
 
 
 @pytest.fixture(scope="module")

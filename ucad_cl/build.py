@@ -207,7 +207,7 @@ class Pipeline:
         from ucad_catalog.exr import write_viewset_exr
 
         from .filter import filter_mesh, filter_views
-        from .types import Verdict
+        from .artifacts import Verdict
 
         o = self.options
         timings = {"ingest": load_seconds}
@@ -304,7 +304,7 @@ def make_segmenter(spec: str):
 
 def rejected_entry(ref: MeshRef, sha: str, reason: str, detail: str):
     from ucad_catalog.entry import CatalogEntry
-    from .types import Verdict
+    from .artifacts import Verdict
 
     return CatalogEntry.from_results(sha256=sha, path=ref.path, size=max(ref.size, 0),
                                      mtime=ref.mtime, verdict=Verdict(False, reason, detail))

@@ -1,6 +1,6 @@
 """Camera rings around a canonical mesh (float64 on the host).
 
-Conventions (see ``ucad_cl/types.py``): OpenCV camera (x right, y down, z forward), pixel (i, j)
+Conventions (see ``ucad_cl/artifacts.py``): OpenCV camera (x right, y down, z forward), pixel (i, j)
 centred at (j + 0.5, i + 0.5); azimuth 0 looks from +X toward the origin, azimuth grows
 counter-clockwise seen from +Y (from +X toward -Z); elevation > 0 is above. Degrees.
 
@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .types import CameraRing
+from .artifacts import CameraRing
 
 BOUND_RADIUS = 0.5      # canonical bounding sphere radius (bbox diagonal 1)
 MAX_SIZE = 8192         # the rasterizer's fixed-point range is proven for images up to this size

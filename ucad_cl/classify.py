@@ -3,7 +3,7 @@
 ``classify_parts(mesh, views, masks)`` gives every material of ``mesh`` one part of
 ``PART_NAMES`` (or ``'unseen'``). Units: pixels; scores are fractions in [0, 1].
 
-One OpenCL launch (``kernels/parts.cl``) builds, for every view, the joint histogram
+One OpenCL launch (``ucad_cl/kernels/parts.cl``) builds, for every view, the joint histogram
 ``n[v, m, p] = |material m ∩ part p|`` plus ``|m|`` (and ``|p|`` as a column sum), on the full
 material maps and on their core pixels (both batched in the same launch). For a material m
 visible in view v:
@@ -44,7 +44,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .runtime import get_runtime
-from .types import PART_NAMES, Mesh, MaterialPart, PartMasks, PartTable, ViewSet, pack_masks
+from .artifacts import PART_NAMES, Mesh, MaterialPart, PartMasks, PartTable, ViewSet, pack_masks
 
 MAX_PARTS = PartMasks.MAX_PARTS  # part masks are packed into uint16 bit sets
 PIXELS_PER_ITEM = 1024      # contiguous pixels per work-item; measured in bench/parts.py

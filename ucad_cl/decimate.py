@@ -1,6 +1,6 @@
 """Decimation to a triangle budget that keeps material boundaries exact (pymeshlab QEM).
 
-``decimate(mesh, budget)`` returns a new :class:`~ucad_cl.types.Mesh` with at most ``budget``
+``decimate(mesh, budget)`` returns a new :class:`~ucad_cl.artifacts.Mesh` with at most ``budget``
 triangles in the same canonical frame (units unchanged; ``file_to_norm``, ``sha256``, ``path``,
 ``materials`` and ``node_names`` copied; ``face_material`` / ``face_node`` carried per face;
 ``report.notes`` gets ``"decimated F->F'"``).
@@ -66,7 +66,7 @@ import dataclasses
 
 import numpy as np
 
-from .types import Mesh
+from .artifacts import Mesh
 
 #: default triangle budget suggested for the build (chosen from bench/decimate.py, see there)
 RECOMMENDED_BUDGET = 100_000

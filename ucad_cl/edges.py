@@ -1,4 +1,4 @@
-"""Batched Canny edges (``kernels/canny.cl``) and edges of material-index maps.
+"""Batched Canny edges (``ucad_cl/kernels/canny.cl``) and edges of material-index maps.
 
 ``canny(images, low, high, l2)`` equals ``cv2.Canny(image, low, high, apertureSize=3,
 L2gradient=l2)`` pixel for pixel, image by image, for a whole batch in one launch per pass.
@@ -13,7 +13,7 @@ Thresholds follow OpenCV exactly: low > high are swapped; with ``l2`` both are c
 and squared when positive; both are then floored to integers; a pixel is a candidate when its
 magnitude is > low and an edge seed when > high (magnitude |dx| + |dy|, or dx^2 + dy^2 for l2).
 
-Device work per batch (kernels/canny.cl): [canny_planes: colour to planes, or canny_id_planes:
+Device work per batch (ucad_cl/kernels/canny.cl): [canny_planes: colour to planes, or canny_id_planes:
 id maps + colour table to planes], canny_gradient_nms
 (Sobel, magnitude, direction, NMS and thresholds fused; 16 x ROWS pixel strips, 16-lane integer
 vectors), canny_trace (hysteresis, one work-item per image, depth-first worklist). Programs are
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .runtime import get_runtime
-from .types import EdgeSet, ViewSet, nonzero_box
+from .artifacts import EdgeSet, ViewSet, nonzero_box
 
 PARAMS_DTYPE = np.dtype([("width", np.int32), ("height", np.int32), ("n_images", np.int32),
                          ("channels", np.int32), ("low", np.int32), ("high", np.int32),

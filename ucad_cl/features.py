@@ -14,7 +14,7 @@ a reference image from a user-given mask or box (``box_mask``).
 Extractors:
 
 * ``HogExtractor`` (built in, no weights): histogram of oriented gradients computed by
-  ``kernels/features.cl`` for the whole batch at once (see there for the exact definition: max
+  ``ucad_cl/kernels/features.cl`` for the whole batch at once (see there for the exact definition: max
   colour-channel gradient, linear orientation voting, 2x2-cell L2-Hys blocks, global L2), with an
   optional coarse silhouette channel (mask resized to ``silhouette x silhouette``). Defaults (64 px
   crop, 8 px cells, 9 unsigned bins, eps 1, no silhouette) were chosen by the azimuth error
@@ -33,14 +33,14 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from .types import Features, ViewSet
+from .artifacts import Features, ViewSet
 
 HOG_PARAMS_DTYPE = np.dtype([
     ("size", np.int32), ("cell", np.int32), ("n_cells", np.int32), ("bins", np.int32),
     ("is_signed", np.int32), ("n_blocks", np.int32), ("d_hog", np.int32), ("d_sil", np.int32),
     ("eps", np.float32), ("clip", np.float32), ("sil_weight", np.float32),
     ("min_grad", np.float32)])
-MAX_BINS = 36           # kernels/features.cl
+MAX_BINS = 36           # ucad_cl/kernels/features.cl
 BATCH = 512             # images per kernel launch (bounds device memory: ~BATCH * 70 KiB)
 
 

@@ -1,6 +1,6 @@
 """UrbanCAD's CAD model filter: keep models whose materials can name their parts.
 
-Two checks, each returning a :class:`~ucad_cl.types.Verdict` whose ``reason`` is a short code
+Two checks, each returning a :class:`~ucad_cl.artifacts.Verdict` whose ``reason`` is a short code
 (empty when accepted) and whose ``detail`` is a sentence with the numbers behind the decision.
 
 ``filter_mesh`` looks at geometry only, checks in this order (the first failing one is reported):
@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .types import Mesh, Verdict, ViewSet
+from .artifacts import Mesh, Verdict, ViewSet
 
 
 def filter_mesh(mesh: Mesh, *, min_materials: int = 2, max_triangles: int = 2_000_000) -> Verdict:

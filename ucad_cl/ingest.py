@@ -1,9 +1,9 @@
-"""Mesh ingest: one CAD file -> one :class:`~ucad_cl.types.Mesh` in the canonical frame.
+"""Mesh ingest: one CAD file -> one :class:`~ucad_cl.artifacts.Mesh` in the canonical frame.
 
 Formats: GLB, glTF (+ external .bin), OBJ+MTL, PLY, OFF, STL, read with trimesh (``process=False``,
 so vertices are never merged or reordered by the reader).
 
-Conventions and decisions (see also ``ucad_cl/types.py``):
+Conventions and decisions (see also ``ucad_cl/artifacts.py``):
 
 * **Scene graph.** Every (node, geometry) pair of ``scene.graph.nodes_geometry`` is drawn with the
   node's world transform (float64), in that order (trimesh's traversal order: deterministic, the
@@ -66,7 +66,7 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from .types import IngestReport, Material, Mesh
+from .artifacts import IngestReport, Material, Mesh
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 REASONS = ("unreadable", "empty", "non_finite", "unsupported_compression", "unsupported_format",

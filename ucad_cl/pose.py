@@ -6,7 +6,7 @@ renders of the mesh on a camera ring, resize both to one resolution, compute fea
 the best coarse views, extra views are rendered on demand at a finer azimuth step (and at
 elevations half-way to the neighbouring coarse ones), so catalogues need not store fine rings.
 
-Conventions (``ucad_cl/types.py``): azimuth/elevation in degrees (azimuth 0 looks from +X, grows
+Conventions (``ucad_cl/artifacts.py``): azimuth/elevation in degrees (azimuth 0 looks from +X, grows
 counter-clockwise seen from +Y), distance in canonical units (bbox diagonal 1). Azimuths are
 reported in [0, 360).
 
@@ -35,7 +35,7 @@ from .cameras import make_ring
 from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows, view_features
 from .render import render_views
 from .shade import shade_views
-from .types import CameraRing, Mesh
+from .artifacts import CameraRing, Mesh
 
 FLIP_MIN_DEG = 135.0
 EXACT_ROWS = 50_000         # search_catalog ranks up to this many rows exactly on the host

@@ -1,4 +1,4 @@
-"""Batched material-index rendering: all views of one mesh per launch (``kernels/raster.cl``).
+"""Batched material-index rendering: all views of one mesh per launch (``ucad_cl/kernels/raster.cl``).
 
 ``render_views(mesh, ring)`` returns per view a triangle-id map (uint32, 0xFFFFFFFF background),
 a material-id map (uint16, material index + 1, 0 background) and linear camera-space depth
@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .runtime import get_runtime
-from .types import CameraRing, Mesh, ViewSet
+from .artifacts import CameraRing, Mesh, ViewSet
 
 PARAMS_DTYPE = np.dtype([("width", np.int32), ("height", np.int32), ("n_faces", np.int32),
                          ("n_views", np.int32), ("near", np.float32),

@@ -40,7 +40,7 @@ class OpenCLUnavailable(RuntimeError):
 
 
 def kernel_source(name: str) -> str:
-    """Text of ``kernels/<name>.cl`` with ``#include "common.h"`` inlined."""
+    """Text of ``ucad_cl/kernels/<name>.cl`` with ``#include "common.h"`` inlined."""
     pkg = resources.files("ucad_cl.kernels")
     src = (pkg / f"{name}.cl").read_text(encoding="utf-8")
 
@@ -97,7 +97,7 @@ class Runtime:
         self._scratch.clear()
 
     def program(self, name: str, options: tuple[str, ...] = ()):
-        """Built program for ``kernels/<name>.cl``; cached per process and on disk."""
+        """Built program for ``ucad_cl/kernels/<name>.cl``; cached per process and on disk."""
         import pyopencl as cl
 
         key = (name, tuple(options))

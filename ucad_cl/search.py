@@ -7,7 +7,7 @@ nearest first.
 
 Conventions
 * Distance: squared Euclidean, sum_j (q_j - x_j)^2, computed on the device by direct difference
-  in float32 with a fixed summation order (see ``kernels/search.cl`` for why not the
+  in float32 with a fixed summation order (see ``ucad_cl/kernels/search.cl`` for why not the
   |q|^2 - 2 q.x + |x|^2 expansion: it cancels catastrophically for near-identical vectors).
 * Tie rule: results are ordered by (distance, database row) lexicographically, i.e. equal
   float32 distances -> lower database row (position in the array given to the index, not the

@@ -3,7 +3,7 @@
 Every segmenter has one method, ``segment(mesh, views) -> PartMasks`` with masks (V, P, H, W)
 bool or packed (V, H, W) uint16 bits (see ``PartMasks``) and confidence (V, P) float32 in [0, 1];
 ``classify.classify_parts`` turns those into material -> part labels. Part names are
-``ucad_cl.types.PART_NAMES``. Three implementations:
+``ucad_cl.artifacts.PART_NAMES``. Three implementations:
 
 * ``MasksSegmenter(root)``: masks made elsewhere (e.g. ControlNet + Grounded SAM on a GPU box),
   read from the folder layout written by ``write_masks``::
@@ -37,7 +37,7 @@ from typing import Protocol
 
 import numpy as np
 
-from .types import PART_NAMES, Mesh, PartMasks, ViewSet
+from .artifacts import PART_NAMES, Mesh, PartMasks, ViewSet
 
 
 class Segmenter(Protocol):

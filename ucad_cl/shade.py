@@ -1,6 +1,6 @@
 """Shaded RGB images from rendered triangle-id maps: Lambert + Blinn-Phong, flat per face.
 
-``shade_views(mesh, views)`` turns the rasterizer's ``tri_id`` maps (see ``ucad_cl/types.py``) into
+``shade_views(mesh, views)`` turns the rasterizer's ``tri_id`` maps (see ``ucad_cl/artifacts.py``) into
 (V, H, W, 3) uint8 sRGB images. Used to compute pose features of renders and to make synthetic
 reference photos.
 
@@ -19,7 +19,7 @@ Conventions and units:
   camera (per pixel, from the pixel ray).
 * Background: an RGB triple of uint8 values, or an image (H, W, 3) / (V, H, W, 3) uint8.
 
-Two paths: ``device=True`` (default) runs ``kernels/shade.cl`` over all views in one launch
+Two paths: ``device=True`` (default) runs ``ucad_cl/kernels/shade.cl`` over all views in one launch
 (float32; measured ~0.15 s -> ~0.01 s for 72 views x 256 px, where NumPy shading was the largest
 cost of a catalogue build); ``device=False`` is the vectorised float64 NumPy reference, one view at
 a time, which the kernel is tested against (to within one 8-bit level).
@@ -31,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .types import BACKGROUND_TRI, Mesh, ViewSet
+from .artifacts import BACKGROUND_TRI, Mesh, ViewSet
 
 DEFAULT_LIGHT = (-0.4, -0.6, -1.0)
 
@@ -158,7 +158,7 @@ def srgb8_thresholds() -> np.ndarray:
     return out
 
 
-SRGB_BUCKETS = 4096          # kernels/shade.cl
+SRGB_BUCKETS = 4096          # ucad_cl/kernels/shade.cl
 
 
 @functools.lru_cache(maxsize=1)

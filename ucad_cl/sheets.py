@@ -119,7 +119,7 @@ def material_sheet(views, material_names: Sequence[str] | None = None, max_width
 
 def part_sheet(views, table, max_width: int = 2400) -> np.ndarray:
     """Contact sheet of the views coloured by each material's decided part, with a legend."""
-    from .types import PART_NAMES
+    from .artifacts import PART_NAMES
 
     lut = np.zeros((len(table.rows) + 1, 3), np.uint8)
     for r in table.rows:

@@ -5,7 +5,7 @@ pickup) out of body panels, glazing, tyres, rims, lights, plates, chrome trim an
 Every part instance is its own node and its own glTF PBR material with a realistic name
 (``paint_door_front_L``, ``glass_windshield``, ``tyre_FL``, ``rim_RR``, ``headlight_L``,
 ``plate_rear``, ``chrome_trim_R``, ``interior_seat_FL``...), and ``truth["materials"]`` maps
-each material name to a part of :data:`ucad_cl.types.PART_NAMES`.
+each material name to a part of :data:`ucad_cl.artifacts.PART_NAMES`.
 
 Frames and units:
 
@@ -14,7 +14,7 @@ Frames and units:
   exactly mirror-symmetric across z = 0: every right part is the left one with z negated, and
   every ``_L``/``_R`` (``FL``/``FR``...) pair is listed in ``truth["symmetric_pairs"]``.
 * Canonical frame (``SynthVehicle.mesh()``): the car frame moved to its bounding-box centre and
-  scaled to bounding-box diagonal 1 (``ucad_cl.types``). ``truth["file_to_canonical"]`` maps the
+  scaled to bounding-box diagonal 1 (``ucad_cl.artifacts``). ``truth["file_to_canonical"]`` maps the
   GLB's coordinates (scene graph flattened) to it, also for the messy variants (rotated, other
   units, large offsets).
 * Vertices are rounded to float32 before anything else (the GLB stores float32), so ``mesh()``
@@ -40,7 +40,7 @@ import trimesh
 from trimesh.visual import TextureVisuals
 from trimesh.visual.material import PBRMaterial
 
-from .types import PART_NAMES, Material, Mesh
+from .artifacts import PART_NAMES, Material, Mesh
 
 KINDS: tuple[str, ...] = ("sedan", "suv", "van", "truck", "bus", "hatchback", "pickup")
 

@@ -2,7 +2,7 @@
 
 Opens ``ROOT/catalog.sqlite`` with a read-only URI (``mode=ro``); safe while the build's writer
 runs (WAL). Each call reads its own snapshot; wrap several calls in ``with reader.snapshot():``
-to see one consistent state. Conventions (camera, ids, degrees) are those of ``ucad_cl.types``.
+to see one consistent state. Conventions (camera, ids, degrees) are those of ``ucad_cl.artifacts``.
 
 View stacks come from the ``'views.exr'`` artifact (``ucad_catalog.exr``) or, when a mesh has
 none, a ``'views.npz'`` artifact with arrays ``tri_id``, ``mat_id``, ``depth`` of shape (V, H, W).

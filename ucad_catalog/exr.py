@@ -61,7 +61,7 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
     f2n = np.asarray(file_to_norm if file_to_norm is not None else (
         mesh.file_to_norm if mesh is not None else np.eye(4)), np.float64)
     sha = mesh_sha256 or (mesh.sha256 if mesh is not None else "")
-    from ucad_cl.types import nonzero_box
+    from ucad_cl.artifacts import nonzero_box
 
     parts = []
     H, W = views.mat_id.shape[1:]
@@ -121,7 +121,7 @@ def read_viewset_exr(path):
     ``file_to_norm``, ``mesh_sha256``, ``format_version``. Raises ValueError naming the file."""
     import OpenEXR
 
-    from ucad_cl.types import CameraRing, ViewSet
+    from ucad_cl.artifacts import CameraRing, ViewSet
 
     path = Path(path)
     try:

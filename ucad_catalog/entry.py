@@ -3,7 +3,7 @@
 The build driver fills one entry per mesh and hands it to ``Catalog.commit_mesh``. Artifacts are
 ``{kind: bytes | Path}``; a ``Path`` is copied into the object store. Usual kinds:
 ``'views.exr'`` (view stack, ``ucad_catalog.exr``), ``'features.npy'`` ((V, D) float32),
-``'edges.png-sheet'``. Angles in degrees, K / w2c as in ``ucad_cl.types`` (OpenCV camera,
+``'edges.png-sheet'``. Angles in degrees, K / w2c as in ``ucad_cl.artifacts`` (OpenCV camera,
 canonical frame). ``CatalogEntry.from_results`` builds an entry from the pipeline dataclasses
 (duck-typed: this module does not import ``ucad_cl``).
 """
@@ -23,7 +23,7 @@ STATES = ("accepted", "rejected")
 
 @dataclass
 class MaterialRow:
-    """Decision for one material (mirrors ``ucad_cl.types.MaterialPart``); props: free JSON."""
+    """Decision for one material (mirrors ``ucad_cl.artifacts.MaterialPart``); props: free JSON."""
 
     index: int
     name: str

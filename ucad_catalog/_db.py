@@ -1,6 +1,6 @@
 """Shared by the writer and the reader: on-disk layout, SQL schema, canonical JSON, opening checks.
 
-Layout of a catalogue directory ``ROOT`` (see ``catalog/SCHEMA.md``)::
+Layout of a catalogue directory ``ROOT`` (see ``ucad_catalog/SCHEMA.md``)::
 
     ROOT/catalog.sqlite            SQLite index, WAL mode
     ROOT/objects/<sha[:2]>/<sha>   artifacts, named by the sha256 of their bytes

@@ -2,7 +2,7 @@
 
 Writer: :class:`Catalog` (``store.py``), used by the build driver. Reader: :class:`CatalogReader`
 (``reader.py``), for consumers on any machine. Nothing in this package imports OpenCL.
-Layout and schema: ``catalog/SCHEMA.md``.
+Layout and schema: ``ucad_catalog/SCHEMA.md``.
 """
 from ._db import SCHEMA_VERSION, CatalogError, options_hash
 from .entry import CatalogEntry, MaterialRow, ViewRow
