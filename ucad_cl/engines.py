@@ -32,17 +32,25 @@ task that does not (another node, no shared storage) writes to a private tempora
 returns the artifact as bytes through the object store. Either way the driver commits the same
 bytes, and removes staged files right after committing them.
 
-Failures (no retries: ``max_retries=0``, so one bad file costs one task and the build goes on)
-* ``IngestError`` -> rejected with the error's reason, exactly as the local engine does; any other
-  exception while loading -> ``unreadable``; after loading -> ``pipeline_error``.
-* The worker process dies (a native loader segfaults): Ray raises ``WorkerCrashedError`` (or a
-  ``RayTaskError``) -> rejected ``loader_crashed``; other Ray-level losses (node died, object
-  lost, out of memory) -> rejected ``worker_lost``.
+Failures (Ray's own retries are off, ``max_retries=0``; reason codes in ``ucad_cl/reasons.py``,
+the same decisions as the local engine's, see ``ucad_cl.build``)
+* The task reads, hashes (the content key) and parses the file itself; ``IngestError`` ->
+  rejected with the error's reason; any other exception while loading -> ``unreadable``; after
+  loading -> ``pipeline_error``. A path whose content is already catalogued with these options
+  is skipped when the task can see the catalogue (the shared-staging case).
+* The worker process dies (a native loader segfaults): Ray raises ``WorkerCrashedError`` ->
+  rejected ``loader_crashed`` (a task runs alone in its worker, so the culprit is known); a task
+  whose ``MemoryError`` escaped -> ``too_large``.
+* Other Ray-level losses (node died, object lost, Ray's memory monitor killed the worker) are
+  environment faults: the task is resubmitted, and a mesh lost twice stops the build
+  (``BuildStopped``, reason ``worker_lost``). No disk space / I/O error while a task writes its
+  staged artifacts stops the build the same way (``disk_full`` / ``io_error``).
 * ``timeout`` (seconds, optional): a task running longer is cancelled (its worker killed) and
-  rejected ``timeout``. Ray does not tell the driver when a task starts; its clock starts when
-  fewer than ``cluster CPUs`` earlier-submitted tasks remain unfinished (tasks of one shape are
-  scheduled first in, first out), so it can overestimate a task's run time only by scheduler
-  latency.
+  resubmitted once with twice the time, then rejected ``timeout``. Ray does not tell the driver
+  when a task starts; its clock starts when fewer than ``cluster CPUs`` earlier-submitted tasks
+  remain unfinished (tasks of one shape are scheduled first in, first out), so it can
+  overestimate a task's run time only by scheduler latency.
+* No per-worker memory limit is set by us on Ray (Ray's memory monitor manages its workers).
 """
 from __future__ import annotations
 
@@ -65,13 +73,18 @@ MARKER_PREFIX = ".ray-shared-"            # staging marker: "<prefix><token>" (s
 def run_ray(todo: list, options, commit: Callable, *, address: str | None = None,
             progress: bool = True, staging: str | os.PathLike, log: Callable = print,
             timeout: float | None = None, num_cpus: int | None = None,
-            max_in_flight: int | None = None) -> None:
-    """Process ``todo`` (``(MeshRef, sha256)`` pairs) with ``options`` (``BuildOptions``) as Ray
-    tasks and ``commit`` every resulting ``CatalogEntry`` in this process, in completion order.
+            max_in_flight: int | None = None, on_skip: Callable | None = None,
+            known: tuple = (None, None, ()), summary=None) -> None:
+    """Process ``todo`` (``(MeshRef, force)`` pairs: ``force`` = process even if the content is
+    catalogued) with ``options`` (``BuildOptions``) as Ray tasks and ``commit`` every resulting
+    ``CatalogEntry`` in this process, in completion order; ``on_skip(ref, sha)`` for paths whose
+    content is already catalogued (``known`` = (catalogue path, options hash, retried codes)).
 
     ``address``: None = start a local cluster (``num_cpus`` CPUs) and stop it at the end, "auto"
     = the running cluster. ``timeout``: seconds one mesh may take (None = no limit).
     ``max_in_flight``: tasks submitted but not committed (default 2 x cluster CPUs).
+    ``summary`` (a ``BuildSummary``) counts retries. Raises ``ucad_cl.build.BuildStopped`` on an
+    environment fault.
     """
     if timeout is not None and not timeout > 0:
         raise ValueError(f"timeout must be > 0 seconds or None, got {timeout!r}")
@@ -88,7 +101,8 @@ def run_ray(todo: list, options, commit: Callable, *, address: str | None = None
     started = _connect(ray, address, num_cpus, log)
     try:
         _drive(ray, todo, options, commit, Path(staging), progress=progress, log=log,
-               timeout=timeout, max_in_flight=max_in_flight)
+               timeout=timeout, max_in_flight=max_in_flight, on_skip=on_skip, known=known,
+               summary=summary)
     finally:
         if started:
             ray.shutdown()
@@ -115,10 +129,12 @@ def _connect(ray, address: str | None, num_cpus: int | None, log) -> bool:
     return False
 
 
-def _drive(ray, todo, options, commit, staging: Path, *, progress, log, timeout, max_in_flight):
+def _drive(ray, todo, options, commit, staging: Path, *, progress, log, timeout, max_in_flight,
+           on_skip, known, summary):
     from tqdm import tqdm
 
-    from .build import rejected_entry
+    from .build import BuildStopped, Skipped, printable, rejected_entry
+    from .ingest import unreadable_identity
 
     cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
     limit = max_in_flight or 2 * cpus
@@ -130,7 +146,9 @@ def _drive(ray, todo, options, commit, staging: Path, *, progress, log, timeout,
     task = ray.remote(_process_one).options(
         num_cpus=1, max_retries=0, retry_exceptions=False, runtime_env={"env_vars": env})
     outstanding: OrderedDict = OrderedDict()        # ObjectRef -> [index, start time or None]
-    nxt = 0
+    queue_ = list(range(len(todo)))[::-1]           # stack: pop() gives the next index
+    timed_out: set[int] = set()
+    lost: dict[int, int] = {}
     bar = tqdm(total=len(todo), unit="mesh", desc="build (ray)", disable=not progress,
                smoothing=0.05)
 
@@ -141,12 +159,19 @@ def _drive(ray, todo, options, commit, staging: Path, *, progress, log, timeout,
                 Path(data).unlink(missing_ok=True)
         bar.update(1)
 
+    def retried(i, why):
+        if summary is not None:
+            summary.retried += 1
+        log(f"retrying {printable(todo[i][0].path)} ({why})")
+        queue_.append(i)
+
     try:
-        while nxt < len(todo) or outstanding:
-            while nxt < len(todo) and len(outstanding) < limit:
-                ref, sha = todo[nxt]
-                outstanding[task.remote(ref, sha, options, str(staging), token)] = [nxt, None]
-                nxt += 1
+        while queue_ or outstanding:
+            while queue_ and len(outstanding) < limit:
+                i = queue_.pop()
+                ref, force = todo[i]
+                outstanding[task.remote(ref, force, options, str(staging), token, known)] = [
+                    i, None]
             now = time.monotonic()
             for k, slot in enumerate(outstanding.values()):
                 if k >= cpus:
@@ -156,26 +181,46 @@ def _drive(ray, todo, options, commit, staging: Path, *, progress, log, timeout,
             ready, _ = ray.wait(list(outstanding), num_returns=1, timeout=0.5)
             for obj in ready:
                 i, _ = outstanding.pop(obj)
-                ref, sha = todo[i]
+                ref, _force = todo[i]
                 try:
-                    entry = ray.get(obj)
+                    result = ray.get(obj)
                 except Exception as exc:            # Ray-level failure: the task did not return
                     reason = _failure_reason(ray, exc)
-                    log(f"rejected {ref.path}: {reason} ({type(exc).__name__})")
-                    entry = rejected_entry(ref, sha, reason, f"{ref.path}: Ray task failed: "
-                                           f"{type(exc).__name__}: {_first_line(exc)}")
-                finish(i, entry)
+                    if reason == "worker_lost":
+                        lost[i] = lost.get(i, 0) + 1
+                        if lost[i] >= 2:
+                            raise BuildStopped("worker_lost", f"Ray lost the task of "
+                                               f"{printable(ref.path)} twice: {type(exc).__name__}"
+                                               f": {_first_line(exc)}") from None
+                        retried(i, f"{type(exc).__name__}")
+                        continue
+                    log(f"rejected {printable(ref.path)}: {reason} ({type(exc).__name__})")
+                    result = rejected_entry(ref, unreadable_identity(ref.path), reason,
+                                            f"{ref.path}: Ray task failed: "
+                                            f"{type(exc).__name__}: {_first_line(exc)}")
+                if isinstance(result, Skipped):
+                    if on_skip is not None:
+                        on_skip(ref, result.sha256)
+                    bar.update(1)
+                elif isinstance(result, tuple):     # ("env", code, detail) from the task
+                    raise BuildStopped(result[1], f"{printable(ref.path)}: {result[2]}")
+                else:
+                    finish(i, result)
             if timeout is not None:
                 now = time.monotonic()
                 for obj, (i, t0) in list(outstanding.items()):
-                    if t0 is not None and now - t0 > timeout:
+                    if t0 is not None and now - t0 > timeout * (2 if i in timed_out else 1):
                         ray.cancel(obj, force=True)  # kills the worker process
                         del outstanding[obj]
-                        ref, sha = todo[i]
-                        log(f"rejected {ref.path}: timeout")
-                        finish(i, rejected_entry(ref, sha, "timeout",
-                                                 f"{ref.path}: no result within {timeout:g} s "
-                                                 "(Ray task cancelled)"))
+                        ref, _force = todo[i]
+                        if i not in timed_out:
+                            timed_out.add(i)
+                            retried(i, f"no result within {timeout:g} s")
+                            continue
+                        log(f"rejected {printable(ref.path)}: timeout")
+                        finish(i, rejected_entry(ref, unreadable_identity(ref.path), "timeout",
+                                                 f"{ref.path}: no result within {timeout:g} s, "
+                                                 f"then {2 * timeout:g} s (Ray task cancelled)"))
     finally:
         bar.close()
         for obj in outstanding:                     # interrupted: leave nothing running
@@ -187,7 +232,11 @@ def _failure_reason(ray, exc: BaseException) -> str:
     """Reason code for a task that raised at the Ray level (our task function catches its own
     Python exceptions, so these mean the worker process or its node went away)."""
     ex = ray.exceptions
-    if isinstance(exc, (ex.WorkerCrashedError, ex.RayTaskError)):
+    if isinstance(exc, ex.RayTaskError):
+        cause = getattr(exc, "cause", None)
+        return "too_large" if isinstance(cause, MemoryError) else "pipeline_error"
+    oom = getattr(ex, "OutOfMemoryError", ())
+    if isinstance(exc, ex.WorkerCrashedError) and not (oom and isinstance(exc, oom)):
         return "loader_crashed"
     return "worker_lost"
 
@@ -211,30 +260,36 @@ def _pipeline(options):
     return pipe
 
 
-def _process_one(ref, sha: str, options, staging: str, token: str):
+def _process_one(ref, force: bool, options, staging: str, token: str,
+                 known: tuple = (None, None, ())):
     """One mesh in a Ray worker -> CatalogEntry (Path artifacts only when the staging folder is
-    shared with the driver, else bytes). Same reasons and details as the local engine."""
-    from .build import rejected_entry
-    from .ingest import IngestError
+    shared with the driver, else bytes), ``Skipped`` (content already catalogued; checked only
+    when the catalogue is shared too), or ("env", code, detail) for an environment fault. Same
+    reasons and details as the local engine."""
+    from .build import KnownContent, Skipped, environment_code
 
     pipe = _pipeline(options)
-    try:
-        mesh, secs = pipe.load(ref)
-    except IngestError as exc:
-        return rejected_entry(ref, sha, exc.reason, str(exc))
-    except Exception as exc:                        # a loader bug must not stop the build
-        return rejected_entry(ref, sha, "unreadable", f"{ref.path}: {exc!r}")
     shared = (Path(staging) / f"{MARKER_PREFIX}{token}").is_file()
+    sha, entry = pipe.identify(ref)
+    if entry is not None:
+        return entry
+    if shared and not force and KnownContent(*known)(sha):
+        return Skipped(sha)
+    mesh, secs, entry = pipe.load_entry(ref, sha)
+    if entry is not None:
+        return entry
     out = Path(staging) / f"w{os.getpid()}" if shared else Path(tempfile.mkdtemp(prefix="ucad-ray-"))
     try:
-        entry = pipe.process(ref, mesh, secs, out)
+        entry = pipe.process_entry(ref, mesh, secs, out)
         if not shared:
             entry.artifacts = {k: Path(v).read_bytes() if isinstance(v, (str, Path)) else v
                                for k, v in entry.artifacts.items()}
         return entry
-    except Exception as exc:
-        return rejected_entry(ref, sha, "pipeline_error",
-                              f"{ref.path}: {type(exc).__name__}: {exc}")
+    except OSError as exc:
+        code = environment_code(exc)
+        if code is None:
+            raise
+        return ("env", code, f"{type(exc).__name__}: {exc}")
     finally:
         if not shared:
             shutil.rmtree(out, ignore_errors=True)

@@ -113,7 +113,8 @@ def run(args) -> int:
         print("error: give MESH files, or --catalog PATH", file=sys.stderr)
         return 2
     from ..classify import classify_parts
-    from ..ingest import IngestError, load_mesh
+    from ..build import printable
+    from ..ingest import IngestError, describe_exception, load_mesh
     from ..render import render_views
     from ..segment import name_priors
     from ..sheets import part_sheet, write_png
@@ -134,12 +135,18 @@ def run(args) -> int:
             masks = segmenter.segment(mesh, views)
             table = classify_parts(mesh, views, masks, threshold=args.threshold,
                                    priors=name_priors(mesh))
-            print(f"== {path} ({masks.source}, {views.n_views} views)")
+            print(f"== {printable(path)} ({masks.source}, {views.n_views} views)")
             print(format_table(table))
             write_table(table, stem)
             write_png(f"{stem}.parts.png", part_sheet(views, table))
-        except (IngestError, ValueError, OSError) as exc:
+        except IngestError as exc:                  # every file gets its line, none stops us
             failed += 1
-            print(f"FAIL  {path}: {exc}", file=sys.stderr)
+            print(f"FAIL  {printable(str(exc))}", file=sys.stderr)
+        except MemoryError:
+            failed += 1
+            print(f"FAIL  {printable(path)}: out of memory [too_large]", file=sys.stderr)
+        except Exception as exc:                    # noqa: BLE001 - reported per file
+            failed += 1
+            print(f"FAIL  {printable(path)}: {describe_exception(exc)}", file=sys.stderr)
     print(f"{len(args.meshes) - failed} labelled, {failed} failed; outputs in {args.out}")
     return 1 if failed else 0
