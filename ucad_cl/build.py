@@ -32,12 +32,10 @@ Untrusted libraries (decisions; reason codes in ``ucad_cl/reasons.py``)
 * ``retry_failed``: reason codes whose recorded rejections are re-processed even though the file
   and options are unchanged (default for the CLI flag without codes: ``reasons.default_retry()``).
 
-Engines
-* ``local`` (default): ``workers`` processes, each with its own OpenCL context and
-  ``cores // workers`` PoCL threads (no oversubscription). Inside a worker a loader thread
-  prefetches (ingests) the next mesh while the current one is on the OpenCL device. Workers are
-  replaced after ``recycle_after`` meshes so memory stays flat.
-* ``ray``: the same per-mesh function as Ray tasks on an existing cluster (``ucad_cl.engines``).
+Engines (``ucad_cl.engines``): ``local`` (default) runs ``workers`` processes, each with its own
+OpenCL context and ``cores // workers`` PoCL threads, prefetching the next mesh while the current
+one is on the device, replaced after ``recycle_after`` meshes so memory stays flat; ``ray`` runs
+the same per-mesh functions as Ray tasks on a cluster.
 
 Resumability: a mesh is either fully committed (rows + artifacts) or absent, so a build killed at
 any moment (even SIGKILL) and run again continues where it stopped, with nothing duplicated.
@@ -57,11 +55,8 @@ import hashlib
 import io
 import json
 import os
-import queue
 import shutil
-import signal
 import sqlite3
-import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -563,6 +558,8 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
 
     t_start = time.perf_counter()
     make_segmenter(options.segmenter)     # a bad --segmenter fails here, not in every worker
+    if engine not in ("local", "ray"):
+        raise ValueError(f"unknown engine {engine!r}: use local or ray")
     retry = tuple(reasons.check(r, reasons.REJECTION) for r in (retry_failed or ()))
     if memory_limit_mb is None:
         memory_limit_mb = default_memory_limit_mb(workers)
@@ -572,99 +569,61 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     if limit:
         refs = refs[:limit]
     summary = BuildSummary(run_id=0, discovered=len(refs), memory_limit_mb=memory_limit_mb)
-    cat = staging = runlog = None
-    todo: list[tuple[MeshRef, bool]] = []
-    worker_skips = [0]                                # skips decided by workers (content known)
+    staging = Path(catalog) / "staging"
+    cat = sink = None
     try:
-        cat = _catalogue_step(lambda: Catalog.open(catalog, create=True), catalog)
-        run_id = _catalogue_step(lambda: cat.begin_run({**options.to_dict(), "code": CODE_VERSION},
-                                                       engine), catalog)
-        summary.run_id = run_id
-        ohash = cat.run_options_hash
-        for ref in refs:
-            rec = cat.file_record(ref.path)
-            if rec and rec[1] == ref.size and rec[2] == ref.mtime:
-                verdict = cat.mesh_verdict(rec[0])          # unchanged file: no need to re-hash
-                if verdict is None or verdict[2] != ohash:
-                    todo.append((ref, False))
-                elif verdict[0] == "rejected" and verdict[1] in retry:
-                    todo.append((ref, True))
-                else:
-                    summary.skipped += 1
+        try:
+            cat = Catalog.open(catalog, create=True)
+            summary.run_id = cat.begin_run({**options.to_dict(), "code": CODE_VERSION}, engine)
+            todo = _plan(cat, refs, retry, summary)
+            log(f"{len(refs)} meshes found, {summary.skipped} unchanged (skipped), "
+                f"{len(todo)} to process with the {engine} engine")
+            sink = _Sink(cat, summary, Path(catalog) / "logs" / f"run-{summary.run_id:05d}.log",
+                         len(todo))
+            sink.log.write(f"run {summary.run_id} engine={engine} workers={workers} "
+                           f"found={len(refs)} skipped={summary.skipped} todo={len(todo)} "
+                           f"memory_limit_mb={memory_limit_mb:.0f} retry={list(retry)} "
+                           f"options={options.to_dict()}")
+            shutil.rmtree(staging, ignore_errors=True)   # a killed run's leftovers (we hold the lock)
+            known = (str(catalog), cat.run_options_hash, retry)
+            if engine == "local":
+                from .engines import run_local
+                run_local(todo, options, sink.commit, sink.skip, workers=workers,
+                          timeout=timeout, recycle_after=recycle_after, progress=progress,
+                          staging=staging, log=log, known=known,
+                          memory_limit_mb=memory_limit_mb, summary=summary, runlog=sink.log)
             else:
-                todo.append((ref, False))                   # new or changed: a worker decides
-        log(f"{len(refs)} meshes found, {summary.skipped} unchanged (skipped), "
-            f"{len(todo)} to process with the {engine} engine")
-        runlog = RunLog(Path(catalog) / "logs" / f"run-{run_id:05d}.log")
-        runlog.write(f"run {run_id} engine={engine} workers={workers} found={len(refs)} "
-                     f"skipped={summary.skipped} todo={len(todo)} memory_limit_mb="
-                     f"{memory_limit_mb:.0f} retry={list(retry)} options={options.to_dict()}")
-
-        def commit(entry):
-            try:
-                cat.commit_mesh(entry, move_files=True)
-            except (OSError, sqlite3.Error) as exc:
-                code = environment_code(exc)
-                if code is None:
-                    raise
-                raise BuildStopped(code, f"storing {printable(entry.path)}: "
-                                         f"{type(exc).__name__}: {exc}") from None
-            n = summary.processed + 1
-            runlog.write(f"{n}/{len(todo)} {entry.state} {printable(entry.path)}"
-                         + (f" reason={entry.reason}: {printable(entry.detail)}"
-                            if entry.reason else "")
-                         + f" s={sum((entry.timings or {}).values()):.2f}"
-                         + (f" rss_mb={_tree_rss_mb():.0f}" if n % 50 == 0 else ""))
-            if entry.state == "accepted":
-                summary.accepted += 1
-            else:
-                summary.rejected += 1
-                summary.reasons[entry.reason] = summary.reasons.get(entry.reason, 0) + 1
-                summary.failed += entry.reason == "pipeline_error"
-            for k, v in (entry.timings or {}).items():
-                summary.stage_seconds[k] = summary.stage_seconds.get(k, 0.0) + v
-
-        def skip(ref, sha):
-            summary.skipped += 1
-            worker_skips[0] += 1
-            runlog.write(f"skipped {printable(ref.path)}: content {sha[:12]} already catalogued")
-
-        staging = Path(catalog) / "staging"
-        shutil.rmtree(staging, ignore_errors=True)      # a killed run's leftovers (we hold the lock)
-        known = (str(catalog), ohash, retry)
-        if engine == "local":
-            _run_local(todo, options, commit, skip, workers=workers, timeout=timeout,
-                       recycle_after=recycle_after, progress=progress, staging=staging, log=log,
-                       known=known, memory_limit_mb=memory_limit_mb, summary=summary,
-                       runlog=runlog)
-        elif engine == "ray":
-            from .engines import run_ray
-            run_ray(todo, options, commit, address=ray_address, progress=progress,
-                    staging=staging, log=log, timeout=timeout,
-                    num_cpus=None if ray_address else workers, on_skip=skip, known=known,
-                    summary=summary)
-        else:
-            raise ValueError(f"unknown engine {engine!r}: use local or ray")
+                from .engines import run_ray
+                run_ray(todo, options, sink.commit, address=ray_address, progress=progress,
+                        staging=staging, log=log, timeout=timeout,
+                        num_cpus=None if ray_address else workers, on_skip=sink.skip,
+                        known=known, summary=summary)
+            shutil.rmtree(staging, ignore_errors=True)
+            _finish_summary(summary, t_start, resource)
+            summary.superseded_mb = cat.superseded_bytes / 2**20
+            cat.finish_run(summary.run_id, {
+                "skipped": summary.skipped, "failed": summary.failed, "retried": summary.retried,
+                "meshes_per_s": summary.meshes_per_s, "stage_seconds": summary.stage_seconds,
+                "peak_rss_mb": summary.peak_rss_mb})
+            sink.log.write(f"finished: {summary.accepted} accepted, {summary.rejected} rejected "
+                           f"{summary.reasons}, {summary.skipped} skipped, {summary.retried} "
+                           f"retried, {summary.meshes_per_s:.2f} meshes/s, peak memory "
+                           f"{summary.peak_rss_mb:.0f} MB (process tree), driver "
+                           f"{summary.peak_driver_mb:.0f} MB, largest worker "
+                           f"{summary.peak_worker_mb:.0f} MB")
+        except (OSError, sqlite3.Error) as exc:          # the catalogue side failed
+            code = environment_code(exc)
+            if code is None:
+                raise
+            raise BuildStopped(code, f"catalogue {printable(str(catalog))}: "
+                                     f"{type(exc).__name__}: {exc}") from None
+    except BuildStopped as stop:
         shutil.rmtree(staging, ignore_errors=True)
         _finish_summary(summary, t_start, resource)
-        summary.superseded_mb = cat.superseded_bytes / 2**20
-        _catalogue_step(lambda: cat.finish_run(run_id, {
-            "skipped": summary.skipped, "failed": summary.failed, "retried": summary.retried,
-            "meshes_per_s": summary.meshes_per_s, "stage_seconds": summary.stage_seconds,
-            "peak_rss_mb": summary.peak_rss_mb}), catalog)
-        runlog.write(f"finished: {summary.accepted} accepted, {summary.rejected} rejected "
-                     f"{summary.reasons}, {summary.skipped} skipped, {summary.retried} retried, "
-                     f"{summary.meshes_per_s:.2f} meshes/s, peak memory {summary.peak_rss_mb:.0f}"
-                     f" MB (process tree), driver {summary.peak_driver_mb:.0f} MB, largest "
-                     f"worker {summary.peak_worker_mb:.0f} MB")
-    except BuildStopped as stop:
-        if staging is not None:
-            shutil.rmtree(staging, ignore_errors=True)
-        _finish_summary(summary, t_start, resource)
-        left = len(todo) - summary.processed - worker_skips[0]
+        left = sink.todo - summary.processed - sink.worker_skips if sink else len(refs)
         message = _stop_message(stop.code, str(stop), catalog, summary, max(left, 0))
-        if runlog is not None:
-            runlog.write(f"stopped [{stop.code}]: {message}")
+        if sink is not None:
+            sink.log.write(f"stopped [{stop.code}]: {message}")
         if cat is not None and summary.run_id:
             try:                                    # best effort: the disk may still be full
                 cat.finish_run(summary.run_id, {"skipped": summary.skipped,
@@ -673,23 +632,73 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
                 pass
         raise BuildStopped(stop.code, message, summary) from None
     finally:
-        if runlog is not None:
-            runlog.close()
+        if sink is not None:
+            sink.log.close()
         if cat is not None:
             cat.close()
     return summary
 
 
-def _catalogue_step(fn, catalog):
-    """Run a catalogue call, turning an environment fault into BuildStopped."""
-    try:
-        return fn()
-    except (OSError, sqlite3.Error) as exc:
-        code = environment_code(exc)
-        if code is None:
-            raise
-        raise BuildStopped(code, f"catalogue {printable(str(catalog))}: {type(exc).__name__}: "
-                                 f"{exc}") from None
+def _plan(cat, refs: list[MeshRef], retry: tuple, summary: BuildSummary) -> list:
+    """(MeshRef, force) for every file to hand to a worker; unchanged ones are counted skipped.
+
+    Unchanged = same (size, mtime) as the last commit of the path, content recorded with this
+    run's options hash, and not a rejection whose reason is being retried (``force``)."""
+    ohash = cat.run_options_hash
+    todo = []
+    for ref in refs:
+        rec = cat.file_record(ref.path)
+        if not (rec and rec[1] == ref.size and rec[2] == ref.mtime):
+            todo.append((ref, False))               # new or changed: a worker decides
+            continue
+        verdict = cat.mesh_verdict(rec[0])          # unchanged file: no need to re-hash
+        if verdict is None or verdict[2] != ohash:
+            todo.append((ref, False))
+        elif verdict[0] == "rejected" and verdict[1] in retry:
+            todo.append((ref, True))
+        else:
+            summary.skipped += 1
+    return todo
+
+
+class _Sink:
+    """Where the engines' results go: commits to the catalogue (an environment fault becomes
+    ``BuildStopped`` naming the mesh), the summary's counts, and the run log."""
+
+    def __init__(self, cat, summary: BuildSummary, log_path: Path, todo: int):
+        self.cat, self.summary, self.todo = cat, summary, todo
+        self.log = RunLog(log_path)
+        self.worker_skips = 0                      # paths whose content was already catalogued
+
+    def commit(self, entry) -> None:
+        s = self.summary
+        try:
+            self.cat.commit_mesh(entry, move_files=True)
+        except (OSError, sqlite3.Error) as exc:
+            code = environment_code(exc)
+            if code is None:
+                raise
+            raise BuildStopped(code, f"storing {printable(entry.path)}: "
+                                     f"{type(exc).__name__}: {exc}") from None
+        n = s.processed + 1
+        self.log.write(f"{n}/{self.todo} {entry.state} {printable(entry.path)}"
+                       + (f" reason={entry.reason}: {printable(entry.detail)}"
+                          if entry.reason else "")
+                       + f" s={sum((entry.timings or {}).values()):.2f}"
+                       + (f" rss_mb={_tree_rss_mb():.0f}" if n % 50 == 0 else ""))
+        if entry.state == "accepted":
+            s.accepted += 1
+        else:
+            s.rejected += 1
+            s.reasons[entry.reason] = s.reasons.get(entry.reason, 0) + 1
+            s.failed += entry.reason == "pipeline_error"
+        for k, v in (entry.timings or {}).items():
+            s.stage_seconds[k] = s.stage_seconds.get(k, 0.0) + v
+
+    def skip(self, ref: MeshRef, sha: str) -> None:
+        self.summary.skipped += 1
+        self.worker_skips += 1
+        self.log.write(f"skipped {printable(ref.path)}: content {sha[:12]} already catalogued")
 
 
 def _finish_summary(summary: BuildSummary, t_start: float, resource) -> None:
@@ -773,406 +782,3 @@ def _tree_rss_mb() -> float:
     except psutil.Error:
         return 0.0
     return total / 2**20
-
-
-def _proc_memory_mb(pid: int) -> tuple[float, float, float]:
-    """(VmRSS, VmHWM, VmData) of a process in MB from /proc; zeros where unavailable."""
-    out = {"VmRSS": 0.0, "VmHWM": 0.0, "VmData": 0.0}
-    try:
-        with open(f"/proc/{pid}/status", "rb") as f:
-            for line in f:
-                key, _, value = line.partition(b":")
-                k = key.decode()
-                if k in out:
-                    out[k] = int(value.split()[0]) / 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return out["VmRSS"], out["VmHWM"], out["VmData"]
-
-
-# ----------------------------------------------------------------------------- local engine
-
-EXIT_MEMORY = 86                 # a worker that hit MemoryError exits with this status
-DATA_HEADROOM_MB = 1024          # RLIMIT_DATA = memory limit + this (see module doc)
-_CRASH_SIGNALS = {signal.SIGSEGV, signal.SIGBUS, signal.SIGILL, signal.SIGFPE, signal.SIGABRT,
-                  signal.SIGSYS, signal.SIGTRAP}
-_POLL_S = 0.1                    # driver loop: queue wait and memory sampling period
-_MAX_STARTS_FAILED = 3
-_MAX_KILLS = 3
-
-
-def _worker_main(wid: int, task_q, conn, state, options_dict: dict, threads: int,
-                 staging: str, known: tuple, memory_limit_mb: float) -> None:
-    """Worker process: prefetching loader thread + OpenCL stages. Messages to the driver:
-    ('ready', wid), then per task index i: ('loading' | 'loaded' | 'processing', wid, i),
-    ('identity', wid, i, sha), ('done', wid, i, entry), ('skip', wid, i, sha), ('env', wid, i, code, detail), or
-    ('memory', wid, i, detail) after which the worker exits with EXIT_MEMORY.
-    ``state`` (shared memory, written before each step, so it survives a crash of this process):
-    [index being loaded, index being processed], -1 for none. Messages go through this worker's
-    own pipe (``conn``): a worker that dies mid-message cannot block the others, as it could
-    while holding the lock of a queue they share."""
-    send_lock = threading.Lock()
-
-    class _Results:
-        @staticmethod
-        def put(msg):
-            with send_lock:
-                conn.send(msg)
-
-    result_q = _Results()
-    if memory_limit_mb:
-        import resource
-        limit = int((memory_limit_mb + DATA_HEADROOM_MB) * 2**20)
-        _, hard = resource.getrlimit(resource.RLIMIT_DATA)
-        if hard == resource.RLIM_INFINITY or hard > limit:
-            resource.setrlimit(resource.RLIMIT_DATA, (limit, hard))
-    os.environ["POCL_MAX_PTHREAD_COUNT"] = str(threads)
-    os.environ["POCL_CPU_MAX_CU_NUM"] = str(threads)
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    opts = BuildOptions(**{**options_dict, "elevations": tuple(options_dict["elevations"])})
-    pipe = Pipeline(opts)
-    is_known = KnownContent(*known)
-    loaded: queue.Queue = queue.Queue(maxsize=1)
-    parent = os.getppid()
-    result_q.put(("ready", wid))
-
-    def get(q):
-        """Blocking get that ends the worker when the driver is gone (e.g. killed with -9)."""
-        while True:
-            try:
-                return q.get(timeout=1.0)
-            except queue.Empty:
-                if os.getppid() != parent:
-                    os._exit(0)
-
-    def memory_fault(i, where):
-        result_q.put(("memory", wid, i, f"MemoryError while {where}"))   # written: synchronous
-        os._exit(EXIT_MEMORY)
-
-    def load_one(i, ref, force):
-        from .ingest import describe_exception, unreadable_identity
-        try:
-            sha, entry = pipe.identify(ref)
-            result_q.put(("identity", wid, i, sha))
-            if entry is None and not force and is_known(sha):
-                return (i, ref, None, 0.0, Skipped(sha))
-            if entry is None:
-                mesh, secs, entry = pipe.load_entry(ref, sha)
-                return (i, ref, mesh, secs, entry)
-            return (i, ref, None, 0.0, entry)
-        except MemoryError:
-            memory_fault(i, "loading")
-        except Exception as exc:                    # a bug in our checks: still a verdict
-            return (i, ref, None, 0.0, rejected_entry(ref, unreadable_identity(ref.path),
-                                                      "unreadable", describe_exception(exc)))
-
-    def loader():
-        while True:
-            item = get(task_q)
-            if item is None:
-                loaded.put(None)
-                return
-            i, ref, force = item
-            state[0] = i
-            result_q.put(("loading", wid, i))
-            out = load_one(i, ref, force)
-            state[0] = -1
-            result_q.put(("loaded", wid, i))
-            loaded.put(out)
-
-    threading.Thread(target=loader, daemon=True).start()
-    stage_dir = Path(staging) / f"w{os.getpid()}"
-    while True:
-        item = get(loaded)
-        if item is None:
-            return
-        i, ref, mesh, secs, result = item
-        item = None
-        state[1] = i
-        result_q.put(("processing", wid, i))
-        if mesh is None:
-            msg = (("skip", wid, i, result.sha256) if isinstance(result, Skipped)
-                   else ("done", wid, i, result))
-        else:
-            try:
-                msg = ("done", wid, i, pipe.process_entry(ref, mesh, secs, stage_dir))
-            except MemoryError:
-                mesh = None
-                memory_fault(i, "processing")
-            except Exception as exc:                 # process_entry lets only these through
-                msg = ("env", wid, i, environment_code(exc), f"{type(exc).__name__}: {exc}")
-            mesh = None
-        state[1] = -1
-        result_q.put(msg)
-
-
-class _Worker:
-    def __init__(self, wid, ctx, args):
-        self.wid = wid
-        self.task_q = ctx.Queue()
-        self.state = ctx.Array("q", [-1, -1], lock=False)
-        self.conn, child = ctx.Pipe(duplex=False)     # results: this worker's own pipe
-        self.proc = ctx.Process(target=_worker_main, daemon=True,
-                                args=(wid, self.task_q, child, self.state, *args))
-        self.proc.start()
-        child.close()                                 # EOF on self.conn once the worker is gone
-        self.assigned: list[int] = []          # task indices sent, in order
-        self.started: set[int] = set()         # indices whose loading began
-        self.ready = False
-        self.born = self.since = time.monotonic()
-        self.peak_mb = self.data_mb = 0.0
-
-    def send(self, i, ref, force):
-        self.assigned.append(i)
-        self.task_q.put((i, ref, force))
-
-    def stop(self, kill=False):
-        if kill:
-            self.proc.kill()
-        else:
-            self.task_q.put(None)
-        self.proc.join(timeout=10)
-        if self.proc.is_alive():
-            self.proc.kill()
-            self.proc.join()
-        self.task_q.cancel_join_thread()
-        self.conn.close()
-
-
-def _run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, progress,
-               staging, log, known, memory_limit_mb, summary, runlog):
-    import multiprocessing as mp
-
-    from tqdm import tqdm
-
-    if not todo:
-        return
-    ctx = mp.get_context("spawn")
-    workers = max(1, min(workers, len(todo)))
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    staging.mkdir(parents=True, exist_ok=True)
-    args = (options.to_dict(), threads, str(staging), known, memory_limit_mb)
-    next_wid = iter(range(1 << 30))
-    pool = [_Worker(next(next_wid), ctx, args) for _ in range(workers)]
-    pending = list(range(len(todo)))[::-1]          # stack: pop() gives the next index
-    finished: set[int] = set()
-    solo: set[int] = set()                          # run with no other mesh in the worker
-    timed_out: set[int] = set()
-    attempts: dict[int, int] = {}
-    kills: dict[int, int] = {}
-    starts_failed = 0
-    startup_limit = max(300.0, timeout)
-    bar = tqdm(total=len(todo), unit="mesh", desc="build", disable=not progress, smoothing=0.05)
-    me = os.getpid()
-    last_sample = 0.0
-
-    def outstanding(w):
-        return [i for i in w.assigned if i not in finished]
-
-    def feed(w):
-        # at most two tasks per worker: one on the device, one being prefetched; a worker takes
-        # no more than recycle_after tasks in its life; a solo task waits for an idle worker
-        while pending and len(outstanding(w)) < 2 and len(w.assigned) < recycle_after:
-            if any(i in solo for i in outstanding(w)):
-                return
-            i = pending[-1]
-            if i in solo and outstanding(w):
-                return
-            pending.pop()
-            w.send(i, *todo[i])
-
-    def finish(i, entry):
-        finished.add(i)
-        commit(entry)
-        bar.update(1)
-
-    def record(i, reason, detail):
-        from .ingest import unreadable_identity
-        ref = todo[i][0]
-        sha = shas.get(i) or unreadable_identity(ref.path)
-        log(f"rejected {printable(ref.path)}: {reason}: {detail}")
-        finish(i, rejected_entry(ref, sha, reason, f"{ref.path}: {detail}"))
-
-    def restart(w):
-        nw = _Worker(next(next_wid), ctx, args)
-        pool[pool.index(w)] = nw
-        return nw
-
-    def fail(w, event, detail):
-        """Worker ``w`` failed (crash | memory | timeout | killed); see the module docstring."""
-        nonlocal starts_failed
-        sample(w)
-        w.stop(kill=True)
-        held = outstanding(w)
-        if not w.ready:
-            starts_failed += 1
-            runlog.write(f"worker {w.wid} failed to start ({detail}), attempt {starts_failed}")
-            if starts_failed >= _MAX_STARTS_FAILED:
-                raise BuildStopped("worker_start_failed",
-                                   f"a worker process failed to start {starts_failed} times "
-                                   f"(last: {detail})")
-        active = [i for i in held if i in w.started]
-        if event == "crash":
-            running = {w.state[0], w.state[1]} - {-1}
-            active = [i for i in held if i in running] or active
-        runlog.write(f"worker {w.wid} {event}: {detail}; held {[printable(todo[i][0].path) for i in held]}")
-        for i in held:
-            if i not in active:
-                pending.append(i)                   # never started there: innocent
-                continue
-            attempts[i] = attempts.get(i, 0) + 1
-            name = printable(todo[i][0].path)
-            if event == "killed":
-                kills[i] = kills.get(i, 0) + 1
-                if kills[i] >= _MAX_KILLS:
-                    raise BuildStopped("worker_killed",
-                                       f"workers were killed from outside {kills[i]} times "
-                                       f"while processing {name} (last: {detail})")
-                pending.append(i)
-            elif event == "timeout":
-                if i in timed_out:
-                    record(i, "timeout", f"no progress for {2 * timeout:.0f} s on this mesh, "
-                                         f"alone in its worker, after a first timeout of "
-                                         f"{timeout:.0f} s")
-                    continue
-                timed_out.add(i)
-                solo.add(i)
-                pending.append(i)
-            elif len(active) == 1 or attempts[i] >= _MAX_KILLS:
-                record(i, "too_large" if event == "memory" else "loader_crashed",
-                       f"{detail} (the worker held only this mesh)" if len(active) == 1
-                       else f"{detail} ({attempts[i]} attempts)")
-                continue
-            else:
-                solo.add(i)
-                pending.append(i)
-            summary.retried += 1
-            log(f"retrying {name} ({event}: {detail})")
-        pending.sort(key=lambda k: (k not in solo, -k))   # pop(): in order, solo retries last
-        restart(w)
-
-    def sample(w):
-        rss, hwm, data = _proc_memory_mb(w.proc.pid)
-        w.peak_mb = max(w.peak_mb, hwm)
-        w.data_mb = data or w.data_mb
-        summary.peak_worker_mb = max(summary.peak_worker_mb, w.peak_mb)
-        return rss
-
-    def watch():
-        """Sample memory (tree peak, worker peaks) and enforce the memory limit."""
-        tree = _proc_memory_mb(me)[0]
-        for w in list(pool):
-            if not w.proc.is_alive():
-                continue
-            rss = sample(w)
-            tree += rss
-            if memory_limit_mb and rss > memory_limit_mb and outstanding(w):
-                fail(w, "memory", f"worker resident memory {rss:.0f} MB exceeded the limit of "
-                                  f"{memory_limit_mb:.0f} MB")
-        summary.peak_rss_mb = max(summary.peak_rss_mb, tree)
-
-    shas: dict[int, str] = {}
-
-    def handle(msg):
-        kind, wid = msg[0], msg[1]
-        w = next((w for w in pool if w.wid == wid), None)
-        if w is None:
-            return                                      # from a worker already replaced
-        w.since = time.monotonic()
-        if kind == "ready":
-            w.ready = True
-            return
-        i = msg[2]
-        if i in finished or i not in w.assigned:
-            return
-        if kind == "loading":
-            w.started.add(i)
-        elif kind == "identity":
-            shas[i] = msg[3]
-        elif kind == "memory":
-            fail(w, "memory", msg[3])
-        elif kind == "env":
-            raise BuildStopped(msg[3], f"{printable(todo[i][0].path)}: {msg[4]}")
-        elif kind in ("done", "skip"):
-            if kind == "done":
-                finish(i, msg[3])
-            else:
-                finished.add(i)
-                skip(todo[i][0], msg[3])
-                bar.update(1)
-            if len(w.assigned) >= recycle_after and not outstanding(w):
-                w.stop()                                # recycle: memory stays flat
-                restart(w)
-
-    def drain(wait_s):
-        """Handle every message waiting in the workers' pipes (waiting up to ``wait_s``)."""
-        from multiprocessing.connection import wait
-
-        while True:
-            conns = {w.conn: w for w in pool if not w.conn.closed}
-            ready = wait(list(conns), timeout=wait_s) if conns else []
-            if not ready:
-                return
-            wait_s = 0
-            for c in ready:
-                w = conns[c]
-                if w not in pool or c.closed:
-                    continue
-                try:
-                    msg = c.recv()
-                except (EOFError, OSError):             # gone: the liveness check handles it
-                    c.close()
-                    continue
-                handle(msg)
-
-    for w in pool:
-        feed(w)
-    try:
-        while len(finished) < len(todo):
-            drain(_POLL_S)
-            now = time.monotonic()
-            if now - last_sample >= _POLL_S:
-                last_sample = now
-                watch()
-            for w in list(pool):
-                if w not in pool:
-                    continue
-                if not w.proc.is_alive():
-                    drain(0)                            # what it said before dying comes first
-                    if w not in pool:
-                        continue
-                    if outstanding(w) or not w.ready:
-                        fail(w, *_death(w, memory_limit_mb))
-                    else:
-                        restart(w)
-                elif not w.ready and now - w.born > startup_limit:
-                    fail(w, "crash", f"not ready after {startup_limit:.0f} s")
-                elif w.ready and outstanding(w):
-                    busy = outstanding(w)
-                    limit = timeout * (2 if any(i in timed_out for i in busy) else 1)
-                    if now - w.since > limit:
-                        fail(w, "timeout", f"no progress for {limit:.0f} s")
-            for w in pool:
-                feed(w)
-    finally:
-        bar.close()
-        for w in pool:
-            if w.proc.is_alive():
-                sample(w)
-            w.stop(kill=len(finished) < len(todo))
-
-
-def _death(w: _Worker, memory_limit_mb: float) -> tuple[str, str]:
-    """(event, detail) for a worker that died on its own: crash | memory | killed."""
-    code = w.proc.exitcode
-    if code == EXIT_MEMORY:
-        return "memory", "MemoryError in the worker"
-    if code is not None and code < 0:
-        sig = signal.Signals(-code)
-        if sig in _CRASH_SIGNALS:
-            if memory_limit_mb and w.data_mb >= 0.9 * (memory_limit_mb + DATA_HEADROOM_MB):
-                return "memory", (f"worker died ({sig.name}) at its memory limit "
-                                  f"({w.data_mb:.0f} MB data segment)")
-            return "crash", f"worker process died ({sig.name})"
-        return "killed", f"worker process killed by {sig.name}"
-    return "crash", f"worker process exited with status {code}"
