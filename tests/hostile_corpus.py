@@ -371,4 +371,12 @@ def write_corpus(folder: str | os.PathLike, *, good: bool = True) -> list[Case]:
     os.symlink("/dev/urandom", add("dev_urandom.stl", "not_a_file", "filesystem"))
     add("empty.glb", "empty", "filesystem", b"")
     add("empty.obj", "empty", "filesystem", b"")
+    g = json.loads(json.dumps(box))                 # a good box 1,000 folders deep (deeper than
+    g["materials"][0]["name"] = "deep_paint"        # a recursive walk, pathlib's mkdir included,
+    deep = root                                     # can go)
+    for _ in range(1000):
+        deep = deep / "d"
+        deep.mkdir(exist_ok=True)
+    add("deep_box.glb", "accepted", "filesystem", pack_glb(g, box_bin),
+        sub=str(deep.relative_to(root)))
     return cases

@@ -346,6 +346,14 @@ def small_library(tmp_path_factory):
     return out
 
 
+@pytest.fixture(scope="module")
+def small_expected(small_library, tmp_path_factory, runtime):
+    """The catalogue content of an undisturbed build of ``small_library``."""
+    ref = tmp_path_factory.mktemp("small_ref") / "cat"
+    build(small_library, ref, OPTS, **QUIET)
+    return catalogue_content(ref)
+
+
 def _cli(library, cat, *extra):
     return [sys.executable, "-m", "ucad_cl.cli", "build", str(library), "--catalog", str(cat),
             "--azimuth-step", "90", "--size", "64", *extra]
@@ -370,12 +378,9 @@ def tmpfs(tmp_path):
     subprocess.run(["umount", "-l", str(mnt)], capture_output=True, timeout=20)
 
 
-def test_disk_full_stops_cleanly_and_the_next_run_completes(small_library, tmp_path, tmpfs,
-                                                          runtime):
+def test_disk_full_stops_cleanly_and_the_next_run_completes(small_library, small_expected,
+                                                          tmp_path, tmpfs):
     mnt, resize = tmpfs
-    ref = tmp_path / "ref"
-    build(small_library, ref, OPTS, **QUIET)
-    expected = catalogue_content(ref)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     cat = mnt / "cat"
     for size in ("64k", "320k"):                      # no room for the index; room for 1-2 meshes
@@ -389,7 +394,7 @@ def test_disk_full_stops_cleanly_and_the_next_run_completes(small_library, tmp_p
     run = subprocess.run(_cli(small_library, cat), env=env, capture_output=True, text=True,
                          timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
-    assert catalogue_content(cat) == expected         # nothing recorded as a verdict on a mesh
+    assert catalogue_content(cat) == small_expected   # nothing recorded as a verdict on a mesh
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
         assert c.verify() == []
@@ -404,13 +409,10 @@ def _workers_of(pid):
         return []
 
 
-def test_sigkill_of_single_workers_leaves_an_identical_catalogue(small_library, tmp_path,
-                                                                  runtime):
+def test_sigkill_of_single_workers_leaves_an_identical_catalogue(small_library, small_expected,
+                                                                  tmp_path):
     """Workers SIGKILL-ed from outside at random moments (6 kills): their meshes are retried,
     nothing is recorded against them, and the catalogue equals an undisturbed build's."""
-    ref = tmp_path / "ref"
-    build(small_library, ref, OPTS, **QUIET)
-    expected = catalogue_content(ref)
     cat = tmp_path / "cat"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     rng = random.Random(13)
@@ -432,8 +434,8 @@ def test_sigkill_of_single_workers_leaves_an_identical_catalogue(small_library, 
             break
         assert proc.returncode == 2 and "killed from outside" in err, err[-2000:]
         assert rounds < 4
-    assert kills >= 3                                 # the build outlived most of the kills
-    assert catalogue_content(cat) == expected
+    assert kills >= 3, kills                          # the build outlived most of the kills
+    assert catalogue_content(cat) == small_expected
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
         assert c.verify() == []

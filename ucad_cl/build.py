@@ -18,14 +18,17 @@ Untrusted libraries (decisions; reason codes in ``ucad_cl/reasons.py``)
   ``bench/hostile.py``: after OpenCL is set up a worker's data segment is ~350-500 MB larger than
   its resident set, hence the headroom.
 * Failures of a worker (it crashed, went over its memory limit, timed out, or was killed from
-  outside) are attributed before anything is recorded. The meshes it had started are retried
-  alone in a worker ("solo"); a crash or memory overrun while the worker held one mesh alone is
-  recorded (``loader_crashed`` / ``too_large``). A timeout (no progress for ``timeout`` s) is
-  retried once alone with twice the time, then recorded (``timeout``): a file that hangs the
-  loader twice would otherwise stop every build forever, while a pause of the machine or a
-  stopped worker costs one retry. A worker killed from outside (SIGKILL, SIGTERM: the OOM
-  killer, a user) is an environment fault: its meshes are retried, and a mesh held by three
-  killed workers stops the build (``worker_killed``), recording nothing.
+  outside) are attributed before anything is recorded; meshes it had not started yet simply go
+  back in the queue. Memory: a worker that held one mesh records ``too_large``; with two, each
+  is retried alone ("solo"). Crash: the meshes it was working on are retried alone and without
+  the RLIMIT_DATA soft limit (a failed allocation can kill native code with SIGSEGV/SIGABRT,
+  which must not be mistaken for a crash); a second crash records ``loader_crashed``. Timeout
+  (no progress for ``timeout`` s): retried once alone with twice the time, then recorded
+  (``timeout``): a file that hangs the loader twice would otherwise stop every build forever,
+  while a pause of the machine or a stopped worker costs one retry. A worker killed from
+  outside (SIGKILL, SIGTERM: the OOM killer, a user) is an environment fault: its meshes are
+  retried, and a mesh held by three killed workers stops the build (``worker_killed``),
+  recording nothing.
 * Environment faults (``disk_full``, ``io_error`` on the catalogue or staging side,
   ``worker_killed``) raise ``BuildStopped``: workers are stopped, nothing is recorded for the
   meshes in flight, and the message says what to free or fix; the next run continues.
@@ -45,7 +48,8 @@ is re-processed (its entry replaced in one transaction).
 
 Memory figures: ``BuildSummary.peak_rss_mb`` is the whole process tree (driver + workers,
 resident memory summed, sampled every 0.1 s while workers run); ``peak_driver_mb`` the driver's
-own peak (``ru_maxrss``); ``peak_worker_mb`` the largest worker peak (``VmHWM``).
+own peak and ``peak_worker_mb`` the largest worker peak (``VmHWM``; ``ru_maxrss`` of a spawned
+process starts at its parent's size).
 """
 from __future__ import annotations
 
@@ -207,19 +211,7 @@ def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None,
     root = Path(library)
     if not root.exists():
         raise FileNotFoundError(f"library {root} does not exist")
-    if root.is_dir():
-        paths = []
-
-        def unlistable(err):
-            if log is not None:
-                log(f"warning: cannot list {printable(str(err.filename))}: {err.strerror}")
-
-        for folder, dirs, files in os.walk(root, onerror=unlistable):
-            dirs[:] = [d for d in dirs if not d.startswith(".")]
-            paths += [Path(folder) / f for f in files
-                      if Path(f).suffix.lower() in SUPPORTED_SUFFIXES and not f.startswith(".")]
-    else:
-        paths = _manifest_paths(root)
+    paths = _tree_paths(root, log) if root.is_dir() else _manifest_paths(root)
     if uids is not None:
         keep = set(uids)
         paths = [p for p in paths if p.stem in keep]
@@ -237,8 +229,52 @@ def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None,
     return refs
 
 
+def _tree_paths(root: Path, log=None) -> list[Path]:
+    """Every non-directory entry with a supported suffix below ``root``, hidden names skipped,
+    symlinked folders not followed; iterative, so any depth the file system allows is fine."""
+    paths, stack = [], [root]
+    while stack:
+        folder = stack.pop()
+        try:
+            with os.scandir(folder) as it:
+                entries = list(it)
+        except OSError as e:
+            if log is not None:
+                log(f"warning: cannot list {printable(str(folder))}: {e.strerror}")
+            continue
+        for e in entries:
+            if e.name.startswith("."):
+                continue
+            try:
+                is_dir = e.is_dir(follow_symlinks=False)
+            except OSError:
+                is_dir = False
+            if is_dir:
+                stack.append(Path(e.path))
+            elif Path(e.name).suffix.lower() in SUPPORTED_SUFFIXES:
+                paths.append(Path(e.path))
+    return paths
+
+
+MAX_MANIFEST_BYTES = 256 << 20
+
+
 def _manifest_paths(manifest: Path) -> list[Path]:
-    """Paths listed by a .txt / .json manifest (ValueError naming the manifest and the problem)."""
+    """Paths listed by a .txt / .json manifest (ValueError naming the manifest and the problem).
+    The manifest must be a regular file of at most MAX_MANIFEST_BYTES (a library given as
+    /dev/zero or a FIFO is refused, not read)."""
+    import stat as stat_
+
+    shown = printable(str(manifest))
+    st = manifest.stat()
+    if not stat_.S_ISREG(st.st_mode):
+        raise ValueError(f"library {shown} is neither a folder nor a regular manifest file")
+    if manifest.suffix.lower() in SUPPORTED_SUFFIXES:
+        raise ValueError(f"library {shown} is a mesh file: give its folder, or a manifest "
+                         "(.txt: one path per line, .json: a list of paths)")
+    if st.st_size > MAX_MANIFEST_BYTES:
+        raise ValueError(f"manifest {shown} has {st.st_size} bytes, more than "
+                         f"{MAX_MANIFEST_BYTES}")
     try:
         text = manifest.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
@@ -703,7 +739,8 @@ class _Sink:
 
 def _finish_summary(summary: BuildSummary, t_start: float, resource) -> None:
     summary.seconds = time.perf_counter() - t_start
-    summary.peak_driver_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    summary.peak_driver_mb = (process_memory_mb(os.getpid())[1]
+                              or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     summary.peak_rss_mb = max(summary.peak_rss_mb, summary.peak_driver_mb)
 
 
@@ -782,3 +819,23 @@ def _tree_rss_mb() -> float:
     except psutil.Error:
         return 0.0
     return total / 2**20
+
+
+def process_memory_mb(pid: int) -> tuple[float, float, float]:
+    """(VmRSS, VmHWM, VmData) of a process in MB from /proc; zeros where unavailable. VmHWM is
+    the peak of the process' own memory (unlike ``ru_maxrss``, which after fork + exec starts at
+    the parent's size)."""
+    out = {"VmRSS": 0.0, "VmHWM": 0.0, "VmData": 0.0}
+    try:
+        with open(f"/proc/{pid}/status", "rb") as f:
+            for line in f:
+                key, _, value = line.partition(b":")
+                k = key.decode()
+                if k in out:
+                    out[k] = int(value.split()[0]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return out["VmRSS"], out["VmHWM"], out["VmData"]
+
+
+# ----------------------------------------------------------------------------- local engine

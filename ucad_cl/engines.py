@@ -83,7 +83,7 @@ from pathlib import Path
 from typing import Callable
 
 from .build import (BuildOptions, BuildStopped, KnownContent, Pipeline, Skipped,
-                    environment_code, printable, rejected_entry)
+                    environment_code, printable, process_memory_mb, rejected_entry)
 
 INSTALL_HINT = ("the 'ray' engine needs Ray: install it with\n"
                 "    pip install -e '.[ray]'      (or: pip install 'ray>=2.9')")
@@ -316,23 +316,6 @@ def _process_one(ref, force: bool, options, staging: str, token: str,
 
 # ----------------------------------------------------------------------------- local engine
 
-def _proc_memory_mb(pid: int) -> tuple[float, float, float]:
-    """(VmRSS, VmHWM, VmData) of a process in MB from /proc; zeros where unavailable."""
-    out = {"VmRSS": 0.0, "VmHWM": 0.0, "VmData": 0.0}
-    try:
-        with open(f"/proc/{pid}/status", "rb") as f:
-            for line in f:
-                key, _, value = line.partition(b":")
-                k = key.decode()
-                if k in out:
-                    out[k] = int(value.split()[0]) / 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return out["VmRSS"], out["VmHWM"], out["VmData"]
-
-
-# ----------------------------------------------------------------------------- local engine
-
 EXIT_MEMORY = 86                 # a worker that hit MemoryError exits with this status
 DATA_HEADROOM_MB = 1024          # RLIMIT_DATA = memory limit + this (see module doc)
 _CRASH_SIGNALS = {signal.SIGSEGV, signal.SIGBUS, signal.SIGILL, signal.SIGFPE, signal.SIGABRT,
@@ -349,7 +332,10 @@ def _worker_main(wid: int, task_q, conn, state, options_dict: dict, threads: int
     ('identity', wid, i, sha), ('done', wid, i, entry), ('skip', wid, i, sha), ('env', wid, i, code, detail), or
     ('memory', wid, i, detail) after which the worker exits with EXIT_MEMORY.
     ``state`` (shared memory, written before each step, so it survives a crash of this process):
-    [index being loaded, index being processed], -1 for none. Messages go through this worker's
+    [index being loaded, index being processed], -1 for none. A task flagged ``unlimited`` (a
+    retry after a crash, alone in the worker) runs without the RLIMIT_DATA soft limit, so a
+    failed allocation that killed a native library is told apart from a real crash; the RSS
+    watchdog still applies. Messages go through this worker's
     own pipe (``conn``): a worker that dies mid-message cannot block the others, as it could
     while holding the lock of a queue they share."""
     send_lock = threading.Lock()
@@ -361,12 +347,17 @@ def _worker_main(wid: int, task_q, conn, state, options_dict: dict, threads: int
                 conn.send(msg)
 
     result_q = _Results()
-    if memory_limit_mb:
-        import resource
-        limit = int((memory_limit_mb + DATA_HEADROOM_MB) * 2**20)
-        _, hard = resource.getrlimit(resource.RLIMIT_DATA)
-        if hard == resource.RLIM_INFINITY or hard > limit:
-            resource.setrlimit(resource.RLIMIT_DATA, (limit, hard))
+    import resource
+    _, hard = resource.getrlimit(resource.RLIMIT_DATA)
+    limited = (int((memory_limit_mb + DATA_HEADROOM_MB) * 2**20), hard)
+    if memory_limit_mb and (hard == resource.RLIM_INFINITY or hard > limited[0]):
+        resource.setrlimit(resource.RLIMIT_DATA, limited)
+    else:
+        limited = None
+
+    def data_limit(on: bool):
+        if limited is not None:
+            resource.setrlimit(resource.RLIMIT_DATA, limited if on else (hard, hard))
     os.environ["POCL_MAX_PTHREAD_COUNT"] = str(threads)
     os.environ["POCL_CPU_MAX_CU_NUM"] = str(threads)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -413,7 +404,9 @@ def _worker_main(wid: int, task_q, conn, state, options_dict: dict, threads: int
             if item is None:
                 loaded.put(None)
                 return
-            i, ref, force = item
+            i, ref, force, unlimited = item
+            if unlimited:
+                data_limit(False)                       # restored once its result is sent
             state[0] = i
             result_q.put(("loading", wid, i))
             out = load_one(i, ref, force)
@@ -445,6 +438,7 @@ def _worker_main(wid: int, task_q, conn, state, options_dict: dict, threads: int
             mesh = None
         state[1] = -1
         result_q.put(msg)
+        data_limit(True)
 
 
 class _Worker:
@@ -461,11 +455,11 @@ class _Worker:
         self.started: set[int] = set()         # indices whose loading began
         self.ready = False
         self.born = self.since = time.monotonic()
-        self.peak_mb = self.data_mb = 0.0
+        self.peak_mb = 0.0
 
-    def send(self, i, ref, force):
+    def send(self, i, ref, force, unlimited=False):
         self.assigned.append(i)
-        self.task_q.put((i, ref, force))
+        self.task_q.put((i, ref, force, unlimited))
 
     def stop(self, kill=False):
         if kill:
@@ -503,6 +497,7 @@ def run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, p
     finished: set[int] = set()
     solo: set[int] = set()                          # run with no other mesh in the worker
     timed_out: set[int] = set()
+    crashed: set[int] = set()                      # retried alone without the data limit
     attempts: dict[int, int] = {}
     kills: dict[int, int] = {}
     starts_failed = 0
@@ -524,7 +519,7 @@ def run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, p
             if i in solo and outstanding(w):
                 return
             pending.pop()
-            w.send(i, *todo[i])
+            w.send(i, *todo[i], unlimited=i in crashed)
 
     def finish(i, entry):
         finished.add(i)
@@ -583,10 +578,17 @@ def run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, p
                 timed_out.add(i)
                 solo.add(i)
                 pending.append(i)
+            elif event == "crash" and i in crashed:
+                record(i, "loader_crashed", f"{detail}, again when retried alone without the "
+                                            "data-segment limit")
+                continue
+            elif event == "crash":
+                crashed.add(i)                      # a failed allocation under RLIMIT_DATA can
+                solo.add(i)                         # kill native code: retry without it, alone
+                pending.append(i)
             elif len(active) == 1 or attempts[i] >= _MAX_KILLS:
-                record(i, "too_large" if event == "memory" else "loader_crashed",
-                       f"{detail} (the worker held only this mesh)" if len(active) == 1
-                       else f"{detail} ({attempts[i]} attempts)")
+                record(i, "too_large", f"{detail} (the worker held only this mesh)"
+                       if len(active) == 1 else f"{detail} ({attempts[i]} attempts)")
                 continue
             else:
                 solo.add(i)
@@ -597,15 +599,14 @@ def run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, p
         restart(w)
 
     def sample(w):
-        rss, hwm, data = _proc_memory_mb(w.proc.pid)
+        rss, hwm, _ = process_memory_mb(w.proc.pid)
         w.peak_mb = max(w.peak_mb, hwm)
-        w.data_mb = data or w.data_mb
         summary.peak_worker_mb = max(summary.peak_worker_mb, w.peak_mb)
         return rss
 
     def watch():
         """Sample memory (tree peak, worker peaks) and enforce the memory limit."""
-        tree = _proc_memory_mb(me)[0]
+        tree = process_memory_mb(me)[0]
         for w in list(pool):
             if not w.proc.is_alive():
                 continue
@@ -687,7 +688,7 @@ def run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, p
                     if w not in pool:
                         continue
                     if outstanding(w) or not w.ready:
-                        fail(w, *_death(w, memory_limit_mb))
+                        fail(w, *_death(w))
                     else:
                         restart(w)
                 elif not w.ready and now - w.born > startup_limit:
@@ -707,7 +708,7 @@ def run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, p
             w.stop(kill=len(finished) < len(todo))
 
 
-def _death(w: _Worker, memory_limit_mb: float) -> tuple[str, str]:
+def _death(w: _Worker) -> tuple[str, str]:
     """(event, detail) for a worker that died on its own: crash | memory | killed."""
     code = w.proc.exitcode
     if code == EXIT_MEMORY:
@@ -715,9 +716,6 @@ def _death(w: _Worker, memory_limit_mb: float) -> tuple[str, str]:
     if code is not None and code < 0:
         sig = signal.Signals(-code)
         if sig in _CRASH_SIGNALS:
-            if memory_limit_mb and w.data_mb >= 0.9 * (memory_limit_mb + DATA_HEADROOM_MB):
-                return "memory", (f"worker died ({sig.name}) at its memory limit "
-                                  f"({w.data_mb:.0f} MB data segment)")
             return "crash", f"worker process died ({sig.name})"
         return "killed", f"worker process killed by {sig.name}"
     return "crash", f"worker process exited with status {code}"

@@ -57,9 +57,9 @@ CODES: dict[str, Code] = {
                       "depth), or the mesh took more than the worker memory limit while it was "
                       "the only one in the worker"),
     "loader_crashed": Code(REJECTION, True,
-                           "the worker process crashed (a native library) while this mesh was "
-                           "the only one it was working on (a crash with two meshes in flight "
-                           "retries each alone first)"),
+                           "the worker process crashed (e.g. in a native library) on this mesh, "
+                           "then again when it was retried alone without the data-segment "
+                           "limit"),
     "timeout": Code(REJECTION, True,
                     "no progress on this mesh within --timeout, then again within twice that "
                     "with no other mesh in the worker"),
