@@ -41,7 +41,7 @@ from pathlib import Path
 ROOT = Path(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, str(ROOT))
 
-from tests.hostile_corpus import write_corpus  # noqa: E402
+from tests.hostile_corpus import remove_deep, write_corpus  # noqa: E402
 from tests.test_build import catalogue_content  # noqa: E402
 
 ENV = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -312,10 +312,13 @@ def main():
           " GiB")
     with tempfile.TemporaryDirectory(prefix="ucad-hostile-") as tmp:
         work = Path(tmp)
-        cases = corpus_build(work)
-        per_class(cases)
-        bombs(work / "corpus", args.cap_mb)
-        mechanisms(work / "corpus", args.limit_mb)
+        try:
+            cases = corpus_build(work)
+            per_class(cases)
+            bombs(work / "corpus", args.cap_mb)
+            mechanisms(work / "corpus", args.limit_mb)
+        finally:
+            remove_deep(work / "corpus")         # TemporaryDirectory's cleanup would recurse
         if args.skip_disk and args.skip_kill:
             return
         from ucad_cl.synth import write_library

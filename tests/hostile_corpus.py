@@ -380,3 +380,22 @@ def write_corpus(folder: str | os.PathLike, *, good: bool = True) -> list[Case]:
     add("deep_box.glb", "accepted", "filesystem", pack_glb(g, box_bin),
         sub=str(deep.relative_to(root)))
     return cases
+
+
+def remove_deep(folder: str | os.PathLike) -> None:
+    """Delete the corpus' 1,000-deep folder chain (``folder/d/d/...``) bottom-up, without
+    recursion: ``shutil.rmtree`` (and so pytest's and tempfile's cleanup) recurses per level and
+    fails on it."""
+    top = Path(folder) / "d"
+    chain = []
+    d = top
+    while d.is_dir() and not d.is_symlink():
+        chain.append(d)
+        d = d / "d"
+    for d in reversed(chain):
+        for entry in os.scandir(d):
+            if entry.is_dir(follow_symlinks=False):
+                os.rmdir(entry.path)
+            else:
+                os.unlink(entry.path)
+        os.rmdir(d)

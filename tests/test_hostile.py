@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.hostile_corpus import box_gltf, pack_glb, vehicle_glb, wrapped, write_corpus
+from tests.hostile_corpus import (box_gltf, pack_glb, remove_deep, vehicle_glb, wrapped,
+                                  write_corpus)
 from tests.test_build import catalogue_content
 from ucad_cl import reasons
 from ucad_cl.build import BuildOptions, BuildStopped, build, printable
@@ -35,7 +36,8 @@ CORPUS_SECONDS = 120            # stated limit for the whole corpus build (measu
 @pytest.fixture(scope="module")
 def corpus(tmp_path_factory):
     folder = tmp_path_factory.mktemp("hostile")
-    return folder, write_corpus(folder)
+    yield folder, write_corpus(folder)
+    remove_deep(folder)                     # pytest's own cleanup recurses per folder level
 
 
 def _rows(cat) -> dict:
