@@ -438,3 +438,45 @@ def test_info_names_the_device_and_why(capsys):
         # the chosen device is the best-ranked one that compiles: nothing better-ranked works
         better = [i for i in infos if device_rank(i) < device_rank(rt.info)]
         assert all("could not compile" in rt.why for _ in better)
+
+
+# ---------------------------------------------------------------------------- SCHEMA.md
+def _doc_tables(text: str) -> dict[str, list[list[str]]]:
+    """{heading: rows of the first markdown table after it} for '###' headings and the
+    'Meshes table' / 'Materials table' paragraphs of SCHEMA.md."""
+    import re
+
+    out, current = {}, None
+    for line in text.splitlines():
+        m = re.match(r"### `?([\w ]+?)`?(?: \(|$)", line)
+        if m or line.startswith(("Meshes table", "Materials table")):
+            current = m.group(1) if m else "export " + line.split(" table")[0].lower()
+            continue
+        if current and line.startswith("|") and not line.startswith("|---"):
+            cells = [c.strip() for c in line.strip().strip("|").split(" | ")]
+            if cells[0] not in ("column", "kind"):
+                out.setdefault(current, []).append(cells)
+    return out
+
+
+def test_schema_doc_matches_the_code(tmp_path):
+    """SCHEMA.md lists exactly the SQL columns (names and types), the artifact kinds and the
+    export columns the code defines: the two cannot drift apart."""
+    from ucad_catalog import Catalog
+    from ucad_catalog._db import ARTIFACT_KINDS, SCHEMA_VERSION
+    from ucad_catalog.export import MATERIAL_COLUMNS, MESH_COLUMNS
+
+    text = (ROOT / "ucad_catalog" / "SCHEMA.md").read_text(encoding="utf-8")
+    assert text.startswith(f"# Catalogue format — `schema_version` {SCHEMA_VERSION}")
+    doc = _doc_tables(text)
+    Catalog.open(tmp_path / "c").close()
+    con = sqlite3.connect(tmp_path / "c" / "catalog.sqlite")
+    for table in ("runs", "meshes", "materials", "views", "artifacts"):
+        actual = {r[1]: r[2] for r in con.execute(f"PRAGMA table_info({table})")}
+        documented = {c[0].strip("`"): c[1] for c in doc[table]}
+        assert documented == actual, table
+    con.close()
+    assert {c[0].strip("`"): c[1] for c in doc["Artifact kinds"]} == ARTIFACT_KINDS
+    for name, columns in (("export meshes", MESH_COLUMNS),
+                          ("export materials", MATERIAL_COLUMNS)):
+        assert [(c[0].strip("`"), c[1], c[2]) for c in doc[name]] == list(columns)

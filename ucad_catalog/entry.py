@@ -1,9 +1,9 @@
 """``CatalogEntry``: everything the catalogue stores about one mesh, as plain data.
 
 The build driver fills one entry per mesh and hands it to ``Catalog.commit_mesh``. Artifacts are
-``{kind: bytes | Path}``; a ``Path`` is copied into the object store. Usual kinds:
-``'views.exr'`` (view stack, ``ucad_catalog.exr``), ``'features.npy'`` ((V, D) float32),
-``'edges.png-sheet'``. Angles in degrees, K / w2c as in ``ucad_cl.artifacts`` (OpenCV camera,
+``{kind: bytes | Path}``; a ``Path`` is copied into the object store. The kinds the build
+writes are ``ucad_catalog._db.ARTIFACT_KINDS`` (``views.exr``, ``edges.npy.gz``,
+``features.npy``, ``parts.png``; SCHEMA.md). Angles in degrees, K / w2c as in ``ucad_cl.artifacts`` (OpenCV camera,
 canonical frame). ``CatalogEntry.from_results`` builds an entry from the pipeline dataclasses
 (duck-typed: this module does not import ``ucad_cl``).
 """

@@ -41,7 +41,7 @@ MESH_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("name", "string", "file name of the source"),
     ("size", "int64", "source file size, bytes"),
     ("mtime", "float64", "source file modification time, Unix seconds"),
-    ("state", "string", "accepted | rejected"),
+    ("state", "string", "accepted or rejected"),
     ("reason", "string", "rejection code ('' when accepted)"),
     ("detail", "string", "rejection detail, a sentence"),
     ("n_triangles", "int64", "triangles after ingest"),
@@ -70,7 +70,7 @@ MATERIAL_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("roughness", "float64", "roughness factor, null when unknown"),
     ("emissive", "list<float64>", "linear RGB emission, null when unknown"),
     ("transmission", "float64", "transmission factor, null when unknown"),
-    ("alpha_mode", "string", "OPAQUE | MASK | BLEND, null when unknown"),
+    ("alpha_mode", "string", "OPAQUE, MASK or BLEND; null when unknown"),
     ("has_texture", "bool", "the source material has a base colour texture, null when unknown"),
     ("props", "json", "every recorded material property (object)"),
 )
