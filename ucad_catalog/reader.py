@@ -414,17 +414,17 @@ class CatalogReader:
                          json.loads(r[15])) for r in rows]
 
     def _masks(self, sha: str, mat_id: np.ndarray) -> dict[str, np.ndarray]:
-        ids: dict[str, list[int]] = {}
-        for p in self.parts(sha):
-            ids.setdefault(p.part, []).append(p.index + 1)
-        lut_size = max(int(mat_id.max()) + 1 if mat_id.size else 1,
-                       max((i for v in ids.values() for i in v), default=0) + 1)
-        out = {}
-        for part, members in sorted(ids.items()):
-            lut = np.zeros(lut_size, bool)
-            lut[members] = True
-            out[part] = lut[mat_id]
-        return out
+        """{part: mat_id in the ids of that part's materials}: one table lookup per pixel
+        (material id -> part number), then one comparison per part."""
+        rows = self._conn.execute("SELECT idx, part FROM materials WHERE mesh_id=? ORDER BY idx",
+                                  (self._mesh_id(sha),)).fetchall()
+        names = sorted({part for _, part in rows})
+        top = max(int(mat_id.max()) if mat_id.size else 0, max((i for i, _ in rows), default=-1) + 1)
+        lut = np.zeros(top + 1, np.uint8)                # 0: background / unknown id
+        for idx, part in rows:
+            lut[idx + 1] = names.index(part) + 1
+        code = lut[mat_id]
+        return {part: code == k + 1 for k, part in enumerate(names)}
 
     def _image_width(self, sha: str) -> int:
         """Width of the views in pixels, from the view stack (its display window or shape)."""
