@@ -5,7 +5,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
-if ! .venv-catalog/bin/python -c "import ucad_catalog, numpy, OpenEXR, pyarrow" 2>/dev/null; then
+here=$(pwd)
+# (re)create it when missing, broken, or pointing at another checkout's ucad_catalog
+if ! .venv-catalog/bin/python -I -c "import sys, numpy, OpenEXR, pyarrow, ucad_catalog as u
+sys.exit(0 if u.__file__.startswith('$here/') else 1)" 2>/dev/null; then
   rm -rf .venv-catalog
   "$PY" -m venv .venv-catalog
   log=$(mktemp)
