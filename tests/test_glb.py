@@ -28,6 +28,45 @@ def glb_json(path: Path) -> dict:
     return json.loads(raw[20:20 + n])
 
 
+def check_gltf_rules(path: Path) -> None:
+    """The glTF 2.0 rules a validator checks for what we write (no Khronos validator installs
+    from PyPI): chunk layout and padding, buffer views inside the BIN chunk and 4-byte aligned,
+    accessor counts and types, POSITION min/max equal to the data, indices inside the vertices,
+    material / accessor references valid, extensions declared."""
+    raw = path.read_bytes()
+    doc = glb_json(path)
+    n_json = struct.unpack_from("<I", raw, 12)[0]
+    n_bin, kind = struct.unpack_from("<II", raw, 20 + n_json)
+    assert kind == 0x004E4942 and n_bin % 4 == 0 and 28 + n_json + n_bin == len(raw)
+    binary = raw[28 + n_json:]
+    assert doc["asset"]["version"] == "2.0" and doc["buffers"][0]["byteLength"] <= n_bin
+    sizes = {5126: (4, np.float32), 5125: (4, np.uint32)}
+    comps = {"SCALAR": 1, "VEC3": 3}
+    data = []
+    for acc in doc["accessors"]:
+        view = doc["bufferViews"][acc["bufferView"]]
+        size, dtype = sizes[acc["componentType"]]
+        assert view["byteOffset"] % 4 == 0
+        assert view["byteOffset"] + view["byteLength"] <= doc["buffers"][0]["byteLength"]
+        assert view["byteLength"] == acc["count"] * comps[acc["type"]] * size
+        data.append(np.frombuffer(binary, dtype, acc["count"] * comps[acc["type"]],
+                                  view["byteOffset"]).reshape(acc["count"], -1))
+    used = set()
+    for prim in doc["meshes"][0]["primitives"]:
+        pos, idx = data[prim["attributes"]["POSITION"]], data[prim["indices"]]
+        acc = doc["accessors"][prim["attributes"]["POSITION"]]
+        assert acc["min"] == pos.min(axis=0).tolist() and acc["max"] == pos.max(axis=0).tolist()
+        assert idx.size % 3 == 0 and idx.max() < len(pos) and prim["mode"] == 4
+        assert 0 <= prim["material"] < len(doc["materials"])
+        used |= set(doc["materials"][prim["material"]].get("extensions", {}))
+    declared = set(doc.get("extensionsUsed", []))
+    assert used <= declared and not set(doc.get("extensionsRequired", []))
+    for mat in doc["materials"]:
+        pbr = mat["pbrMetallicRoughness"]
+        assert all(0 <= x <= 1 for x in pbr.get("baseColorFactor", []) + [
+            pbr.get("metallicFactor", 1), pbr.get("roughnessFactor", 1)])
+
+
 def file_triangles(path) -> np.ndarray:
     """(F, 3, 3) float64 triangles of a mesh file in its file frame, via trimesh's scene graph."""
     import trimesh
@@ -103,6 +142,7 @@ def test_every_accepted_real_model_round_trips_with_parts(real_catalog, tmp_path
             from scipy.spatial import cKDTree
             err = cKDTree(pts).query(ours.reshape(-1, 3))[0].max() / diag
             worst = max(worst, err)
+            check_gltf_rules(glb)
             doc = glb_json(glb)
             parts = r.parts(m.sha256)
             assert [mt["name"] for mt in doc["materials"]] == [p.name for p in parts]
@@ -123,6 +163,7 @@ def test_part_materials_prior_and_transfer(real_catalog, tmp_path):
         target, donor = r.mesh("o3dv_car.glb"), r.mesh("ferrari_458.glb")
         assert main(["export-glb", target.sha256[:8], "--catalog", str(real_catalog),
                      "--out", str(out), "--part-materials", "--frame", "canonical"]) == 0
+        check_gltf_rules(out / "o3dv_car.glb")
         doc = glb_json(out / "o3dv_car.glb")
         parts = r.parts(target.sha256)
         seen = set()
