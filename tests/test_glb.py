@@ -97,7 +97,7 @@ def unmatched(ours: np.ndarray, source: np.ndarray, tol: float) -> int:
     from scipy.spatial import cKDTree
 
     tree = cKDTree(source.mean(axis=1))
-    k = min(6, len(source))                      # duplicates of one triangle are its neighbours
+    k = min(3, len(source))              # the match, or a duplicate of it, is among the nearest
     _, cand = tree.query(ours.mean(axis=1), k=k)
     cand = cand.reshape(len(ours), k)
     bad = 0

@@ -224,7 +224,8 @@ def mesh_records(conn: sqlite3.Connection, where: str = "", args: tuple = ()) ->
         rec["library_root"] = row[14]
         rec["orientation"] = json.loads(row[15]) if row[15] is not None else None
         rec["meta"] = json.loads(row[16])
-        rec["id"] = rec.pop("_rowid") and rec["sha256"]        # the public id is the content hash
+        del rec["_rowid"]                   # internal (commit order); the public id is the hash
+        rec["id"] = rec["sha256"]
         rec["materials"] = [
             {"index": r[0], "name": r[1], "part": r[2], "score": r[3], "iou": r[4], "view": r[5],
              "decision": r[6], "pixels": r[7], "props": json.loads(r[8])}
