@@ -7,7 +7,7 @@ Device choice, first match wins:
      that does. "Best" (``device_rank``): kernels compiled for a named CPU before a PoCL that
      compiles for the generic x86-64 target; then the newer PoCL, then the newer LLVM. Measured
      on this project's machine (AMD EPYC Zen 3, AVX2, 2 cores), Debian's PoCL 3.1 (LLVM 15)
-     ran the search kernel 6-7x and Canny 2.7-4.3x faster than the PoCL 3.0-rc2 (LLVM 14) that
+     ran the exact search kernel 8.2x and Canny 3.3-3.9x faster than the PoCL 3.0-rc2 (LLVM 14) that
      pyopencl's PyPI wheels bundle (``SLOW_POCL_COST``); ``slow_reason`` flags such a device
      and ``ucad-index info`` / the build say so, with the fix (``INSTALL_FAST``).
 
@@ -45,8 +45,8 @@ INSTALL_FAST = ("install Debian/Ubuntu's PoCL, built for this CPU family: "
                 "`apt-get install pocl-opencl-icd` (scripts/setup.sh does it); it is then "
                 "picked by default")
 # what a slow PoCL cost when measured (bench/search.py, bench/edges.py; README, "OpenCL runtime")
-SLOW_POCL_COST = ("measured on an AMD EPYC Zen 3 (AVX2): the search kernel 6-7x and Canny "
-                  "2.7-4.3x slower than Debian's PoCL 3.1; on an Intel AVX-512 machine 4.2x and "
+SLOW_POCL_COST = ("measured on an AMD EPYC Zen 3 (AVX2): the exact search kernel 8.2x and Canny "
+                  "3.3-3.9x slower than Debian's PoCL 3.1; on an Intel AVX-512 machine 4.2x and "
                   "2.5x")
 MIN_FAST_POCL = (3, 1)       # PoCL releases older than this measured slow (see SLOW_POCL_COST)
 
