@@ -94,6 +94,11 @@ for m in cat.meshes():
     assert np.array_equal(cat.edges(m.id), np.stack([arrays[f"{m.id}/edges/{i}"]
                                                      for i in range(len(views))]))
     rec["record_keys"] = sorted(cat.record(m.id))
+    e = cat.entry(m.name)
+    assert (e.id, e.info.path, [p.part for p in e.parts], len(e.views)) == \
+        (m.id, m.path, [p.part for p in cat.parts(m.id)], len(views))
+    assert all(p.is_file() for p in e.artifacts.values()) and e.orientation is None
+    rec["provenance"] = {k: v for k, v in e.provenance.items() if k != "run_started"}
     rec["artifact_kinds"] = sorted(cat.record(m.id)["artifacts"])
     out[m.id] = rec
 out["_rejected"] = [(m.path, m.reason) for m in cat.meshes("rejected")]
@@ -134,6 +139,9 @@ def test_reader_installed_alone_reads_every_artifact(built, tmp_path):
         assert rec["by_angle"][1] == 0 and rec["view_by_angle"] == rec["by_angle"][0]
         assert rec["artifact_kinds"] == ["edges.npy.gz", "features.npy", "parts.png",
                                          "views.exr"]
+        prov = rec["provenance"]
+        assert (prov["library_root"], prov["run_id"], prov["engine"]) == (str(lib), 1, "local")
+        assert prov["options"]["size"] == opts.size and prov["options"]["code"]
         lut = dict(ref["table"])
         for v in range(ring.n_views):
             assert np.array_equal(arrays[f"{sha}/mat/{v}"], views.mat_id[v])
@@ -212,6 +220,9 @@ def test_mesh_ids_prefixes_and_path_spellings(built, monkeypatch):
         with pytest.raises(CatalogError, match="no mesh matches"):
             r.mesh("nothing.glb")
         assert [x.sha256 for x in r.find(m.sha256[:8])] == [m.sha256]
+        with r.snapshot():                                           # snapshots nest
+            assert r.entry(m.sha256[:8]).info.sha256 == m.sha256
+            assert r.export(lib.parent / "nested.jsonl") == len(metas)
 
 
 def test_ambiguous_prefix_is_an_error_listing_the_matches(tmp_path):

@@ -6,6 +6,7 @@
     cat.parts(m.id)                           # material -> part table with properties
     v = cat.view(m.id, azimuth=90, elevation=15)   # the nearest view: maps, cameras, part masks
     cat.edges(m.id, v.view)                   # (H, W) bool Canny edges of that view
+    e = cat.entry(m.id[:8])                   # parts, cameras, artifacts, provenance at once
 
 **Mesh ids.** A mesh is named by its id, the sha256 of its source content, or any prefix of at
 least ``MIN_ID_PREFIX`` (8) hex digits; ``mesh(key)`` also takes the source path in any spelling
@@ -127,6 +128,29 @@ class ViewRecord:
     stats: dict = field(default_factory=dict)
 
 
+@dataclass
+class MeshEntry:
+    """Everything about one mesh in one object: ``info`` (MeshInfo: id, paths, state,
+    orientation, meta), ``parts`` (material -> part with properties), ``views`` (cameras),
+    ``artifacts`` {kind: object path} and ``provenance``: where the source was (library root,
+    path, size, mtime) and what made the row (options hash, the run's options including the code
+    version, engine, run start time)."""
+
+    info: MeshInfo
+    parts: list[PartRow]
+    views: list[ViewInfo]
+    artifacts: dict[str, Path]
+    provenance: dict
+
+    @property
+    def id(self) -> str:
+        return self.info.sha256
+
+    @property
+    def orientation(self) -> dict | None:
+        return self.info.orientation
+
+
 _STATES = ("accepted", "rejected", None)
 _MESH_COLUMNS = ("sha256, library_root, path, size, mtime, state, reason, detail, n_triangles, "
                  "n_materials, file_to_norm, options_hash, run_id, timings, orientation, meta")
@@ -163,7 +187,10 @@ class CatalogReader:
 
     @contextlib.contextmanager
     def snapshot(self) -> Iterator["CatalogReader"]:
-        """All reads inside the block see the same committed state."""
+        """All reads inside the block see the same committed state (blocks may nest)."""
+        if self._conn.in_transaction:
+            yield self
+            return
         self._conn.execute("BEGIN")
         try:
             yield self
@@ -214,6 +241,25 @@ class CatalogReader:
                 for r in self._conn.execute(
                     "SELECT name, part, score, iou, view, decision, pixels, idx, props "
                     "FROM materials WHERE mesh_id=? ORDER BY idx", (mid,))]
+
+    def entry(self, key: str) -> MeshEntry:
+        """The mesh ``key`` names with its part table, cameras, artifacts and provenance, read in
+        one snapshot."""
+        with self.snapshot():
+            info = self.mesh(key)
+            mid = self._mesh_id(info.sha256)
+            arts = {k: object_path(self.root, s) for k, s in self._conn.execute(
+                "SELECT kind, sha256 FROM artifacts WHERE mesh_id=? ORDER BY kind", (mid,))}
+            run = self._conn.execute("SELECT options, engine, started FROM runs WHERE id=?",
+                                     (info.run_id,)).fetchone()
+            provenance = {"library_root": info.library_root, "path": info.path,
+                          "size": info.size, "mtime": info.mtime,
+                          "options_hash": info.options_hash, "run_id": info.run_id,
+                          "options": json.loads(run[0]) if run else None,
+                          "engine": run[1] if run else None,
+                          "run_started": run[2] if run else None}
+            return MeshEntry(info, self.parts(info.sha256), self.views(info.sha256), arts,
+                             provenance)
 
     def record(self, key: str) -> dict:
         """The full plain record of one mesh (materials, views, artifacts as plain JSON)."""
