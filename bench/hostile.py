@@ -74,7 +74,7 @@ def corpus_build(work: Path):
     run, seconds = cli_build(lib, cat, "--workers", "2", "--timeout", "60",
                              "--memory-limit-mb", "2048")
     with CatalogReader(cat) as r:
-        rows = {m.path: m for m in r.meshes(state=None)}
+        rows = {str(m.source): m for m in r.meshes(state=None)}
     by_group: dict[str, list] = {}
     wrong = []
     for c in cases:

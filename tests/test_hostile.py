@@ -41,9 +41,10 @@ def corpus(tmp_path_factory):
 
 
 def _rows(cat) -> dict:
+    """Catalogued meshes by absolute source path (rows store it relative to the library)."""
     from ucad_catalog.reader import CatalogReader
     with CatalogReader(cat) as r:
-        return {m.path: m for m in r.meshes(state=None)}
+        return {str(m.source): m for m in r.meshes(state=None)}
 
 
 # ----------------------------------------------------------------------------- ingest level

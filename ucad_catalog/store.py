@@ -33,9 +33,8 @@ from typing import Any
 import numpy as np
 
 from ._db import (DB_NAME, FORMAT_NAME, LOCK_NAME, OBJECTS_DIR, SCHEMA_SQL, SCHEMA_VERSION,
-                  TMP_PREFIX,
-                  CatalogError, canonical_json, catalog_status, check_catalog_db, export_catalog,
-                  is_sha256, object_path, options_hash, printable, verify_catalog)
+                  TMP_PREFIX, CatalogError, canonical_json, catalog_status, check_catalog_db,
+                  is_sha256, mesh_records, object_path, options_hash, printable, verify_catalog)
 from .entry import CatalogEntry
 
 try:                                   # POSIX advisory lock for the single-writer rule
@@ -97,7 +96,7 @@ class Catalog:
                     conn.close()
                     raise CatalogError(f"not a ucad catalogue: {db} is empty")
                 _init_schema(conn)
-            check_catalog_db(conn, db)
+            check_catalog_db(conn, db, upgrade=True)
             conn.execute("PRAGMA journal_mode=WAL")
             conn.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
             conn.execute("PRAGMA foreign_keys=ON")
@@ -167,10 +166,13 @@ class Catalog:
                                (sha,)).fetchone()
         return row is None or row[0] != options_hash
 
-    def file_record(self, path: str | Path) -> tuple[str, int, float] | None:
-        """(sha256, size, mtime) last committed for ``path``, to skip re-hashing unchanged files."""
-        row = self._db.execute("SELECT sha256, size, mtime FROM meshes WHERE path=? "
-                               "ORDER BY id DESC LIMIT 1", (printable(str(path)),)).fetchone()
+    def file_record(self, path: str | Path,
+                    library_root: str = "") -> tuple[str, int, float] | None:
+        """(sha256, size, mtime) last committed for ``path`` (relative to ``library_root``), to
+        skip re-hashing unchanged files."""
+        row = self._db.execute("SELECT sha256, size, mtime FROM meshes WHERE library_root=? "
+                               "AND path=? ORDER BY id DESC LIMIT 1",
+                               (printable(str(library_root)), printable(str(path)))).fetchone()
         return None if row is None else (row[0], int(row[1]), float(row[2]))
 
     def mesh_verdict(self, sha: str) -> tuple[str, str, str] | None:
@@ -195,28 +197,35 @@ class Catalog:
         path = printable(entry.path)                        # text columns are valid UTF-8
         conn.execute("BEGIN IMMEDIATE")
         try:
+            root = printable(entry.library_root)
             old = conn.execute("SELECT DISTINCT a.sha256, a.bytes FROM artifacts a JOIN meshes m "
-                               "ON a.mesh_id=m.id WHERE (m.path=? AND m.sha256<>?) OR "
-                               "m.sha256=?", (path, entry.sha256, entry.sha256)).fetchall()
-            conn.execute("DELETE FROM meshes WHERE path=? AND sha256<>?",
-                         (path, entry.sha256))          # the file changed: old content out
+                               "ON a.mesh_id=m.id WHERE (m.library_root=? AND m.path=? AND "
+                               "m.sha256<>?) OR m.sha256=?",
+                               (root, path, entry.sha256, entry.sha256)).fetchall()
+            conn.execute("DELETE FROM meshes WHERE library_root=? AND path=? AND sha256<>?",
+                         (root, path, entry.sha256))          # changed file: old out
             values = (path, int(entry.size), float(entry.mtime), entry.state,
                       printable(entry.reason), printable(entry.detail), int(entry.n_triangles),
                       int(entry.n_materials), canonical_json(_floats(entry.file_to_norm)),
-                      opt_hash, self._run_id, printable(canonical_json(entry.timings)))
+                      opt_hash, self._run_id, printable(canonical_json(entry.timings)), root,
+                      None if entry.orientation is None
+                      else printable(canonical_json(entry.orientation)),
+                      printable(canonical_json(entry.meta)))
             row = conn.execute("SELECT id FROM meshes WHERE sha256=?",
                                (entry.sha256,)).fetchone()
             if row is None:
                 mid = conn.execute(
                     "INSERT INTO meshes (path, size, mtime, state, reason, detail, n_triangles, "
-                    "n_materials, file_to_norm, options_hash, run_id, timings, sha256) "
-                    "VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)", values + (entry.sha256,)).lastrowid
+                    "n_materials, file_to_norm, options_hash, run_id, timings, library_root, "
+                    "orientation, meta, sha256) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    values + (entry.sha256,)).lastrowid
             else:                                              # re-processed: keep the id
                 mid = row[0]
                 conn.execute(
                     "UPDATE meshes SET path=?, size=?, mtime=?, state=?, reason=?, detail=?, "
                     "n_triangles=?, n_materials=?, file_to_norm=?, options_hash=?, run_id=?, "
-                    "timings=? WHERE id=?", values + (mid,))
+                    "timings=?, library_root=?, orientation=?, meta=? WHERE id=?",
+                    values + (mid,))
                 for table in ("materials", "views", "artifacts"):
                     conn.execute(f"DELETE FROM {table} WHERE mesh_id=?", (mid,))
             conn.executemany(
@@ -251,10 +260,19 @@ class Catalog:
         """Counts by state and by rejection reason, object totals, and the last run."""
         return catalog_status(self._db, self.root)
 
-    def export(self, path: str | Path, format: str = "jsonl") -> int:
-        """Write one record per mesh (ordered by id) to ``path``; returns the record count.
-        See ``ucad_catalog._db.export_catalog`` (also what ``CatalogReader.export`` runs)."""
-        return export_catalog(self._db, path, format)
+    def export(self, path: str | Path, format: str | None = None) -> int:
+        """Write the meshes table to ``path`` and the materials table beside it; returns the
+        mesh count. Format from ``format`` or the suffix (.parquet / .jsonl); see
+        ``ucad_catalog.export``."""
+        from .export import format_for, write_export
+
+        format_for(path, format)                    # a bad format fails before any reading
+        self._db.execute("BEGIN")                   # one consistent snapshot
+        try:
+            records = mesh_records(self._db)
+        finally:
+            self._db.execute("COMMIT")
+        return write_export(records, path, format)
 
     def gc(self) -> dict:
         """Delete objects no artifact row references and leftover temporary files."""

@@ -135,6 +135,9 @@ class BuildSummary:
     peak_worker_mb: float = 0.0
     memory_limit_mb: float = 0.0
     superseded_mb: float = 0.0          # objects replaced in this run, reclaimed by gc
+    examples: dict = field(default_factory=dict)      # reason -> first few rejected paths
+    log_path: str = ""                                # this run's log (every commit, reasons)
+    library_root: str = ""
 
     @property
     def processed(self) -> int:
@@ -202,16 +205,23 @@ def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None,
 
     ``library`` is a folder tree (every entry with a supported suffix that is not a directory:
     FIFOs, devices, dangling symlinks and symlink loops included, so each is recorded with its
-    reason; hidden names are skipped; symlinked folders are not followed), or a manifest file
-    (.txt: one path per line; .json: a list of paths or ``{"paths": [...]}``), paths relative to
-    the manifest's folder. ``uids`` keeps only files whose stem is in it (e.g. Objaverse uids of
-    vehicle categories). Only ``stat`` is used: nothing is opened. ``log`` gets a line for each
-    folder that cannot be listed.
+    reason; hidden names are skipped; symlinked folders are not followed; an Objaverse layout
+    ``glbs/<shard>/<uid>.glb`` is such a tree), a single mesh file, or a manifest file (.txt:
+    one path per line; .json: a list of paths or ``{"paths": [...]}``), paths relative to the
+    manifest's folder. ``uids`` keeps only files whose stem is in it (e.g. Objaverse uids of
+    vehicle categories). Only ``stat`` is used on mesh files: nothing is opened. ValueError
+    naming the file for a manifest that is not a regular text / JSON file; ``log`` gets a line
+    for each folder that cannot be listed.
     """
     root = Path(library)
     if not root.exists():
         raise FileNotFoundError(f"library {root} does not exist")
-    paths = _tree_paths(root, log) if root.is_dir() else _manifest_paths(root)
+    if root.is_dir():
+        paths = _tree_paths(root, log)
+    elif root.suffix.lower() in SUPPORTED_SUFFIXES:
+        paths = [root]                                 # one mesh: a library of one
+    else:
+        paths = _manifest_paths(root)
     if uids is not None:
         keep = set(uids)
         paths = [p for p in paths if p.stem in keep]
@@ -268,24 +278,26 @@ def _manifest_paths(manifest: Path) -> list[Path]:
     shown = printable(str(manifest))
     st = manifest.stat()
     if not stat_.S_ISREG(st.st_mode):
-        raise ValueError(f"library {shown} is neither a folder nor a regular manifest file")
-    if manifest.suffix.lower() in SUPPORTED_SUFFIXES:
-        raise ValueError(f"library {shown} is a mesh file: give its folder, or a manifest "
-                         "(.txt: one path per line, .json: a list of paths)")
+        raise ValueError(f"{shown}: not a mesh folder, a mesh file "
+                         f"({', '.join(SUPPORTED_SUFFIXES)}) or a manifest (.txt one path "
+                         "per line, .json list of paths): not a regular file")
     if st.st_size > MAX_MANIFEST_BYTES:
         raise ValueError(f"manifest {shown} has {st.st_size} bytes, more than "
                          f"{MAX_MANIFEST_BYTES}")
     try:
         text = manifest.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
-        raise ValueError(f"manifest {printable(str(manifest))} is not UTF-8 text ({e.reason} at "
+        raise ValueError(f"{shown}: not a mesh folder, a mesh file "
+                         f"({', '.join(SUPPORTED_SUFFIXES)}) or a manifest (.txt one path "
+                         f"per line, .json list of paths): not UTF-8 text ({e.reason} at "
                          f"byte {e.start})") from None
     if manifest.suffix.lower() == ".json":
         try:
             data = json.loads(text)
         except (json.JSONDecodeError, RecursionError) as e:
-            raise ValueError(f"manifest {printable(str(manifest))} is not valid JSON: {e}"
-                             ) from None
+            raise ValueError(f"{shown}: not a mesh folder, a mesh file "
+                             f"({', '.join(SUPPORTED_SUFFIXES)}) or a manifest (.txt one path "
+                             f"per line, .json list of paths): {e}") from None
         items = data.get("paths", []) if isinstance(data, dict) else data
         if not isinstance(items, list):
             raise ValueError(f"manifest {printable(str(manifest))}: expected a list of paths or "
@@ -299,17 +311,47 @@ def _manifest_paths(manifest: Path) -> list[Path]:
     return [(manifest.parent / p) if not Path(p).is_absolute() else Path(p) for p in items]
 
 
+def library_root(library: str | os.PathLike) -> str:
+    """The absolute folder a library's paths are recorded relative to: the folder itself, or
+    the folder holding the manifest / the single mesh file."""
+    p = os.path.abspath(library)
+    return p if os.path.isdir(p) else os.path.dirname(p)
+
+
+def relative_path(path: str | os.PathLike, root: str) -> str:
+    """``path`` relative to ``root`` with '/' separators; absolute when it lies outside."""
+    p = os.path.abspath(path)
+    if p == root or not p.startswith(root.rstrip(os.sep) + os.sep):
+        return Path(p).as_posix()
+    return Path(os.path.relpath(p, root)).as_posix()
+
+
+UID_COLUMNS = ("uid", "uids", "id", "file_identifier", "fileIdentifier")
+
+
 def read_uid_list(path: str | os.PathLike, categories: Iterable[str] | None = None) -> list[str]:
-    """Uids from a text file (one per line) or an Objaverse-style annotations JSON
-    (``{uid: {"name", "categories": [{"name": ...}], "tags": [{"name": ...}], ...}}``: its keys).
-    ``categories`` keeps only annotated uids with a category or tag of one of these names
-    (case-insensitive), e.g. ``("car", "vehicle", "truck")``."""
+    """Uids from a text file (one per line), a Parquet table (column ``uid``, or the first of
+    ``UID_COLUMNS``; needs pyarrow) or an Objaverse-style annotations JSON (``{uid: {"name",
+    "categories": [{"name": ...}], "tags": [{"name": ...}], ...}}``: its keys). ``categories``
+    keeps only annotated uids with a category or tag of one of these names (case-insensitive),
+    e.g. ``("car", "vehicle", "truck")``. ValueError naming the file when it is none of these."""
     p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"uid list {p} does not exist")
+    if p.suffix.lower() in (".parquet", ".pq"):
+        if categories:
+            raise ValueError(f"{p}: --categories needs an annotations JSON, not a Parquet table")
+        return _parquet_uids(p)
+    try:
+        text = p.read_text(encoding="utf-8")
+        data = json.loads(text) if p.suffix.lower() == ".json" else None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{p}: not a uid list (text, one uid per line), a Parquet table "
+                         f"(.parquet, column 'uid') or an annotations JSON: {exc}") from None
     if p.suffix.lower() != ".json":
         if categories:
             raise ValueError(f"{p}: --categories needs an annotations JSON, not a uid list")
-        return [ln.strip() for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
-    data = json.loads(p.read_text(encoding="utf-8"))
+        return [ln.strip() for ln in text.splitlines() if ln.strip()]
     if not isinstance(data, dict):
         if categories:
             raise ValueError(f"{p}: --categories needs annotations ({{uid: {{...}}}}), got a list")
@@ -324,6 +366,25 @@ def read_uid_list(path: str | os.PathLike, categories: Iterable[str] | None = No
 
     return [uid for uid, ann in data.items() if isinstance(ann, dict)
             and want & set(names(ann.get("categories"))) | want & set(names(ann.get("tags")))]
+
+
+def _parquet_uids(p: Path) -> list[str]:
+    try:
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise ValueError(f"{p}: reading a Parquet uid table needs pyarrow (pip install pyarrow); "
+                         "or give a text file with one uid per line") from None
+    try:
+        schema = pq.read_schema(p)
+    except Exception as exc:                # pyarrow raises ArrowInvalid and OSError subclasses
+        raise ValueError(f"{p}: not a readable Parquet file ({exc})") from None
+    column = next((c for c in UID_COLUMNS if c in schema.names), None)
+    if column is None:
+        raise ValueError(f"{p}: no uid column (looked for {', '.join(UID_COLUMNS)}; the table has "
+                         f"{', '.join(schema.names[:12])})")
+    values = pq.read_table(p, columns=[column]).column(column).to_pylist()
+    # Objaverse file identifiers are URLs ending in <uid>.glb: keep the stem
+    return [Path(str(v)).stem if "/" in str(v) else str(v) for v in values if v is not None]
 
 
 def content_sha256(path: str | os.PathLike) -> str:
@@ -604,18 +665,20 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     refs = discover(library, uids=uids, log=log)
     if limit:
         refs = refs[:limit]
-    summary = BuildSummary(run_id=0, discovered=len(refs), memory_limit_mb=memory_limit_mb)
+    root = library_root(library)          # paths are recorded relative to it (absolute root)
+    summary = BuildSummary(run_id=0, discovered=len(refs), memory_limit_mb=memory_limit_mb,
+                           library_root=root)
     staging = Path(catalog) / "staging"
     cat = sink = None
     try:
         try:
             cat = Catalog.open(catalog, create=True)
             summary.run_id = cat.begin_run({**options.to_dict(), "code": CODE_VERSION}, engine)
-            todo = _plan(cat, refs, retry, summary)
+            todo = _plan(cat, refs, root, retry, summary)
             log(f"{len(refs)} meshes found, {summary.skipped} unchanged (skipped), "
                 f"{len(todo)} to process with the {engine} engine")
             sink = _Sink(cat, summary, Path(catalog) / "logs" / f"run-{summary.run_id:05d}.log",
-                         len(todo))
+                         len(todo), root)
             sink.log.write(f"run {summary.run_id} engine={engine} workers={workers} "
                            f"found={len(refs)} skipped={summary.skipped} todo={len(todo)} "
                            f"memory_limit_mb={memory_limit_mb:.0f} retry={list(retry)} "
@@ -675,15 +738,16 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     return summary
 
 
-def _plan(cat, refs: list[MeshRef], retry: tuple, summary: BuildSummary) -> list:
+def _plan(cat, refs: list[MeshRef], root: str, retry: tuple, summary: BuildSummary) -> list:
     """(MeshRef, force) for every file to hand to a worker; unchanged ones are counted skipped.
 
-    Unchanged = same (size, mtime) as the last commit of the path, content recorded with this
-    run's options hash, and not a rejection whose reason is being retried (``force``)."""
+    Unchanged = same (size, mtime) as the last commit of the path (relative to the library
+    ``root``), content recorded with this run's options hash, and not a rejection whose reason
+    is being retried (``force``)."""
     ohash = cat.run_options_hash
     todo = []
     for ref in refs:
-        rec = cat.file_record(ref.path)
+        rec = cat.file_record(relative_path(ref.path, root), root)
         if not (rec and rec[1] == ref.size and rec[2] == ref.mtime):
             todo.append((ref, False))               # new or changed: a worker decides
             continue
@@ -701,13 +765,15 @@ class _Sink:
     """Where the engines' results go: commits to the catalogue (an environment fault becomes
     ``BuildStopped`` naming the mesh), the summary's counts, and the run log."""
 
-    def __init__(self, cat, summary: BuildSummary, log_path: Path, todo: int):
-        self.cat, self.summary, self.todo = cat, summary, todo
+    def __init__(self, cat, summary: BuildSummary, log_path: Path, todo: int, root: str):
+        self.cat, self.summary, self.todo, self.root = cat, summary, todo, root
         self.log = RunLog(log_path)
+        summary.log_path = str(log_path)
         self.worker_skips = 0                      # paths whose content was already catalogued
 
     def commit(self, entry) -> None:
         s = self.summary
+        entry.library_root, entry.path = self.root, relative_path(entry.path, self.root)
         try:
             self.cat.commit_mesh(entry, move_files=True)
         except (OSError, sqlite3.Error) as exc:
@@ -728,6 +794,9 @@ class _Sink:
             s.rejected += 1
             s.reasons[entry.reason] = s.reasons.get(entry.reason, 0) + 1
             s.failed += entry.reason == "pipeline_error"
+            examples = s.examples.setdefault(entry.reason, [])
+            if len(examples) < 3:
+                examples.append(printable(entry.path))
         for k, v in (entry.timings or {}).items():
             s.stage_seconds[k] = s.stage_seconds.get(k, 0.0) + v
 
@@ -778,6 +847,7 @@ class RunLog:
     silences it (the build reports that itself)."""
 
     def __init__(self, path: Path):
+        self.path = path
         self._f = None
         try:
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -11,21 +11,24 @@ def register(sub) -> None:
     p = sub.add_parser(
         "build", help="build or update the part-labelled catalogue from a mesh library",
         description="Discover meshes in LIBRARY (a folder tree of GLB/glTF/OBJ/PLY/OFF/STL files, an "
-                    "Objaverse-style glbs/<shard>/<uid>.glb tree, or a manifest .txt/.json of paths), "
+                    "Objaverse-style glbs/<shard>/<uid>.glb tree, a single mesh file, or a manifest "
+                    ".txt/.json of paths; paths are recorded relative to the library folder, whose "
+                    "absolute path is recorded too), "
                     "filter them, render 360-degree material-index views, Canny edges, segment parts, "
                     "label every material with a part, compute pose features, and commit each mesh "
                     "atomically to the catalogue. Safe to interrupt (even kill -9): run it again to "
                     "continue. Unchanged meshes are skipped; changed files and changed options are "
                     "re-processed. A bad mesh is a recorded rejection with a reason code (listed in "
-                    "docs/CONVENTIONS.md), not a failure. Files are untrusted: a worker reads, "
-                    "hashes and parses each one under --timeout and --memory-limit-mb, with "
-                    "budgets checked before allocation. Exit status: 0 every mesh has a verdict; "
-                    "1 some meshes hit an internal error (reason pipeline_error); 2 the build "
-                    "could not run or stopped on an environment fault (disk full, I/O error, "
-                    "workers killed from outside, another build holding the catalogue): the "
-                    "message says what to fix, nothing was recorded for the meshes in flight, "
-                    "and running the same command again continues.")
-    p.add_argument("library", type=Path, help="library folder or manifest file")
+                    "docs/CONVENTIONS.md), not a failure: the summary lists rejections by reason "
+                    "with example files and the run log's path. Files are untrusted: a worker "
+                    "reads, hashes and parses each one under --timeout and --memory-limit-mb, "
+                    "with budgets checked before allocation. Exit status: 0 every mesh has a "
+                    "verdict; 1 some meshes hit an internal error (reason pipeline_error); 2 the "
+                    "build could not run or stopped on an environment fault (disk full, I/O "
+                    "error, workers killed from outside, another build holding the catalogue): "
+                    "the message says what to fix, nothing was recorded for the meshes in "
+                    "flight, and running the same command again continues.")
+    p.add_argument("library", type=Path, help="library folder, a mesh file, or a manifest file")
     p.add_argument("--catalog", required=True, type=Path, metavar="PATH", help="catalogue folder")
     p.add_argument("--workers", type=int, default=1,
                    help="pipeline worker processes (each gets cores/workers OpenCL threads; default 1)")
@@ -46,7 +49,8 @@ def register(sub) -> None:
     p.add_argument("--no-features", action="store_true", help="skip pose features")
     p.add_argument("--no-edges", action="store_true", help="skip Canny edge maps")
     p.add_argument("--uids", type=Path, default=None, metavar="FILE",
-                   help="keep only meshes whose file stem is listed (text, or annotations JSON keys)")
+                   help="keep only meshes whose file stem is listed: a text file (one uid per "
+                        "line), a Parquet table (column 'uid'), or an annotations JSON (its keys)")
     p.add_argument("--categories", nargs="+", default=None, metavar="NAME",
                    help="with an annotations JSON as --uids: keep uids with one of these "
                         "category or tag names (e.g. car vehicle truck)")
@@ -66,6 +70,9 @@ def register(sub) -> None:
                    help="re-process recorded rejections with these reason codes even though "
                         "file and options are unchanged (no code: timeout, loader_crashed, "
                         "too_large, pipeline_error)")
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress bar and no summary: only warnings and errors (stderr); the "
+                        "run log still records everything")
     add_camera_args(p)
     p.set_defaults(func=run)
 
@@ -83,11 +90,12 @@ def options_from_args(args):
 
 
 def run(args) -> int:
-    from ucad_catalog._db import CatalogError
+    from ucad_catalog import CatalogError
 
     from .. import reasons
     from ..build import BuildStopped, build, printable, read_uid_list
 
+    say = (lambda *a, **k: None) if args.quiet else print
     try:
         opts = options_from_args(args)
         if args.categories and not args.uids:
@@ -100,25 +108,43 @@ def run(args) -> int:
                 raise ValueError(f"--retry-failed: {', '.join(bad)} is not a rejection reason "
                                  f"code (codes: {', '.join(reasons.of_kind(reasons.REJECTION))})")
         uids = read_uid_list(args.uids, args.categories) if args.uids else None
+        if args.engine == "local":
+            report_device(say)
         summary = build(args.library, args.catalog, opts, workers=args.workers,
                         engine=args.engine, ray_address=args.address, uids=uids,
-                        limit=args.limit, timeout=args.timeout, retry_failed=retry,
-                        memory_limit_mb=args.memory_limit_mb)
+                        limit=args.limit, timeout=args.timeout, progress=not args.quiet,
+                        log=say, retry_failed=retry, memory_limit_mb=args.memory_limit_mb)
     except BuildStopped as stop:
-        if stop.summary is not None:
+        if stop.summary is not None and not args.quiet:
             print_summary(stop.summary, args.catalog)
         print(f"error: {stop}", file=sys.stderr)
         return 2
     except (FileNotFoundError, ValueError, CatalogError) as exc:
         print(f"error: {printable(str(exc))}", file=sys.stderr)
         return 2
-    print_summary(summary, args.catalog)
+    if not args.quiet:
+        print_summary(summary, args.catalog)
     if summary.failed:
         print(f"error: {summary.failed} meshes failed with an internal error (pipeline_error): "
               f"see `ucad-index status --catalog {args.catalog}` and the run log; after a fix, "
               "`--retry-failed pipeline_error` re-processes them", file=sys.stderr)
         return 1
     return 0
+
+
+def report_device(say) -> None:
+    """Say which OpenCL device the workers will use; warn (stderr, even with --quiet) when it is
+    a PoCL known to be slow, with the measured cost and the fix."""
+    from ..runtime import OpenCLUnavailable, pick_device_info, slow_device_warning
+
+    try:
+        info, why = pick_device_info()
+    except OpenCLUnavailable as exc:
+        raise ValueError(str(exc)) from None
+    say(f"OpenCL device {info.spec}: {info.summary()} ({why})")
+    warning = slow_device_warning(info)
+    if warning:
+        print(warning, file=sys.stderr)
 
 
 def print_summary(s, catalog) -> None:
@@ -132,7 +158,15 @@ def print_summary(s, catalog) -> None:
           f"{s.memory_limit_mb:.0f} MB per worker)" + (f"; {s.retried} attempts retried after a "
                                                        "worker failure" if s.retried else ""))
     if s.reasons:
-        print("rejections: " + ", ".join(f"{k} {v}" for k, v in sorted(s.reasons.items())))
+        print(f"rejected {s.rejected} mesh(es), by reason (ucad-index status --catalog "
+              f"{catalog} lists them all):")
+        for reason, n in sorted(s.reasons.items(), key=lambda kv: (-kv[1], kv[0])):
+            shown = ", ".join(s.examples.get(reason, []))
+            more = f", ... ({n - len(s.examples.get(reason, []))} more)" if n > len(
+                s.examples.get(reason, [])) else ""
+            print(f"  {reason:<24} {n:>5}  {shown}{more}")
+    if s.log_path:
+        print(f"run log (every mesh, reasons, timings): {s.log_path}")
     if s.stage_seconds:
         tot = sum(s.stage_seconds.values()) or 1.0
         print("time per stage: " + ", ".join(f"{k} {v:.1f}s ({100 * v / tot:.0f}%)"
@@ -142,4 +176,4 @@ def print_summary(s, catalog) -> None:
         print(f"{s.superseded_mb:.1f} MiB of replaced artifacts are no longer referenced: "
               f"`ucad-index gc --catalog {catalog}` deletes them")
     print(f"catalogue: {catalog}   (ucad-index status --catalog {catalog}; "
-          f"ucad-index show ID --catalog {catalog})")
+          f"ucad-index show ID|PATH|NAME --catalog {catalog})")
