@@ -1,7 +1,7 @@
 """Hostile libraries: verdicts, memory per case class, the memory-limit mechanisms, disk full and
 SIGKILL outcomes, in one run.
 
-1. corpus build: the whole hostile corpus (``tests/hostile_corpus.py``: 78 files, 7 classes)
+1. corpus build: the whole hostile corpus (``tests/hostile_corpus.py``: 79 files, 7 classes)
    in one library with good vehicles, built by the CLI (``--workers 2``); verdicts against the
    corpus' expectations, wall time, exit status, peak memory of the driver, the largest worker
    and the process tree (from the build's own summary line).

@@ -1,6 +1,6 @@
 """Hostile input, budgets, memory limits, full disks, killed workers, readers without the lock.
 
-The corpus (``tests/hostile_corpus.py``, 78 files of 7 kinds of trouble) is built in one library
+The corpus (``tests/hostile_corpus.py``, 79 files in 7 classes) is built in one library
 with good vehicles: every good mesh accepted, every bad one rejected with the reason the corpus
 names, the driver under 300 MB, workers under their limit, the exit status telling the truth.
 """
@@ -64,6 +64,7 @@ def test_every_bad_file_gets_its_reason_at_ingest(corpus):
         except IngestError as e:
             assert expect_fail.get(c.name) == e.reason, (c.name, str(e))
             assert printable(c.path.name) in printable(str(e))
+            assert not re.search(r":\s*\[\w+\]$", str(e)), str(e)   # never an empty message
             continue
         assert c.name not in expect_fail, (c.name, "loaded")
         assert np.isfinite(mesh.vertices).all() and np.isfinite(mesh.file_to_norm).all()
@@ -195,6 +196,9 @@ def test_manifest_lines_are_untrusted_too(tmp_path, runtime):
     (lib / "bad.json").write_text(json.dumps({"paths": [5]}))
     with pytest.raises(ValueError, match="entry 0"):
         build(lib / "bad.json", tmp_path / "cat2", OPTS, **QUIET)
+    with pytest.raises(ValueError, match="not a regular file"):     # never read as a manifest
+        build("/dev/zero", tmp_path / "cat3", OPTS, **QUIET)
+    assert not (tmp_path / "cat2").exists() and not (tmp_path / "cat3").exists()
 
 
 def test_memory_limit_turns_an_overrun_into_too_large(corpus, tmp_path, runtime):
@@ -349,12 +353,20 @@ def small_library(tmp_path_factory):
     return out
 
 
+def _export(cat, out: Path) -> bytes:
+    """The catalogue's jsonl export (no run ids or times: equal content gives equal bytes)."""
+    from ucad_catalog.reader import CatalogReader
+    with CatalogReader(cat) as r:
+        r.export(out)
+    return out.read_bytes() + out.with_name(out.stem + ".materials.jsonl").read_bytes()
+
+
 @pytest.fixture(scope="module")
 def small_expected(small_library, tmp_path_factory, runtime):
-    """The catalogue content of an undisturbed build of ``small_library``."""
+    """(catalogue content, export bytes) of an undisturbed build of ``small_library``."""
     ref = tmp_path_factory.mktemp("small_ref") / "cat"
     build(small_library, ref, OPTS, **QUIET)
-    return catalogue_content(ref)
+    return catalogue_content(ref), _export(ref, ref.parent / "ref.jsonl")
 
 
 def _cli(library, cat, *extra):
@@ -397,7 +409,8 @@ def test_disk_full_stops_cleanly_and_the_next_run_completes(small_library, small
     run = subprocess.run(_cli(small_library, cat), env=env, capture_output=True, text=True,
                          timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
-    assert catalogue_content(cat) == small_expected   # nothing recorded as a verdict on a mesh
+    assert catalogue_content(cat) == small_expected[0]    # nothing recorded against a mesh
+    assert _export(cat, tmp_path / "x.jsonl") == small_expected[1]
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
         assert c.verify() == []
@@ -438,7 +451,8 @@ def test_sigkill_of_single_workers_leaves_an_identical_catalogue(small_library, 
         assert proc.returncode == 2 and "killed from outside" in err, err[-2000:]
         assert rounds < 4
     assert kills >= 3, kills                          # the build outlived most of the kills
-    assert catalogue_content(cat) == small_expected
+    assert catalogue_content(cat) == small_expected[0]
+    assert _export(cat, tmp_path / "x.jsonl") == small_expected[1]
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
         assert c.verify() == []
