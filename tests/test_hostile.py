@@ -219,6 +219,19 @@ def test_memory_limit_turns_an_overrun_into_too_large(corpus, tmp_path, runtime)
     assert s.peak_rss_mb < 900 + 1024 + 600           # the tree never got near the bomb's need
 
 
+def test_a_memory_limit_no_worker_can_meet_stops_the_build(corpus, tmp_path, runtime):
+    """Workers over the limit before touching any mesh are not the meshes' fault: after three in
+    a row the build stops with worker_start_failed and records nothing."""
+    folder, _ = corpus
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    shutil.copy(folder / "good_3.glb", lib / "a.glb")
+    with pytest.raises(BuildStopped, match="memory-limit-mb") as e:
+        build(lib, tmp_path / "cat", OPTS, memory_limit_mb=20, **QUIET)
+    assert e.value.code == "worker_start_failed" and e.value.summary.processed == 0
+    assert _rows(tmp_path / "cat") == {}
+
+
 def test_flat_mesh_views_that_see_nothing(tmp_path, runtime):
     """A flat two-material plane seen edge-on at azimuth 0 and 180: every stage survives, the
     empty views get zero feature rows and box side 0."""

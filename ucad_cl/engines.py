@@ -522,8 +522,10 @@ def run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, p
             w.send(i, *todo[i], unlimited=i in crashed)
 
     def finish(i, entry):
+        nonlocal starts_failed
         finished.add(i)
-        commit(entry)
+        starts_failed = 0                           # workers do work: earlier failures were not
+        commit(entry)                               # about starting
         bar.update(1)
 
     def record(i, reason, detail):
@@ -544,14 +546,17 @@ def run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, p
         sample(w)
         w.stop(kill=True)
         held = outstanding(w)
-        if not w.ready:
+        active = [i for i in held if i in w.started]
+        if not w.ready or (not active and event != "killed"):
+            # failed before working on any mesh: not a mesh's fault; three in a row (without a
+            # mesh finishing in between) stop the build instead of restarting workers forever
             starts_failed += 1
-            runlog.write(f"worker {w.wid} failed to start ({detail}), attempt {starts_failed}")
+            runlog.write(f"worker {w.wid} failed before any mesh ({event}: {detail}), "
+                         f"{starts_failed} in a row")
             if starts_failed >= _MAX_STARTS_FAILED:
                 raise BuildStopped("worker_start_failed",
-                                   f"a worker process failed to start {starts_failed} times "
-                                   f"(last: {detail})")
-        active = [i for i in held if i in w.started]
+                                   f"workers failed {starts_failed} times in a row before "
+                                   f"working on any mesh (last: {event}: {detail})")
         if event == "crash":
             running = {w.state[0], w.state[1]} - {-1}
             active = [i for i in held if i in running] or active
