@@ -28,7 +28,9 @@ Untrusted libraries (decisions; reason codes in ``ucad_cl/reasons.py``)
   while a pause of the machine or a stopped worker costs one retry. A worker killed from
   outside (SIGKILL, SIGTERM: the OOM killer, a user) is an environment fault: its meshes are
   retried, and a mesh held by three killed workers stops the build (``worker_killed``),
-  recording nothing.
+  recording nothing. Failures before a worker started any mesh (it cannot start, or is over
+  its memory limit at idle) are nobody's verdict; three in a row stop the build
+  (``worker_start_failed``).
 * Environment faults (``disk_full``, ``io_error`` on the catalogue or staging side,
   ``worker_killed``) raise ``BuildStopped``: workers are stopped, nothing is recorded for the
   meshes in flight, and the message says what to free or fix; the next run continues.
