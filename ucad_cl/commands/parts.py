@@ -1,7 +1,7 @@
 """``ucad-index parts MESH...``: material -> part table of meshes (segment + IoU classification).
 
-Per mesh: render the camera ring, segment the views (``--segmenter prior`` (default, offline),
-``masks DIR`` or ``onnx MODEL``), classify every material, print the table and write
+Per mesh: render the camera ring, segment the views (``--segmenter labeller`` (default, offline:
+the learned per-material labeller), ``prior``, ``masks DIR`` or ``onnx MODEL``), classify every material, print the table and write
 ``OUT/NAME.parts.csv``, ``OUT/NAME.parts.json`` and ``OUT/NAME.parts.png`` (the views coloured by
 the decided part: a fixed colour per part, legend on the right).
 """
@@ -15,7 +15,8 @@ from pathlib import Path
 
 from .render import add_camera_args, ring_from_args
 
-COLUMNS = ("material", "name", "part", "score", "iou", "view", "decision", "pixels")
+COLUMNS = ("material", "name", "part", "score", "iou", "view", "decision", "pixels", "prob",
+           "split")
 
 
 def register(sub) -> None:
@@ -31,8 +32,10 @@ def register(sub) -> None:
                         "none = every accepted mesh)")
     p.add_argument("--catalog", type=Path, default=None, metavar="PATH",
                    help="print the stored material -> part tables of a catalogue instead")
-    p.add_argument("--segmenter", nargs="+", default=["prior"], metavar="KIND",
-                   help="'prior' (default: names, properties, geometry; no model), "
+    p.add_argument("--segmenter", nargs="+", default=["labeller"], metavar="KIND",
+                   help="'labeller [MODEL.onnx]' (default: the learned per-material labeller "
+                        "shipped with the package; reports its probability per material), "
+                        "'prior' (hand-written rules over names, properties, geometry), "
                         "'masks DIR' (DIR/<sha256>/view_<vvv>/<part>.png + confidence.json), or "
                         "'onnx MODEL' (see --onnx-config)")
     p.add_argument("--onnx-config", type=Path, metavar="JSON",
@@ -50,8 +53,8 @@ def make_segmenter(spec: list[str], onnx_config: Path | None):
     from ..segment import make_segmenter as factory
 
     if len(spec) > 2:
-        raise ValueError(f"--segmenter {' '.join(spec)!r}: expected 'prior', 'masks DIR' or "
-                         "'onnx MODEL' (with --onnx-config JSON)")
+        raise ValueError(f"--segmenter {' '.join(spec)!r}: expected 'labeller [MODEL]', 'prior', "
+                         "'masks DIR' or 'onnx MODEL' (with --onnx-config JSON)")
     return factory(spec[0], spec[1] if len(spec) == 2 else None, onnx_config)
 
 
@@ -61,7 +64,7 @@ def write_table(table, stem: Path) -> None:
     with open(f"{stem}.parts.csv", "w", newline="", encoding="utf-8") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
         w.writeheader()
-        w.writerows(rows)
+        w.writerows([{**r, "split": json.dumps(r["split"]) if r["split"] else ""} for r in rows])
     Path(f"{stem}.parts.json").write_text(json.dumps(rows, indent=1, ensure_ascii=False),
                                           encoding="utf-8")
 
@@ -72,13 +75,27 @@ def format_table(table) -> str:
 
 def format_rows(rows, indent: str = "") -> str:
     """Material -> part rows (anything with name, part, score, iou, view, decision, pixels:
-    a fresh ``MaterialPart`` or a catalogue ``PartRow``) as an aligned text table."""
-    lines = [f"{indent}{'material':32s} {'part':9s} {'score':>5s} {'iou':>5s} {'view':>4s} "
-             f"{'decision':15s} {'pixels':>8s}"]
+    a fresh ``MaterialPart`` or a catalogue ``PartRow``) as an aligned text table. ``prob`` is
+    the labeller's probability of the part (``-`` without a labeller: the score of self-painted
+    masks is 1.00 by construction and says nothing); ``split`` lists a shared material's parts
+    per component group with their area shares."""
+    lines = [f"{indent}{'material':32s} {'part':9s} {'prob':>5s} {'score':>5s} {'iou':>5s} "
+             f"{'view':>4s} {'decision':15s} {'pixels':>8s}  split"]
     for r in rows:
-        lines.append(f"{indent}{r.name[:32]:32s} {r.part:9s} {r.score:5.2f} {r.iou:5.2f} "
-                     f"{r.view:4d} {r.decision:15s} {r.pixels:8d}")
+        prob, split = _prob_split(r)
+        p = f"{prob:5.2f}" if prob is not None else f"{'-':>5s}"
+        sp = " ".join(f"{g['part']}:{g['area_share']:.2f}" for g in split or [])
+        lines.append(f"{indent}{r.name[:32]:32s} {r.part:9s} {p} {r.score:5.2f} {r.iou:5.2f} "
+                     f"{r.view:4d} {r.decision:15s} {r.pixels:8d}  {sp}".rstrip())
     return "\n".join(lines)
+
+
+def _prob_split(r):
+    """(prob, split) of a ``MaterialPart`` (fields) or a catalogue row (its ``props``)."""
+    if hasattr(r, "prob"):
+        return r.prob, r.split
+    props = getattr(r, "props", None) or {}
+    return props.get("prob"), props.get("split")
 
 
 def run_catalog(args) -> int:
