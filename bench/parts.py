@@ -170,15 +170,22 @@ def accuracy_table(args):
 
 
 def load_synth_rows(args):
-    """The recipe's generated training rows, cached in ``--cache`` (keyed by count and seed)."""
+    """The recipe's generated training rows, cached in ``--cache`` (keyed by count, seed, the
+    recipe and the source of the feature and generator modules)."""
     from ucad_cl import labeller_train as T
 
-    cache = Path(args.cache) / f"synth_{args.vehicles}_{args.seed}.npz"
+    import hashlib
+
+    import ucad_cl.labeller
+    import ucad_cl.synth
+
+    key = hashlib.sha256(json.dumps([T.REALISM_PROB, T.HIDE_NAMES, T.RINGS]).encode()
+                         + Path(ucad_cl.labeller.__file__).read_bytes()
+                         + Path(ucad_cl.synth.__file__).read_bytes()).hexdigest()[:12]
+    cache = Path(args.cache) / f"synth_{args.vehicles}_{args.seed}_{key}.npz"
     if cache.exists():
         z = np.load(cache, allow_pickle=True)
-        rows = T.Rows(z["X"], z["y"], z["w"], z["group"])
-        if rows.X.shape[1] == len(__import__("ucad_cl.labeller").labeller.FEATURE_NAMES):
-            return rows
+        return T.Rows(z["X"], z["y"], z["w"], z["group"])
     rows = T.synth_rows(args.vehicles, args.seed)
     cache.parent.mkdir(parents=True, exist_ok=True)
     np.savez(cache, X=rows.X, y=rows.y, w=rows.w, group=rows.group)

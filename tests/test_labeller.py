@@ -126,7 +126,7 @@ def test_a_ring_is_a_ring_and_a_disc_a_disc(car_views):
     assert 0.65 < tyre[COL["ring_r"]] < 0.85 and tyre[COL["ring_spread"]] < 0.2
     assert rim[COL["ring_r"]] < tyre[COL["ring_r"]]
     assert tyre[COL["rho_hub"]] < 0.3 and rim[COL["rho_hub"]] > 0.9     # rho: / tyre radius
-    assert tyre[COL["rho_tyre"]] + tyre[COL["rho_rim"]] > 0.9    # all faces inside the wheel
+    assert tyre[COL["rho_tyre"]] + tyre[COL["rho_rim"]] + tyre[COL["rho_hub"]] > 0.99  # inside
     assert body[COL["rho_mean"]] > 1.0
 
 
@@ -356,3 +356,41 @@ def test_show_prints_the_probability():
     stored = [PartRow("paint", "body", 1.0, 0.9, 3, "best-view", 500, 0,
                       {"prob": 0.5, "split": None})]
     assert " 0.50 " in format_rows(stored)
+
+
+def test_same_labels_in_all_24_axis_aligned_poses(tmp_path, runtime):
+    """Acceptance: the same model in any of the 24 axis-aligned poses gets the same labels for
+    >= 99 % of its materials. Needs the orientation stage (issue 10) at load time: skipped
+    until ``ucad_cl.orient`` exists."""
+    pytest.importorskip("ucad_cl.orient")
+    import itertools
+
+    from ucad_cl.classify import classify_parts
+    from ucad_cl.ingest import load_mesh
+    from ucad_cl.render import render_views
+    from ucad_cl.segment import LabellerSegmenter
+    from ucad_cl.synth import make_vehicle
+
+    veh = make_vehicle(31, "hatchback", realism=["one_paint", "lens_lamps"])
+    ring = make_ring(azimuth_step=30, elevations=(15.0,), size=96)
+    seg = LabellerSegmenter()
+    labels = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1, -1), repeat=3):
+            R = np.zeros((3, 3))
+            R[np.arange(3), perm] = signs
+            if np.linalg.det(R) < 0:
+                continue
+            T = np.eye(4)
+            T[:3, :3] = R
+            scene = veh.scene.copy()
+            scene.apply_transform(T)
+            path = tmp_path / f"pose_{len(labels)}.glb"
+            path.write_bytes(scene.export(file_type="glb"))
+            mesh = load_mesh(path)
+            views = render_views(mesh, ring)
+            table = classify_parts(mesh, views, seg.segment(mesh, views))
+            labels.append({r.name: r.part for r in table.rows})
+    assert len(labels) == 24
+    same = [sum(lab[k] == labels[0][k] for k in labels[0]) / len(labels[0]) for lab in labels]
+    assert min(same) >= 0.99, same

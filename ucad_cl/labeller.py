@@ -45,7 +45,9 @@ Features (``FEATURE_NAMES``, one row per material, float32):
 
 See through glass (the documented rule): a material is *see-through* when its transmission
 > 0.05, or its alpha < 0.95 with alpha mode BLEND, or its alpha < 0.9 in any mode. When a mesh
-has one, a second layer is rendered without the see-through faces, on every k-th view of the ring
+has one that is visible in the views, a second layer is rendered without the faces of the
+visible see-through materials (a see-through material hidden behind another, like a lamp's inner
+glass behind its cover, stays and can be seen there), on every k-th view of the ring
 (at most ``BEHIND_VIEWS`` views) at most ``BEHIND_SIZE`` px: a pixel whose first layer is a
 see-through material shows in the second layer what lies behind it. A material with pixels there
 is seen through glass; one with no first-layer pixels at all is labelled from that layer
@@ -210,14 +212,20 @@ def see_through(mesh: Mesh) -> np.ndarray:
     return out
 
 
-def behind_glass(mesh: Mesh, views: ViewSet) -> tuple[np.ndarray, np.ndarray] | None:
-    """The second visibility layer: (view indices, (S, H', W') uint16 material ids rendered
-    without the see-through faces, 0 where the first layer is not see-through). None when the
-    mesh has no see-through material. Views: every k-th of the ring, at most ``BEHIND_VIEWS``;
-    size: the ring's, scaled down to at most ``BEHIND_SIZE`` px."""
+def behind_glass(mesh: Mesh, views: ViewSet
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The second visibility layer: (view indices (S,), (S, H', W') uint16 material ids rendered
+    without the visible see-through faces, 0 where the first layer is not see-through, and the
+    first layer resampled to (S, H', W')). None when no see-through material is visible.
+    Views: every k-th of the ring, at most ``BEHIND_VIEWS``; size: the ring's, scaled down to
+    at most ``BEHIND_SIZE`` px (nearest pixel centre)."""
     from .render import render_views
 
     clear = see_through(mesh)
+    # a see-through material nobody sees in the first layer (a lamp's inner glass behind its
+    # cover) stays in the second layer: it is what lies behind the outer glass
+    seen = views.material_counts(len(mesh.materials) + 1)[:, 1:].sum(axis=0) > 0
+    clear &= seen
     if not clear.any() or mesh.n_faces == 0:
         return None
     fm = np.asarray(mesh.face_material)
@@ -523,9 +531,17 @@ def _components(v, f, fm, M):
         _, weld = np.unique(key, return_inverse=True)
     weld = weld.ravel()
     nw = int(weld.max()) + 1
-    node = fm[:, None] * nw + weld[f]                                  # (F, 3) (material, vertex)
-    _, nid = np.unique(node.ravel(), return_inverse=True)
-    nid = nid.reshape(F, 3)
+    wf = weld[f]                                                        # (F, 3) welded corners
+    # a welded vertex used by several materials is split: it stays one node for one of them
+    # (whichever: the partition into components is the same) and the other materials' corners
+    # get nodes of their own
+    owner = np.full(nw, -1, np.int64)
+    owner[wf.ravel()] = np.repeat(fm, 3)
+    mixed = owner[wf] != fm[:, None]
+    nid = wf.copy()
+    if mixed.any():
+        _, extra = np.unique((fm[:, None] * nw + wf)[mixed], return_inverse=True)
+        nid[mixed] = nw + extra.ravel()
     N = int(nid.max()) + 1
     rows = np.concatenate([nid[:, 0], nid[:, 1]])
     cols = np.concatenate([nid[:, 1], nid[:, 2]])
@@ -533,15 +549,13 @@ def _components(v, f, fm, M):
     _, lab = connected_components(g, directed=False)
     fl = lab[nid[:, 0]]
     # renumber by (material, first face) so ids do not depend on scipy's numbering
-    first = np.full(int(fl.max()) + 1, F, np.int64)
-    first[fl[::-1]] = np.arange(F)[::-1]            # last write wins: the lowest face index
-    ok = first < F
-    ids = np.flatnonzero(ok)
-    srt = ids[np.lexsort((first[ids], fm[first[ids]]))]
-    new = np.full(first.size, -1, np.int64)
-    new[srt] = np.arange(srt.size)
-    comp = new[fl]
-    return comp, fm[first[srt]]
+    order = np.argsort(fl, kind="stable")                 # faces by label, then face index
+    labels, start = np.unique(fl[order], return_index=True)
+    first = order[start]                                   # lowest face of each label
+    srt = np.lexsort((first, fm[first]))
+    new = np.empty(int(labels.max()) + 1, np.int64)
+    new[labels[srt]] = np.arange(srt.size)
+    return new[fl], fm[first[srt]]
 
 
 def _comp_boxes(tmin, tmax, comp, C) -> np.ndarray:

@@ -39,13 +39,14 @@ RINGS: tuple[tuple[float, tuple[float, ...], int], ...] = (
 REALISM_PROB: dict[str, float] = {
     "brake_discs": 0.3, "lens_lamps": 0.4, "rich_interior": 0.5, "no_rims": 0.2,
     "chassis_only": 0.12, "one_paint": 0.75, "paint_rims": 0.15, "shared_black": 0.25,
-    "dark_trim": 0.4, "textured_body": 0.12, "mtl_like": 0.25, "opaque_glass": 0.15,
+    "dark_trim": 0.4, "textured_body": 0.12, "varied_looks": 0.5, "mtl_like": 0.25,
+    "opaque_glass": 0.15,
     "plain_lights": 0.35, "meaningless_names": 0.2, "misleading_names": 0.1,
 }
 DEFAULT_VEHICLES = 500     # generated training vehicles of the shipped model
 DEFAULT_SEED = 2026
 HIDE_NAMES = 0.5           # share of generated vehicles with names hidden
-REAL_WEIGHT = 6.0          # weight of a real model's material row (a generated one weighs 1)
+REAL_WEIGHT = 12.0         # weight of a real model's material row (a generated one weighs 1)
 MODEL_PARAMS = dict(max_iter=150, learning_rate=0.1, max_leaf_nodes=15, min_samples_leaf=10,
                     l2_regularization=1.0, max_features=0.5, early_stopping=False)
 
@@ -191,13 +192,55 @@ def real_rows(models: list[RealModel], ring_index: int = 0) -> dict[str, Rows]:
 # ---------------------------------------------------------------------------------------------
 # fitting and export
 # ---------------------------------------------------------------------------------------------
+def name_columns() -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the material-name and node-name columns of ``FEATURE_NAMES`` (PART_NAMES order)."""
+    from .labeller import FEATURE_NAMES
+
+    col = {n: i for i, n in enumerate(FEATURE_NAMES)}
+    return (np.array([col[f"name_{p}"] for p in PART_NAMES]),
+            np.array([col[f"node_{p}"] for p in PART_NAMES]))
+
+
+def without_names(X: np.ndarray) -> np.ndarray:
+    """X with the name and node-name columns zeroed (what the trees are fitted on)."""
+    X = np.array(X, np.float32, copy=True)
+    a, b = name_columns()
+    X[:, a] = 0
+    X[:, b] = 0
+    return X
+
+
+def name_weights(rows: Rows) -> tuple[float, float]:
+    """(w_name, w_node): log likelihood ratios of the names, from how often a name that says a
+    part is right in ``rows`` (the real rows when there are any: generated names are cleaner
+    than real ones). A name right with rate r among P parts gets w = log(r (P - 1) / (1 - r))
+    (naive Bayes with the other parts equally likely), clipped to [0, 8]; a node name counts
+    when over half of the material's area is on nodes naming one part."""
+    real = np.array([str(g).startswith("real:") for g in rows.group])
+    sel = real if real.any() else np.ones(len(rows.y), bool)
+    X, y, w = rows.X[sel], rows.y[sel], rows.w[sel]
+    P = len(PART_NAMES)
+    out = []
+    for cols, thr in zip(name_columns(), (0.5, 0.5)):
+        v = X[:, cols]
+        fires = v.max(axis=1) > thr
+        if not fires.any():
+            out.append(0.0)
+            continue
+        right = float(np.sum(w[fires] * (v[fires].argmax(axis=1) == y[fires])) / np.sum(w[fires]))
+        r = min(max(right, 1.0 / P), 0.995)
+        out.append(float(np.clip(np.log(r * (P - 1) / (1 - r)), 0.0, 8.0)))
+    return out[0], out[1]
+
+
 def fit(rows: Rows, seed: int, *, max_iter: int | None = None):
-    """A fitted ``HistGradientBoostingClassifier`` (``MODEL_PARAMS``, ``random_state=seed``).
-    Every part index appears in the classes (a part absent from the data gets one zero-weight
-    row), so the model's probability columns are ``PART_NAMES``."""
+    """A fitted ``HistGradientBoostingClassifier`` (``MODEL_PARAMS``, ``random_state=seed``) on
+    the rows without their name columns (``without_names``), with ``name_weights`` attached as
+    ``clf.name_weights_``. Every part index appears in the classes (a part absent from the data
+    gets one zero-weight row), so the model's probability columns are ``PART_NAMES``."""
     from sklearn.ensemble import HistGradientBoostingClassifier
 
-    X, y, w = rows.X, rows.y, rows.w
+    X, y, w = without_names(rows.X), rows.y, rows.w
     missing = [p for p in range(len(PART_NAMES)) if p not in set(y.tolist())]
     if missing:
         X = np.concatenate([X, np.zeros((len(missing), X.shape[1]), X.dtype)])
@@ -212,7 +255,21 @@ def fit(rows: Rows, seed: int, *, max_iter: int | None = None):
     from threadpoolctl import threadpool_limits
     with threadpool_limits(1):
         clf.fit(X, y, sample_weight=w)
+    clf.name_weights_ = name_weights(rows)
     return clf
+
+
+def predict(clf, X: np.ndarray) -> np.ndarray:
+    """(N, P) probabilities of the whole labeller in NumPy (the reference for the ONNX graph):
+    softmax(log p_trees(X without names) + w_name * name one-hot + w_node * node shares)."""
+    a, b = name_columns()
+    X = np.asarray(X, np.float32)
+    p = clf.predict_proba(without_names(X))
+    wn, wd = clf.name_weights_
+    z = (np.log(np.maximum(p.astype(np.float32), np.float32(1e-9)))
+         + np.float32(wn) * X[:, a] + np.float32(wd) * X[:, b]).astype(np.float64)
+    z = np.exp(z - z.max(axis=1, keepdims=True))
+    return z / z.sum(axis=1, keepdims=True)
 
 
 def export_onnx(clf, path: str | Path, record: dict, check: np.ndarray | None = None) -> Path:
@@ -229,16 +286,19 @@ def export_onnx(clf, path: str | Path, record: dict, check: np.ndarray | None = 
     if check is not None and len(check):
         check = np.asarray(check, np.float32)
         full["check"] = {"X": check.tolist(),
-                         "prob": np.round(clf.predict_proba(check), 6).tolist()}
+                         "prob": np.round(predict(clf, check), 6).tolist()}
+    full["name_weights"] = {"name": round(clf.name_weights_[0], 6),
+                            "node": round(clf.name_weights_[1], 6)}
     path.with_suffix(".json").write_text(json.dumps(full, indent=1, sort_keys=True) + "\n",
                                          encoding="utf-8")
     return path
 
 
 def tree_ensemble_onnx(clf, n_features: int):
-    """A fitted multi-class ``HistGradientBoostingClassifier`` as one ONNX-ML
-    ``TreeEnsembleClassifier`` (opset ai.onnx.ml 3): input ``features`` (N, D) float32, outputs
-    ``label`` (N,) int64 and ``probabilities`` (N, C) float32 (softmax of baseline + leaves).
+    """A fitted multi-class ``HistGradientBoostingClassifier`` (from ``fit``) as an ONNX graph:
+    input ``features`` (N, D) float32; the name columns zeroed, one ONNX-ML
+    ``TreeEnsembleClassifier`` (opset ai.onnx.ml 3; softmax of baseline + leaves), then the
+    names added as in ``predict``; outputs ``label`` (N,) int64 and ``probabilities`` (N, C).
 
     Written here rather than with skl2onnx (whose converter fails on this scikit-learn). Exact:
     a split ``x <= t`` (t float64) becomes ``x <= t32`` with t32 the largest float32 <= t, the
@@ -284,7 +344,8 @@ def tree_ensemble_onnx(clf, n_features: int):
                                         else 0)
             tree += 1
     op = helper.make_node(
-        "TreeEnsembleClassifier", ["features"], ["label", "probabilities"], domain="ai.onnx.ml",
+        "TreeEnsembleClassifier", ["trees_in"], ["tree_label", "tree_prob"],
+        domain="ai.onnx.ml",
         nodes_treeids=nodes["treeids"], nodes_nodeids=nodes["nodeids"],
         nodes_featureids=nodes["featureids"],
         nodes_values=np.asarray(nodes["values"], np.float32).tolist(),
@@ -295,11 +356,33 @@ def tree_ensemble_onnx(clf, n_features: int):
         class_weights=np.asarray(cls["weights"], np.float32).tolist(),
         classlabels_int64s=list(range(K)), post_transform="SOFTMAX",
         base_values=np.asarray(clf._baseline_prediction, np.float32).ravel().tolist())
+    # names: the trees see the features with the name columns zeroed; the names enter as
+    # log-likelihood ratios: softmax(log p_trees + w_name * name one-hot + w_node * node shares)
+    a, b = name_columns()
+    keep = np.ones(n_features, np.float32)
+    keep[a] = 0
+    keep[b] = 0
+    wn, wd = getattr(clf, "name_weights_", (0.0, 0.0))
+    wname = np.zeros((n_features, K), np.float32)
+    wname[a, np.arange(K)] = wn
+    wname[b, np.arange(K)] = wd
+    init = [helper.make_tensor("keep", TensorProto.FLOAT, [n_features], keep.tolist()),
+            helper.make_tensor("w_names", TensorProto.FLOAT, [n_features, K],
+                               wname.ravel().tolist()),
+            helper.make_tensor("eps", TensorProto.FLOAT, [], [1e-9])]
+    nodes_ = [helper.make_node("Mul", ["features", "keep"], ["trees_in"]), op,
+              helper.make_node("Max", ["tree_prob", "eps"], ["tree_prob_safe"]),
+              helper.make_node("Log", ["tree_prob_safe"], ["tree_logp"]),
+              helper.make_node("MatMul", ["features", "w_names"], ["name_logit"]),
+              helper.make_node("Add", ["tree_logp", "name_logit"], ["logit"]),
+              helper.make_node("Softmax", ["logit"], ["probabilities"], axis=1),
+              helper.make_node("ArgMax", ["probabilities"], ["label"], axis=1, keepdims=0)]
     graph = helper.make_graph(
-        [op], "ucad_labeller",
+        nodes_, "ucad_labeller",
         [helper.make_tensor_value_info("features", TensorProto.FLOAT, [None, n_features])],
         [helper.make_tensor_value_info("label", TensorProto.INT64, [None]),
-         helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, [None, K])])
+         helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, [None, K])],
+        initializer=init)
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17),
                                                     helper.make_opsetid("ai.onnx.ml", 3)],
                               producer_name="ucad_cl.labeller_train")
@@ -308,10 +391,10 @@ def tree_ensemble_onnx(clf, n_features: int):
 
 
 def accuracy(clf, rows: Rows) -> float:
-    """Share of rows whose argmax part is the label (unweighted)."""
+    """Share of rows whose argmax part (``predict``) is the label (unweighted)."""
     if rows.X.shape[0] == 0:
         return float("nan")
-    return float(np.mean(clf.predict(rows.X) == rows.y))
+    return float(np.mean(predict(clf, rows.X).argmax(axis=1) == rows.y))
 
 
 def train(out: str | Path, *, vehicles: int, seed: int, real: str | Path | None = None,

@@ -59,7 +59,8 @@ HUGE_TRIANGLES = 2_000_000  # default triangle count of the 'huge' trait
 #: material-realism traits (``apply_realism``), applied in this order
 REALISM_TRAITS: tuple[str, ...] = (
     "brake_discs", "lens_lamps", "rich_interior", "no_rims", "chassis_only", "one_paint",
-    "paint_rims", "shared_black", "dark_trim", "textured_body", "mtl_like", "opaque_glass",
+    "paint_rims", "shared_black", "dark_trim", "textured_body", "varied_looks", "mtl_like",
+    "opaque_glass",
     "plain_lights", "meaningless_names", "misleading_names")
 
 
@@ -907,7 +908,9 @@ def apply_realism(parts: list[_Part], traits: Sequence[str], r: np.random.Genera
     and plastic bumpers share one black), ``dark_trim`` (grille, bumpers, mirror housings and
     side trim in one dark plastic: part chrome, the trim policy), ``textured_body`` (body, lamps,
     plates, trim and grille are one textured material; glass, wheels, interior stay separate),
-    ``mtl_like`` (OBJ/MTL materials: metallic 0, roughness 1, no emission, no transmission),
+    ``varied_looks`` (every material's colour pulled up to 60 % toward a random colour, metallic
+    and roughness moved by up to 0.35), ``mtl_like`` (OBJ/MTL materials: metallic 0, roughness 1,
+    no emission, no transmission),
     ``opaque_glass`` (glass is opaque light blue), ``plain_lights`` (lamps without emission).
     Name traits: ``meaningless_names`` (materials become ``Material.001``..., nodes
     ``Object_1``...), ``misleading_names`` (some materials named after another part).
@@ -974,6 +977,17 @@ def apply_realism(parts: list[_Part], traits: Sequence[str], r: np.random.Genera
             for q in parts:
                 if q.part in ("body", "light", "plate", "chrome") or is_(q, "grille"):
                     q.material = shared("body_tex", tex)
+        elif t == "varied_looks":
+            for q in parts:
+                m = q.material
+                if ("varied_looks", m.name) not in mats:
+                    k = float(r.uniform(0.0, 0.6))
+                    rgb = (1 - k) * np.asarray(m.base_color[:3]) + k * r.uniform(0, 1, 3)
+                    jm, jr = r.uniform(-0.35, 0.35, 2)
+                    shared(m.name, m, base_color=(*(float(x) for x in rgb), m.base_color[3]),
+                           metallic=float(np.clip(m.metallic + jm, 0, 1)),
+                           roughness=float(np.clip(m.roughness + jr, 0.02, 1)))
+                q.material = mats[("varied_looks", m.name)]
         elif t == "mtl_like":
             for q in parts:
                 m = q.material
