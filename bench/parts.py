@@ -129,7 +129,7 @@ def accuracy_table(args):
           f"vehicles seed {args.seed} + the other real models)")
     t0 = time.perf_counter()
     synth = load_synth_rows(args)
-    real = T.real_rows(models, 0)
+    real = T.real_rows(models)
     print(f"training rows: {synth.X.shape[0]} generated, "
           f"{sum(r.X.shape[0] for r in real.values())} real ({time.perf_counter() - t0:.0f} s)")
     tmp = Path(tempfile.mkdtemp(prefix="ucad-lomo-"))

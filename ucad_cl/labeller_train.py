@@ -10,8 +10,8 @@ vehicles: every material renamed ``m0, m1, ...`` and every node ``n0, ...``), an
 of ``RINGS`` (the build's default ring, the bench's, and two others), so the model sees the
 rings it will be used with. Labels are the generator's truth (majority part of each material).
 Optional real models (a folder with ``manifest.json``, brought into the vehicle frame by the
-manifest's ``up``/``front``) add their materials, names kept and hidden, with weight
-``REAL_WEIGHT``; a bench fold leaves the scored model out of them.
+manifest's ``up``/``front``) add their materials (rendered with the rings ``REAL_RINGS``) with
+weight ``REAL_WEIGHT`` per material; a bench fold leaves the scored model out of them.
 
 Model: scikit-learn's ``HistGradientBoostingClassifier`` (``MODEL_PARAMS``, fixed seed, no early
 stopping, so the same data gives the same trees), exported by ``tree_ensemble_onnx`` to one
@@ -43,10 +43,11 @@ REALISM_PROB: dict[str, float] = {
     "opaque_glass": 0.15,
     "plain_lights": 0.35, "meaningless_names": 0.2, "misleading_names": 0.1,
 }
+REAL_RINGS = (0,)          # rings whose renders of each real model give training rows
 DEFAULT_VEHICLES = 500     # generated training vehicles of the shipped model
 DEFAULT_SEED = 2026
 HIDE_NAMES = 0.5           # share of generated vehicles with names hidden
-REAL_WEIGHT = 12.0         # weight of a real model's material row (a generated one weighs 1)
+REAL_WEIGHT = 24.0         # weight of a real model's material row (a generated one weighs 1)
 MODEL_PARAMS = dict(max_iter=150, learning_rate=0.1, max_leaf_nodes=15, min_samples_leaf=10,
                     l2_regularization=1.0, max_features=0.5, early_stopping=False)
 
@@ -169,23 +170,25 @@ def load_real_models(folder: str | Path, *, skip=("ferrari_458.glb",)) -> list[R
     return out
 
 
-def real_rows(models: list[RealModel], ring_index: int = 0) -> dict[str, Rows]:
-    """{file: rows} of every real model, names kept and names hidden (two rows per material),
-    weight ``REAL_WEIGHT``; materials missing from the manifest are left out."""
+def real_rows(models: list[RealModel], rings: tuple[int, ...] = REAL_RINGS) -> dict[str, Rows]:
+    """{file: rows} of every real model: one row per material and ring of ``rings`` (indices
+    into ``RINGS``), names kept, weight ``REAL_WEIGHT / len(rings)``; materials missing from the
+    manifest are left out. (The trees never see names; the named rows also give the names'
+    reliability, ``name_weights``.)"""
     from .labeller import material_table
     from .render import render_views
 
-    ring = make_ring_of(ring_index)
     out = {}
     for rm in models:
-        views = render_views(rm.mesh, ring)
         keep = [i for i, m in enumerate(rm.mesh.materials) if m.name in rm.truth]
         y = np.array([PART_NAMES.index(rm.truth[rm.mesh.materials[i].name]) for i in keep],
                      np.int64)
-        Xs = [material_table(msh, views).X[keep] for msh in (rm.mesh, hide_names(rm.mesh))]
-        n = 2 * len(keep)
-        out[rm.file] = Rows(np.concatenate(Xs), np.concatenate([y, y]),
-                            np.full(n, REAL_WEIGHT), np.array([f"real:{rm.file}"] * n, object))
+        Xs = [material_table(rm.mesh, render_views(rm.mesh, make_ring_of(k))).X[keep]
+              for k in rings]
+        n = len(rings) * len(keep)
+        out[rm.file] = Rows(np.concatenate(Xs), np.tile(y, len(rings)),
+                            np.full(n, REAL_WEIGHT / len(rings)),
+                            np.array([f"real:{rm.file}"] * n, object))
     return out
 
 
