@@ -65,7 +65,6 @@ model is evaluated exactly (thresholds compare float32 features).
 """
 from __future__ import annotations
 
-import functools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -143,10 +142,14 @@ class MaterialLabels:
 
 
 def label_materials(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
-                    model: str | Path | None = None) -> MaterialLabels:
-    """Part probabilities for every material of ``mesh`` (canonical frame) from its ``views``."""
+                    model: "LabellerModel | str | Path | None" = None) -> MaterialLabels:
+    """Part probabilities for every material of ``mesh`` (canonical frame) from its ``views``.
+    ``model``: a loaded ``LabellerModel`` (keep one to label many meshes) or a path (loaded
+    for this call; default the shipped model)."""
     table = material_table(mesh, views, use_names=use_names)
-    prob = load_model(str(model or MODEL_PATH)).predict(table.X)
+    if not isinstance(model, LabellerModel):
+        model = LabellerModel(model or MODEL_PATH)
+    prob = model.predict(table.X)
     part = np.argmax(prob, axis=1)                                 # ties -> PART_NAMES order
     return MaterialLabels(prob=prob, part=part, behind_pixels=table.behind_pixels,
                           splits=split_shared(mesh, table, part))
@@ -191,12 +194,6 @@ class LabellerModel:
         p = np.asarray(self.session.run([self.prob_name], {self.input_name: X})[0], np.float32)
         p = np.clip(p, 0.0, 1.0)
         return p / np.maximum(p.sum(axis=1, keepdims=True), 1e-12)
-
-
-@functools.lru_cache(maxsize=4)
-def load_model(path: str) -> LabellerModel:
-    """The model at ``path``, loaded once per process (a pure function of the file)."""
-    return LabellerModel(path)
 
 
 # ---------------------------------------------------------------------------------------------

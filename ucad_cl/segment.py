@@ -502,17 +502,16 @@ class LabellerSegmenter:
     ``use_names=False`` ignores material and node names (the names-hidden evaluation)."""
 
     def __init__(self, model: str | Path | None = None, use_names: bool = True):
-        from .labeller import MODEL_PATH, load_model
+        from .labeller import MODEL_PATH, LabellerModel
 
-        self.model = str(model or MODEL_PATH)
+        self.model = LabellerModel(model or MODEL_PATH)   # a missing or stale model fails here
         self.use_names = use_names
-        load_model(self.model)                      # a missing or stale model fails here
 
     def segment(self, mesh: Mesh, views: ViewSet) -> PartMasks:
         from .labeller import label_materials
 
         labels = label_materials(mesh, views, use_names=self.use_names, model=self.model)
         masks = paint_materials(views, labels.prob.astype(np.float64),
-                                source=f"labeller:{Path(self.model).name}")
+                                source=f"labeller:{self.model.path.name}")
         masks.labels = labels
         return masks
