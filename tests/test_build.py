@@ -71,7 +71,7 @@ def test_build_labels_rejections_and_skip(library, tmp_path, runtime):
                 ok += part == truth[name]
         assert {k for k, _ in rec["artifacts"]} >= {"views.exr", "features.npy", "parts.png",
                                                       "edges.npy.gz"}
-    assert total > 100 and ok / total >= 0.80, f"prior labels: {ok}/{total}"
+    assert total > 100 and ok / total >= 0.80, f"labels: {ok}/{total}"
     # second run: everything unchanged is skipped
     s2 = build(library, cat, OPTS, progress=False, log=lambda *a: None)
     assert s2.skipped == 10 and s2.processed == 0

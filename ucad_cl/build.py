@@ -84,7 +84,7 @@ class BuildOptions:
     elevations: tuple[float, ...] = (15.0,)
     fov_deg: float = 40.0
     size: int = 256
-    segmenter: str = "prior"            # 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG'
+    segmenter: str = "labeller"         # 'labeller[:MODEL]' | 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG'
     threshold: float = 0.5              # part score threshold (UrbanCAD: 0.5)
     min_materials: int = 2
     max_triangles: int = 2_000_000      # reject above this (after decimation, if any)
@@ -597,7 +597,8 @@ def _inject_fault(path: str) -> None:
 
 
 def make_segmenter(spec: str):
-    """'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG.json' -> a Segmenter (``segment.make_segmenter``)."""
+    """'labeller[:MODEL.onnx]' | 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG.json' -> a Segmenter
+    (``segment.make_segmenter``)."""
     from .segment import make_segmenter as factory
 
     kind, _, arg = spec.partition(":")

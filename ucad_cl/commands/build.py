@@ -35,8 +35,10 @@ def register(sub) -> None:
     p.add_argument("--engine", choices=["local", "ray"], default="local",
                    help="local worker processes (default) or Ray tasks on a cluster (extra 'ray')")
     p.add_argument("--address", default=None, help="Ray cluster address for --engine ray")
-    p.add_argument("--segmenter", default="prior", metavar="SPEC",
-                   help="prior (default, offline), masks:DIR or onnx:MODEL:CONFIG.json")
+    p.add_argument("--segmenter", default="labeller", metavar="SPEC",
+                   help="labeller (default, offline: the learned per-material labeller shipped "
+                        "with the package; labeller:MODEL.onnx for another one), prior (hand-"
+                        "written rules), masks:DIR or onnx:MODEL:CONFIG.json")
     p.add_argument("--threshold", type=float, default=0.5, help="part score threshold (default 0.5)")
     p.add_argument("--triangle-budget", type=int, default=0, metavar="N",
                    help="decimate meshes above N triangles, keeping material boundaries (0 = never)")
