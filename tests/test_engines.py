@@ -97,15 +97,16 @@ def test_crashing_loader_is_rejected_and_build_completes(library, tmp_path, runt
 
 
 def test_hanging_task_times_out(library, tmp_path, runtime, cluster, monkeypatch):
-    """Cancelled after the timeout, resubmitted once with twice the time, then rejected."""
+    """Cancelled after the timeout, resubmitted once with twice the time, then rejected. (The
+    clock of a Ray task includes a fresh worker's start-up: 8 s leaves room on a loaded machine.)"""
     names = sorted(p.name for p in library.glob("synth_*.glb"))
     monkeypatch.setenv("UCAD_FAULT_INJECT", f"hang:{names[2]}")
     got = []
-    run_ray(_todo([library / names[2], library / names[3]]), OPTS, got.append, timeout=4.0,
+    run_ray(_todo([library / names[2], library / names[3]]), OPTS, got.append, timeout=8.0,
             staging=tmp_path / "staging", **QUIET)
     by_name = {Path(e.path).name: e for e in got}
     assert (by_name[names[2]].state, by_name[names[2]].reason) == ("rejected", "timeout")
-    assert by_name[names[3]].state == "accepted"
+    assert by_name[names[3]].state == "accepted", (by_name[names[3]].reason, by_name[names[3]].detail)
 
 
 def test_artifacts_are_paths_when_staging_is_shared_else_bytes(library, tmp_path, runtime):
