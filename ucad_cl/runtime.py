@@ -31,6 +31,8 @@ import time
 from dataclasses import dataclass, field
 from importlib import resources
 
+from . import abi
+
 INSTALL_HINT = (
     "Install the portable CPU runtime from PyPI with\n"
     "    pip install 'pyopencl[pocl]'\n"
@@ -116,14 +118,18 @@ class OpenCLUnavailable(RuntimeError):
 
 
 def kernel_source(name: str) -> str:
-    """Text of ``ucad_cl/kernels/<name>.cl`` with ``#include "common.h"`` inlined."""
+    """Text of ``ucad_cl/kernels/<name>.cl`` with every ``#include "file"`` inlined (recursively,
+    each file once, like ``#pragma once``), so the source string is complete."""
     pkg = resources.files("ucad_cl.kernels")
-    src = (pkg / f"{name}.cl").read_text(encoding="utf-8")
+    seen: set[str] = set()
 
-    def inline(m: re.Match) -> str:
-        return (pkg / m.group(1)).read_text(encoding="utf-8")
+    def expand(fname: str) -> str:
+        seen.add(fname)
+        src = (pkg / fname).read_text(encoding="utf-8")
+        return re.sub(r'^#include\s+"([^"]+)"\s*$',
+                      lambda m: "" if m.group(1) in seen else expand(m.group(1)), src, flags=re.M)
 
-    return re.sub(r'^#include\s+"([^"]+)"\s*$', inline, src, flags=re.M)
+    return expand(f"{name}.cl")
 
 
 @dataclass
@@ -175,7 +181,8 @@ class Runtime:
         self._scratch.clear()
 
     def program(self, name: str, options: tuple[str, ...] = ()):
-        """Built program for ``ucad_cl/kernels/<name>.cl``; cached per process and on disk."""
+        """Built program for ``ucad_cl/kernels/<name>.cl``, with the kernel ABI's constants
+        (``abi.defines()``) and ``options``; cached per process and on disk."""
         import pyopencl as cl
 
         key = (name, tuple(options))
@@ -184,7 +191,7 @@ class Runtime:
             if prg is None:
                 t0 = time.perf_counter()
                 prg = cl.Program(self.ctx, kernel_source(name)).build(
-                    options=["-cl-std=CL1.2", *options])
+                    options=["-cl-std=CL1.2", *abi.defines(), *options])
                 self.compile_seconds[key] = time.perf_counter() - t0
                 self._programs[key] = prg
         return prg
@@ -282,23 +289,40 @@ def _probe(dev) -> tuple[bool, str]:
         return False, (lines[0] if lines else str(exc).splitlines()[0]).strip()
 
 
+def create_runtime(device: str | None = None) -> Runtime:
+    """A new runtime (its own context, queue, program and scratch caches) on ``device`` (a spec,
+    see the module docstring; None: ``UCAD_CL_DEVICE`` or the best device). Pass it explicitly
+    (``runtime=``) to run on a device other than the process default."""
+    import pyopencl as cl
+
+    dev, info, why = _pick_device(device or os.environ.get("UCAD_CL_DEVICE"))
+    ctx = cl.Context([dev])
+    return Runtime(ctx=ctx, queue=cl.CommandQueue(ctx), device=dev, info=info, why=why)
+
+
 def get_runtime(device: str | None = None) -> Runtime:
-    """The process-wide runtime (created on first use). ``device`` only matters the first time."""
+    """The process's default runtime, created on first use (``device`` only matters then); used
+    by every entry point called without ``runtime=``."""
     global _RUNTIME
     with _RUNTIME_LOCK:
         if _RUNTIME is None:
-            import pyopencl as cl
-
-            dev, info, why = _pick_device(device or os.environ.get("UCAD_CL_DEVICE"))
-            ctx = cl.Context([dev])
-            queue = cl.CommandQueue(ctx)
-            _RUNTIME = Runtime(ctx=ctx, queue=queue, device=dev, info=info, why=why)
+            _RUNTIME = create_runtime(device)
         return _RUNTIME
 
 
 def list_devices() -> list[str]:
     """Human-readable list of every OpenCL device: ``"P:D  platform | device | PoCL ..."``."""
     return [f"{i.spec}  {i.summary()}" for i in device_infos()]
+
+
+def usable_device_specs() -> list[str]:
+    """Specs ("P:D") of every device that builds and runs a probe kernel, best first."""
+    import pyopencl as cl
+
+    infos = [i for i in device_infos()
+             if _probe(cl.get_platforms()[int(i.spec.split(":")[0])]
+                       .get_devices()[int(i.spec.split(":")[1])])[0]]
+    return [i.spec for i in sorted(infos, key=device_rank)]
 
 
 def device_infos() -> list[DeviceInfo]:

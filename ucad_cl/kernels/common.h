@@ -10,7 +10,11 @@
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #pragma OPENCL EXTENSION cl_khr_int64_extended_atomics : enable
 
-#define UCAD_BG_TRI 0xFFFFFFFFu
-#define UCAD_BG_MAT 0u
+/* Constants shared with the host come from ucad_cl/abi.py as -D options (Runtime.program adds
+ * them to every build); a build without them stops here rather than use a stale copy. */
+#if !defined(UCAD_BG_TRI) || !defined(UCAD_BG_MAT) || !defined(BIG_PIXELS) || !defined(MAX_BINS) \
+    || !defined(KMAX) || !defined(SRGB_BUCKETS) || !defined(MAX_PARTS)
+#error "built without the ABI defines of ucad_cl/abi.py (build through ucad_cl.runtime.Runtime)"
+#endif
 
 #endif
