@@ -1,10 +1,11 @@
-"""Batched material-index rendering: all views of one mesh per launch (``ucad_cl/kernels/raster.cl``).
+"""Batched material-index rendering: all views of one mesh per launch (``kernels/raster_*.cl``).
 
 ``render_views(mesh, ring)`` returns per view a triangle-id map (uint32, 0xFFFFFFFF background),
 a material-id map (uint16, material index + 1, 0 background) and linear camera-space depth
 (float32, +inf background). One sample per pixel at its centre; no antialiasing, so ids never
 blend. Visibility is decided by the minimum 64-bit key (depth bits, face index): output is
-bit-identical across runs, thread counts and work-group sizes. See raster.cl for the numerics.
+bit-identical across runs, thread counts and work-group sizes. See kernels/raster_common.h for
+the numerics.
 
 Two kernel paths give the same bytes: ``parallel`` (one work-item per face and view, atomic min;
 for GPUs) and ``serial`` (one work-item per view, faces 16 at a time in explicit vectors, no

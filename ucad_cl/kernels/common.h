@@ -2,7 +2,7 @@
  *
  * Numerics are explicit: no floating-point contraction (a*b+c is never fused behind our back),
  * so the same source gives the same bits on every conforming device. Where exactness matters we
- * use fixed point (see raster.cl: 8 sub-pixel bits, 64-bit edge functions).
+ * use fixed point (see raster_common.h: 8 sub-pixel bits, 64-bit edge functions).
  */
 #ifndef UCAD_COMMON_H
 #define UCAD_COMMON_H
