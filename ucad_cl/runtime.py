@@ -29,6 +29,7 @@ import re
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 from importlib import resources
 
 from . import abi
@@ -134,9 +135,14 @@ def kernel_source(name: str) -> str:
 
 @dataclass
 class Runtime:
-    ctx: object
-    queue: object
-    device: object
+    """One OpenCL device in use: its context, in-order queue, device, the programs and kernels
+    built for it and its scratch buffers. Entry points that touch a device take
+    ``runtime: Runtime | None`` (None: ``get_runtime()``). pyopencl types are ``Any`` here so
+    that importing this module does not import pyopencl."""
+
+    ctx: Any                                        # pyopencl.Context
+    queue: Any                                      # pyopencl.CommandQueue
+    device: Any                                     # pyopencl.Device
     info: DeviceInfo | None = None
     why: str = ""                                   # how the device was chosen, one sentence
     compile_seconds: dict = field(default_factory=dict)
@@ -227,7 +233,7 @@ def _pick_device(spec: str | None):
     # CPUs such as AMD Zen 5 and fails every build with "unknown target CPU 'generic'"; it is
     # then skipped. See README, "OpenCL runtime".)
     ordered = sorted(devices, key=lambda t: device_rank(infos[t[0], t[1]]))
-    errors = []
+    errors: list[str] = []
     for pi, di, p, d in ordered:
         ok, why = _probe(d)
         if ok:
@@ -340,7 +346,7 @@ def device_infos() -> list[DeviceInfo]:
 def slow_device_warning(info: DeviceInfo | None) -> str | None:
     """The warning to print when ``info`` is a device known to be slow, else None."""
     reason = info.slow_reason() if info is not None else None
-    if reason is None:
+    if info is None or reason is None:
         return None
     return (f"warning: OpenCL device {info.spec} ({info.device}): {reason}; {SLOW_POCL_COST}. "
             f"Fix: {INSTALL_FAST}.")
