@@ -83,7 +83,7 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
                            elevations=elevations, fov_deg=fov_deg, size=size)
     extractor = coarse.extractor
     query = extractor.extract(np.asarray(image)[None], qmask[None]).feats[0]
-    q_side = _box_side(qmask) / min(qmask.shape)
+    q_side = box_side(qmask) / min(qmask.shape)
     ring = coarse.ring
     step = coarse.azimuth_step
     pool = _candidates(query, ring, coarse.feats, coarse.sides, seed=None, q_side=q_side)
@@ -164,7 +164,7 @@ def render_features(mesh: Mesh, ring: CameraRing, extractor: FeatureExtractor,
         raise ValueError(f"mesh {mesh.path!r}: nothing visible in view(s) {empty.tolist()}")
     images = shade_views(mesh, views, **shade_kwargs)
     feats = view_features(extractor, images, views).feats
-    sides = np.array([_box_side(m) for m in masks], np.float64)
+    sides = np.array([box_side(m) for m in masks], np.float64)
     return feats, sides
 
 
@@ -290,7 +290,7 @@ def _elevation_step(elevations: Sequence[float]) -> float:
     return float(np.min(np.diff(e))) if e.size > 1 else 10.0
 
 
-def _box_side(mask: np.ndarray) -> float:
+def box_side(mask: np.ndarray) -> float:
     """Side of the mask's bounding box in pixels (the longer one); 0 for an empty mask."""
     rows = np.flatnonzero(mask.any(axis=1))
     cols = np.flatnonzero(mask.any(axis=0))

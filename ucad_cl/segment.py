@@ -158,6 +158,29 @@ def material_image(mat_id: np.ndarray) -> np.ndarray:
     return material_colors(int(mat_id.max(initial=0)) + 1)[mat_id]
 
 
+# The --segmenter spellings, one table for every command (kind -> (spelling, what it is)).
+SEGMENTER_SPECS: dict[str, tuple[str, str]] = {
+    "labeller": ("labeller[:MODEL.onnx]", "the learned per-material labeller shipped with the "
+                 "package (default, offline), or another labeller model"),
+    "prior": ("prior", "hand-written rules (names, colours, geometry)"),
+    "masks": ("masks:DIR", "part masks made elsewhere: DIR/<sha256>/view_<vvv>/<part>.png"),
+    "onnx": ("onnx:MODEL:CONFIG.json", "a user ONNX image segmentation model and its config"),
+}
+
+
+def segmenter_help() -> str:
+    """The spellings of ``SEGMENTER_SPECS`` for ``--help`` texts."""
+    return "; ".join(f"{spell}: {what}" for spell, what in SEGMENTER_SPECS.values())
+
+
+def segmenter_from_spec(spec: str):
+    """A segmenter from a ``--segmenter`` SPEC (``SEGMENTER_SPECS``); ValueError naming the
+    accepted spellings otherwise."""
+    kind, _, arg = str(spec).partition(":")
+    model, _, config = arg.partition(":") if kind == "onnx" else (arg, "", "")
+    return make_segmenter(kind, model or None, config or None)
+
+
 def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict | None = None):
     """The one factory behind every CLI spelling: ``labeller`` (optionally with a model ``arg``),
     ``prior``, ``masks`` with a folder ``arg``, or ``onnx`` with a model ``arg`` and a
@@ -173,7 +196,7 @@ def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict 
             raise ValueError("the onnx segmenter needs a config JSON (classes, input_size)")
         return OnnxSegmenter(arg, config)
     raise ValueError(f"unknown segmenter {kind!r}{':' + arg if arg else ''}: expected "
-                     "labeller[:MODEL.onnx], prior, masks:DIR or onnx:MODEL:CONFIG.json")
+                     + ", ".join(spell for spell, _ in SEGMENTER_SPECS.values()))
 
 
 class OnnxSegmenter:

@@ -96,7 +96,7 @@ def run_catalog(args, image, mask) -> int:
 
     from ..features import HogExtractor, crop_square
     from ..ingest import IngestError, load_mesh
-    from ..pose import PoseCandidate, _box_side, reference_mask, search_catalog
+    from ..pose import PoseCandidate, box_side, reference_mask, search_catalog
 
     from .common import open_reader
 
@@ -135,7 +135,7 @@ def run_catalog(args, image, mask) -> int:
     top = min(args.top, len(db))
     matches = search_catalog(query, db, np.asarray(mesh_ids), np.asarray(views),
                              np.asarray(az), np.asarray(el), top=top)
-    q_side = _box_side(qmask) / min(qmask.shape)
+    q_side = box_side(qmask) / min(qmask.shape)
     print(f"{'rank':>4s} {'azimuth':>8s} {'elev':>6s} {'dist':>6s} {'score':>7s}  mesh (view)")
     for i, mt in enumerate(matches):
         d = dist[mt.row] * sides[mt.row] / q_side if q_side > 0 else float("nan")
