@@ -144,10 +144,22 @@ def test_crashing_and_hanging_loaders_are_isolated(library, tmp_path, runtime, m
 
 
 def test_two_workers_give_the_same_catalogue(library, tmp_path, runtime):
+    """Same rows, and byte-identical exports, ids and paths included (issue 14)."""
+    from ucad_catalog import CatalogReader
+
     a, b = tmp_path / "a", tmp_path / "b"
     build(library, a, OPTS, workers=1, progress=False, log=lambda *a: None)
     build(library, b, OPTS, workers=2, progress=False, log=lambda *a: None)
     assert catalogue_content(a) == catalogue_content(b)
+    for cat in (a, b):
+        with CatalogReader(cat) as r:
+            r.export(tmp_path / f"{cat.name}.jsonl")
+    for table in ("{}.jsonl", "{}.materials.jsonl"):
+        ea = (tmp_path / table.format("a")).read_bytes()
+        assert ea == (tmp_path / table.format("b")).read_bytes() and len(ea) > 1000
+    rows = [json.loads(x) for x in (tmp_path / "a.jsonl").read_text().splitlines()]
+    assert [r["path"] for r in rows] == sorted(Path(r.path).name for r in discover(library))
+    assert all(len(r["id"]) == 64 and r["library_root"] == str(library) for r in rows)
 
 
 def test_discover_layouts(tmp_path):

@@ -327,4 +327,4 @@ def test_real_vehicle_pose(vehicles_dir, runtime):
     mesh = load_mesh(path)
     img, box, _, _ = _reference(mesh, {}, 61.7, 14.0, seed=2)
     best = estimate_pose(img, mesh, box=box, top=2).best
-    assert az_diff(best.azimuth, 61.7) <= 3.0
+    assert az_diff(best.azimuth, 61.7) <= 5.0

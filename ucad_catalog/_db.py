@@ -18,11 +18,31 @@ from typing import Any
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+UPGRADABLE = {1: """
+ALTER TABLE meshes ADD COLUMN library_root TEXT NOT NULL DEFAULT '';
+ALTER TABLE meshes ADD COLUMN orientation TEXT;
+ALTER TABLE meshes ADD COLUMN meta TEXT NOT NULL DEFAULT '{}';
+DROP INDEX meshes_path;
+CREATE INDEX meshes_path ON meshes(library_root, path);
+"""}                                  # schema_version -> SQL that brings it to SCHEMA_VERSION
 FORMAT_NAME = "ucad-catalog"
 DB_NAME = "catalog.sqlite"
 OBJECTS_DIR = "objects"
 LOCK_NAME = "write.lock"
+
+
+# the artifact kinds the build writes (SCHEMA.md, "Artifact kinds", is tested against this);
+# other kinds are allowed (any non-empty name without '/')
+ARTIFACT_KINDS = {
+    "views.exr": "the view stack: tri, mat, Z per view + cameras (ucad_catalog.exr, format 2)",
+    "views.npz": "fallback view stack: NumPy .npz with tri_id u32, mat_id u16, depth f32, "
+                 "each (V, H, W)",
+    "edges.npy.gz": "Canny edges of the material maps: gzip of an .npy (V, H, ceil(W/8)) uint8, "
+                    "np.packbits(edges > 0, axis=-1); unpack with np.unpackbits(axis=-1, count=W)",
+    "features.npy": "(V, D) float32 pose features (HOG of the shaded views), np.save, no pickle",
+    "parts.png": "contact sheet of up to 24 views coloured by part, legend on the right (PNG)",
+}
 
 
 class CatalogError(Exception):
@@ -58,9 +78,12 @@ CREATE TABLE meshes (
     file_to_norm TEXT NOT NULL,
     options_hash TEXT NOT NULL,
     run_id       INTEGER NOT NULL REFERENCES runs(id),
-    timings      TEXT NOT NULL
+    timings      TEXT NOT NULL,
+    library_root TEXT NOT NULL DEFAULT '',
+    orientation  TEXT,
+    meta         TEXT NOT NULL DEFAULT '{}'
 );
-CREATE INDEX meshes_path ON meshes(path);
+CREATE INDEX meshes_path ON meshes(library_root, path);
 CREATE INDEX meshes_state ON meshes(state, reason);
 CREATE TABLE materials (
     mesh_id  INTEGER NOT NULL REFERENCES meshes(id) ON DELETE CASCADE,
@@ -139,8 +162,11 @@ def object_path(root: Path, sha: str) -> Path:
     return root / OBJECTS_DIR / sha[:2] / sha
 
 
-def check_catalog_db(conn: sqlite3.Connection, where: Path) -> None:
-    """Raise CatalogError unless ``conn`` is a ucad catalogue of this schema version."""
+def check_catalog_db(conn: sqlite3.Connection, where: Path, upgrade: bool = False) -> None:
+    """Raise CatalogError unless ``conn`` is a ucad catalogue of this schema version.
+
+    ``upgrade`` (the writer): an older version listed in ``UPGRADABLE`` is brought to this one
+    in one transaction; the read-only reader says how to upgrade instead."""
     try:
         rows = dict(conn.execute("SELECT key, value FROM meta").fetchall())
     except sqlite3.DatabaseError as exc:   # not a database, or no meta table
@@ -148,6 +174,16 @@ def check_catalog_db(conn: sqlite3.Connection, where: Path) -> None:
     if rows.get("format") != FORMAT_NAME:
         raise CatalogError(f"not a ucad catalogue: {where} (meta.format={rows.get('format')!r})")
     version = int(rows.get("schema_version", -1))
+    if version in UPGRADABLE and upgrade:
+        conn.executescript("BEGIN IMMEDIATE;" + UPGRADABLE[version]
+                           + f"UPDATE meta SET value='{SCHEMA_VERSION}' WHERE key='schema_version';"
+                           + "COMMIT;")
+        return
+    if version in UPGRADABLE:
+        raise CatalogError(f"{where}: catalogue schema_version {version}, this code reads "
+                           f"schema_version {SCHEMA_VERSION}; upgrade it in place once with "
+                           f"`ucad-index status --catalog {Path(where).parent}` (needs write "
+                           "access)")
     if version != SCHEMA_VERSION:
         raise CatalogError(f"{where}: catalogue schema_version {version}, this code reads "
                            f"schema_version {SCHEMA_VERSION}")
@@ -167,18 +203,29 @@ def locate_db(path: str | Path) -> tuple[Path, Path]:
     return root, db
 
 
+# the one order of meshes everywhere (reader listings, exports): independent of commit order,
+# so builds with any number of workers list and export the same rows
+MESH_ORDER = "library_root, path, sha256"
+
+
 def mesh_records(conn: sqlite3.Connection, where: str = "", args: tuple = ()) -> list[dict]:
-    """Full plain-JSON records of meshes (ordered by mesh id): the export / round-trip format."""
+    """Full plain-JSON records of meshes (in ``MESH_ORDER``), ``CatalogReader.record``'s format.
+    ``id`` is the internal row id (commit order); the public id is ``sha256``."""
     out = []
     for row in conn.execute(
             "SELECT id, sha256, path, size, mtime, state, reason, detail, n_triangles, "
-            "n_materials, file_to_norm, options_hash, run_id, timings FROM meshes "
-            f"{where} ORDER BY id", args).fetchall():
+            "n_materials, file_to_norm, options_hash, run_id, timings, library_root, "
+            f"orientation, meta FROM meshes {where} ORDER BY {MESH_ORDER}", args).fetchall():
         mid = row[0]
-        rec = dict(zip(("id", "sha256", "path", "size", "mtime", "state", "reason", "detail",
+        rec = dict(zip(("_rowid", "sha256", "path", "size", "mtime", "state", "reason", "detail",
                         "n_triangles", "n_materials"), row[:10]))
         rec["file_to_norm"] = json.loads(row[10])
         rec["options_hash"], rec["run_id"], rec["timings"] = row[11], row[12], json.loads(row[13])
+        rec["library_root"] = row[14]
+        rec["orientation"] = json.loads(row[15]) if row[15] is not None else None
+        rec["meta"] = json.loads(row[16])
+        del rec["_rowid"]                   # internal (commit order); the public id is the hash
+        rec["id"] = rec["sha256"]
         rec["materials"] = [
             {"index": r[0], "name": r[1], "part": r[2], "score": r[3], "iou": r[4], "view": r[5],
              "decision": r[6], "pixels": r[7], "props": json.loads(r[8])}

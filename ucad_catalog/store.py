@@ -96,7 +96,7 @@ class Catalog:
                     conn.close()
                     raise CatalogError(f"not a ucad catalogue: {db} is empty")
                 _init_schema(conn)
-            check_catalog_db(conn, db)
+            check_catalog_db(conn, db, upgrade=True)
             conn.execute("PRAGMA journal_mode=WAL")
             conn.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
             conn.execute("PRAGMA foreign_keys=ON")
@@ -166,10 +166,13 @@ class Catalog:
                                (sha,)).fetchone()
         return row is None or row[0] != options_hash
 
-    def file_record(self, path: str | Path) -> tuple[str, int, float] | None:
-        """(sha256, size, mtime) last committed for ``path``, to skip re-hashing unchanged files."""
-        row = self._db.execute("SELECT sha256, size, mtime FROM meshes WHERE path=? "
-                               "ORDER BY id DESC LIMIT 1", (str(path),)).fetchone()
+    def file_record(self, path: str | Path,
+                    library_root: str = "") -> tuple[str, int, float] | None:
+        """(sha256, size, mtime) last committed for ``path`` (relative to ``library_root``), to
+        skip re-hashing unchanged files."""
+        row = self._db.execute("SELECT sha256, size, mtime FROM meshes WHERE library_root=? "
+                               "AND path=? ORDER BY id DESC LIMIT 1",
+                               (str(library_root), str(path))).fetchone()
         return None if row is None else (row[0], int(row[1]), float(row[2]))
 
     def commit_mesh(self, entry: CatalogEntry, *, move_files: bool = False) -> int:
@@ -187,25 +190,30 @@ class Catalog:
         conn = self._db
         conn.execute("BEGIN IMMEDIATE")
         try:
-            conn.execute("DELETE FROM meshes WHERE path=? AND sha256<>?",
-                         (entry.path, entry.sha256))          # the file changed: old content out
+            conn.execute("DELETE FROM meshes WHERE library_root=? AND path=? AND sha256<>?",
+                         (entry.library_root, entry.path, entry.sha256))  # changed file: old out
             values = (entry.path, int(entry.size), float(entry.mtime), entry.state,
                       entry.reason, entry.detail, int(entry.n_triangles),
                       int(entry.n_materials), canonical_json(_floats(entry.file_to_norm)),
-                      opt_hash, self._run_id, canonical_json(entry.timings))
+                      opt_hash, self._run_id, canonical_json(entry.timings),
+                      entry.library_root,
+                      None if entry.orientation is None else canonical_json(entry.orientation),
+                      canonical_json(entry.meta))
             row = conn.execute("SELECT id FROM meshes WHERE sha256=?",
                                (entry.sha256,)).fetchone()
             if row is None:
                 mid = conn.execute(
                     "INSERT INTO meshes (path, size, mtime, state, reason, detail, n_triangles, "
-                    "n_materials, file_to_norm, options_hash, run_id, timings, sha256) "
-                    "VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)", values + (entry.sha256,)).lastrowid
+                    "n_materials, file_to_norm, options_hash, run_id, timings, library_root, "
+                    "orientation, meta, sha256) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    values + (entry.sha256,)).lastrowid
             else:                                              # re-processed: keep the id
                 mid = row[0]
                 conn.execute(
                     "UPDATE meshes SET path=?, size=?, mtime=?, state=?, reason=?, detail=?, "
                     "n_triangles=?, n_materials=?, file_to_norm=?, options_hash=?, run_id=?, "
-                    "timings=? WHERE id=?", values + (mid,))
+                    "timings=?, library_root=?, orientation=?, meta=? WHERE id=?",
+                    values + (mid,))
                 for table in ("materials", "views", "artifacts"):
                     conn.execute(f"DELETE FROM {table} WHERE mesh_id=?", (mid,))
             conn.executemany(
@@ -253,44 +261,19 @@ class Catalog:
                 "runs": db.execute("SELECT count(*) FROM runs").fetchone()[0],
                 "last_run": last_run}
 
-    def export(self, path: str | Path, format: str = "jsonl") -> int:
-        """Write one record per mesh (ordered by id) to ``path``; returns the record count.
+    def export(self, path: str | Path, format: str | None = None) -> int:
+        """Write the meshes table to ``path`` and the materials table beside it; returns the
+        mesh count. Format from ``format`` or the suffix (.parquet / .jsonl); see
+        ``ucad_catalog.export``."""
+        from .export import format_for, write_export
 
-        jsonl: one canonical JSON object per line (see SCHEMA.md). parquet: the same records,
-        with the free-form dicts (timings, props, stats) as JSON strings; needs pyarrow.
-        """
-        if format not in ("jsonl", "parquet"):
-            raise CatalogError(f"export format must be 'jsonl' or 'parquet', got {format!r}")
-        if format == "parquet":
-            try:
-                import pyarrow as pa
-                import pyarrow.parquet as pq
-            except ImportError:
-                raise CatalogError("export(format='parquet') needs pyarrow, which is not "
-                                   "installed (pip install pyarrow), or use format='jsonl'"
-                                   ) from None
+        format_for(path, format)                    # a bad format fails before any reading
         self._db.execute("BEGIN")                   # one consistent snapshot
         try:
             records = mesh_records(self._db)
         finally:
             self._db.execute("COMMIT")
-        out = Path(path)
-        tmp = out.with_name(f"{_TMP_PREFIX}{out.name}.{uuid.uuid4().hex}")
-        if format == "jsonl":
-            with open(tmp, "w", encoding="utf-8") as f:
-                for rec in records:
-                    f.write(canonical_json(rec) + "\n")
-        else:
-            for rec in records:
-                rec["timings"] = canonical_json(rec["timings"])
-                rec["artifacts"] = [{"kind": k, **v} for k, v in rec["artifacts"].items()]
-                for m in rec["materials"]:
-                    m["props"] = canonical_json(m["props"])
-                for v in rec["views"]:
-                    v["stats"] = canonical_json(v["stats"])
-            pq.write_table(pa.Table.from_pylist(records), str(tmp))
-        os.replace(tmp, out)
-        return len(records)
+        return write_export(records, path, format)
 
     def gc(self) -> dict:
         """Delete objects no artifact row references and leftover temporary files."""

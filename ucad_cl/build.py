@@ -91,6 +91,9 @@ class BuildSummary:
     reasons: dict = field(default_factory=dict)
     stage_seconds: dict = field(default_factory=dict)
     peak_rss_mb: float = 0.0
+    examples: dict = field(default_factory=dict)      # reason -> first few rejected paths
+    log_path: str = ""                                # this run's log (every commit, reasons)
+    library_root: str = ""
 
     @property
     def processed(self) -> int:
@@ -107,9 +110,10 @@ def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None) -
     """Mesh files of a library, sorted by path.
 
     ``library`` is a folder tree (every file with a supported suffix; an Objaverse layout
-    ``glbs/<shard>/<uid>.glb`` is such a tree), or a manifest file (.txt: one path per line;
-    .json: a list of paths or ``{"paths": [...]}``), paths relative to the manifest's folder.
-    ``uids`` keeps only files whose stem is in it (e.g. Objaverse uids of vehicle categories).
+    ``glbs/<shard>/<uid>.glb`` is such a tree), a single mesh file, or a manifest file (.txt:
+    one path per line; .json: a list of paths or ``{"paths": [...]}``), paths relative to the
+    manifest's folder. ``uids`` keeps only files whose stem is in it (e.g. Objaverse uids of
+    vehicle categories). ValueError naming the file for a manifest that is not text / JSON.
     """
     root = Path(library)
     if not root.exists():
@@ -117,10 +121,17 @@ def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None) -
     if root.is_dir():
         paths = [p for p in root.rglob("*") if p.suffix.lower() in SUPPORTED_SUFFIXES
                  and p.is_file() and not p.name.startswith(".")]
+    elif root.suffix.lower() in SUPPORTED_SUFFIXES:
+        paths = [root]                                 # one mesh: a library of one
     else:
-        text = root.read_text(encoding="utf-8")
+        try:
+            text = root.read_text(encoding="utf-8")
+            data = json.loads(text) if root.suffix.lower() == ".json" else None
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{root}: not a mesh folder, a mesh file "
+                             f"({', '.join(SUPPORTED_SUFFIXES)}) or a manifest (.txt one path "
+                             f"per line, .json list of paths): {exc}") from None
         if root.suffix.lower() == ".json":
-            data = json.loads(text)
             items = data.get("paths", []) if isinstance(data, dict) else data
         else:
             items = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
@@ -138,17 +149,47 @@ def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None) -
     return refs
 
 
+def library_root(library: str | os.PathLike) -> str:
+    """The absolute folder a library's paths are recorded relative to: the folder itself, or
+    the folder holding the manifest / the single mesh file."""
+    p = os.path.abspath(library)
+    return p if os.path.isdir(p) else os.path.dirname(p)
+
+
+def relative_path(path: str | os.PathLike, root: str) -> str:
+    """``path`` relative to ``root`` with '/' separators; absolute when it lies outside."""
+    p = os.path.abspath(path)
+    if p == root or not p.startswith(root.rstrip(os.sep) + os.sep):
+        return Path(p).as_posix()
+    return Path(os.path.relpath(p, root)).as_posix()
+
+
+UID_COLUMNS = ("uid", "uids", "id", "file_identifier", "fileIdentifier")
+
+
 def read_uid_list(path: str | os.PathLike, categories: Iterable[str] | None = None) -> list[str]:
-    """Uids from a text file (one per line) or an Objaverse-style annotations JSON
-    (``{uid: {"name", "categories": [{"name": ...}], "tags": [{"name": ...}], ...}}``: its keys).
-    ``categories`` keeps only annotated uids with a category or tag of one of these names
-    (case-insensitive), e.g. ``("car", "vehicle", "truck")``."""
+    """Uids from a text file (one per line), a Parquet table (column ``uid``, or the first of
+    ``UID_COLUMNS``; needs pyarrow) or an Objaverse-style annotations JSON (``{uid: {"name",
+    "categories": [{"name": ...}], "tags": [{"name": ...}], ...}}``: its keys). ``categories``
+    keeps only annotated uids with a category or tag of one of these names (case-insensitive),
+    e.g. ``("car", "vehicle", "truck")``. ValueError naming the file when it is none of these."""
     p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"uid list {p} does not exist")
+    if p.suffix.lower() in (".parquet", ".pq"):
+        if categories:
+            raise ValueError(f"{p}: --categories needs an annotations JSON, not a Parquet table")
+        return _parquet_uids(p)
+    try:
+        text = p.read_text(encoding="utf-8")
+        data = json.loads(text) if p.suffix.lower() == ".json" else None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{p}: not a uid list (text, one uid per line), a Parquet table "
+                         f"(.parquet, column 'uid') or an annotations JSON: {exc}") from None
     if p.suffix.lower() != ".json":
         if categories:
             raise ValueError(f"{p}: --categories needs an annotations JSON, not a uid list")
-        return [ln.strip() for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
-    data = json.loads(p.read_text(encoding="utf-8"))
+        return [ln.strip() for ln in text.splitlines() if ln.strip()]
     if not isinstance(data, dict):
         if categories:
             raise ValueError(f"{p}: --categories needs annotations ({{uid: {{...}}}}), got a list")
@@ -163,6 +204,25 @@ def read_uid_list(path: str | os.PathLike, categories: Iterable[str] | None = No
 
     return [uid for uid, ann in data.items() if isinstance(ann, dict)
             and want & set(names(ann.get("categories"))) | want & set(names(ann.get("tags")))]
+
+
+def _parquet_uids(p: Path) -> list[str]:
+    try:
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise ValueError(f"{p}: reading a Parquet uid table needs pyarrow (pip install pyarrow); "
+                         "or give a text file with one uid per line") from None
+    try:
+        schema = pq.read_schema(p)
+    except Exception as exc:                # pyarrow raises ArrowInvalid and OSError subclasses
+        raise ValueError(f"{p}: not a readable Parquet file ({exc})") from None
+    column = next((c for c in UID_COLUMNS if c in schema.names), None)
+    if column is None:
+        raise ValueError(f"{p}: no uid column (looked for {', '.join(UID_COLUMNS)}; the table has "
+                         f"{', '.join(schema.names[:12])})")
+    values = pq.read_table(p, columns=[column]).column(column).to_pylist()
+    # Objaverse file identifiers are URLs ending in <uid>.glb: keep the stem
+    return [Path(str(v)).stem if "/" in str(v) else str(v) for v in values if v is not None]
 
 
 def content_sha256(path: str | os.PathLike) -> str:
@@ -442,14 +502,15 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     refs = discover(library, uids=uids)
     if limit:
         refs = refs[:limit]
+    root = library_root(library)          # paths are recorded relative to it (absolute root)
     cat = Catalog.open(catalog, create=True)
     try:
         run_id = cat.begin_run({**options.to_dict(), "code": CODE_VERSION}, engine)
         ohash = cat.run_options_hash
-        summary = BuildSummary(run_id=run_id, discovered=len(refs))
+        summary = BuildSummary(run_id=run_id, discovered=len(refs), library_root=root)
         todo: list[tuple[MeshRef, str]] = []
         for ref in refs:
-            rec = cat.file_record(ref.path)
+            rec = cat.file_record(relative_path(ref.path, root), root)
             if rec and rec[1] == ref.size and rec[2] == ref.mtime:
                 sha = rec[0]                               # unchanged file: no need to re-hash
             else:
@@ -464,10 +525,12 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
         log(f"{len(refs)} meshes found, {summary.skipped} unchanged (skipped), "
             f"{len(todo)} to process with the {engine} engine")
         runlog = RunLog(Path(catalog) / "logs" / f"run-{run_id:05d}.log")
+        summary.log_path = str(runlog.path)
         runlog.write(f"run {run_id} engine={engine} workers={workers} found={len(refs)} "
                      f"skipped={summary.skipped} todo={len(todo)} options={options.to_dict()}")
 
         def commit(entry):
+            entry.library_root, entry.path = root, relative_path(entry.path, root)
             cat.commit_mesh(entry, move_files=True)
             n = summary.processed + 1
             runlog.write(f"{n}/{len(todo)} {entry.state} {entry.path}"
@@ -479,6 +542,9 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
             else:
                 summary.rejected += 1
                 summary.reasons[entry.reason] = summary.reasons.get(entry.reason, 0) + 1
+                summary.examples.setdefault(entry.reason, [])
+                if len(summary.examples[entry.reason]) < 3:
+                    summary.examples[entry.reason].append(entry.path)
             for k, v in (entry.timings or {}).items():
                 summary.stage_seconds[k] = summary.stage_seconds.get(k, 0.0) + v
 
@@ -514,6 +580,7 @@ class RunLog:
     line, so a killed run still says how far it got and why."""
 
     def __init__(self, path: Path):
+        self.path = path
         path.parent.mkdir(parents=True, exist_ok=True)
         self._f = open(path, "a", buffering=1, encoding="utf-8")
 

@@ -11,14 +11,17 @@ def register(sub) -> None:
     p = sub.add_parser(
         "build", help="build or update the part-labelled catalogue from a mesh library",
         description="Discover meshes in LIBRARY (a folder tree of GLB/glTF/OBJ/PLY/OFF/STL files, an "
-                    "Objaverse-style glbs/<shard>/<uid>.glb tree, or a manifest .txt/.json of paths), "
+                    "Objaverse-style glbs/<shard>/<uid>.glb tree, a single mesh file, or a manifest "
+                    ".txt/.json of paths; paths are recorded relative to the library folder, whose "
+                    "absolute path is recorded too), "
                     "filter them, render 360-degree material-index views, Canny edges, segment parts, "
                     "label every material with a part, compute pose features, and commit each mesh "
                     "atomically to the catalogue. Safe to interrupt (even kill -9): run it again to "
                     "continue. Unchanged meshes are skipped; changed files and changed options are "
-                    "re-processed. A bad mesh is a recorded rejection, not a failure: the exit status "
-                    "is non-zero only when the run itself fails.")
-    p.add_argument("library", type=Path, help="library folder or manifest file")
+                    "re-processed. A bad mesh is a recorded rejection, not a failure: the summary "
+                    "lists rejections by reason with example files and the run log's path, and the "
+                    "exit status is non-zero only when the run itself fails.")
+    p.add_argument("library", type=Path, help="library folder, a mesh file, or a manifest file")
     p.add_argument("--catalog", required=True, type=Path, metavar="PATH", help="catalogue folder")
     p.add_argument("--workers", type=int, default=1,
                    help="pipeline worker processes (each gets cores/workers OpenCL threads; default 1)")
@@ -39,13 +42,17 @@ def register(sub) -> None:
     p.add_argument("--no-features", action="store_true", help="skip pose features")
     p.add_argument("--no-edges", action="store_true", help="skip Canny edge maps")
     p.add_argument("--uids", type=Path, default=None, metavar="FILE",
-                   help="keep only meshes whose file stem is listed (text, or annotations JSON keys)")
+                   help="keep only meshes whose file stem is listed: a text file (one uid per "
+                        "line), a Parquet table (column 'uid'), or an annotations JSON (its keys)")
     p.add_argument("--categories", nargs="+", default=None, metavar="NAME",
                    help="with an annotations JSON as --uids: keep uids with one of these "
                         "category or tag names (e.g. car vehicle truck)")
     p.add_argument("--limit", type=int, default=None, help="process at most N discovered meshes")
     p.add_argument("--timeout", type=float, default=600.0,
                    help="seconds without progress on one mesh before it is rejected (default 600)")
+    p.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress bar and no summary: only warnings and errors (stderr); the "
+                        "run log still records everything")
     add_camera_args(p)
     p.set_defaults(func=run)
 
@@ -61,21 +68,43 @@ def options_from_args(args):
 
 
 def run(args) -> int:
+    from ucad_catalog import CatalogError
+
     from ..build import build, read_uid_list
 
+    say = (lambda *a, **k: None) if args.quiet else print
     try:
         opts = options_from_args(args)
         if args.categories and not args.uids:
             raise ValueError("--categories needs --uids ANNOTATIONS.json")
         uids = read_uid_list(args.uids, args.categories) if args.uids else None
+        if args.engine == "local":
+            report_device(say)
         summary = build(args.library, args.catalog, opts, workers=args.workers,
                         engine=args.engine, ray_address=args.address, uids=uids,
-                        limit=args.limit, timeout=args.timeout)
-    except (FileNotFoundError, ValueError) as exc:
+                        limit=args.limit, timeout=args.timeout, progress=not args.quiet,
+                        log=say)
+    except (FileNotFoundError, ValueError, CatalogError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print_summary(summary, args.catalog)
+    if not args.quiet:
+        print_summary(summary, args.catalog)
     return 0
+
+
+def report_device(say) -> None:
+    """Say which OpenCL device the workers will use; warn (stderr, even with --quiet) when it is
+    a PoCL known to be slow, with the measured cost and the fix."""
+    from ..runtime import OpenCLUnavailable, pick_device_info, slow_device_warning
+
+    try:
+        info, why = pick_device_info()
+    except OpenCLUnavailable as exc:
+        raise ValueError(str(exc)) from None
+    say(f"OpenCL device {info.spec}: {info.summary()} ({why})")
+    warning = slow_device_warning(info)
+    if warning:
+        print(warning, file=sys.stderr)
 
 
 def print_summary(s, catalog) -> None:
@@ -85,11 +114,19 @@ def print_summary(s, catalog) -> None:
     print(f"{s.discovered:>12} {s.skipped:>8} {s.accepted:>9} {s.rejected:>9} {s.seconds:>8.1f} "
           f"{s.meshes_per_s:>9.2f} {s.peak_rss_mb:>8.0f}")
     if s.reasons:
-        print("rejections: " + ", ".join(f"{k} {v}" for k, v in sorted(s.reasons.items())))
+        print(f"rejected {s.rejected} mesh(es), by reason (ucad-index status --catalog "
+              f"{catalog} lists them all):")
+        for reason, n in sorted(s.reasons.items(), key=lambda kv: (-kv[1], kv[0])):
+            shown = ", ".join(s.examples.get(reason, []))
+            more = f", ... ({n - len(s.examples.get(reason, []))} more)" if n > len(
+                s.examples.get(reason, [])) else ""
+            print(f"  {reason:<24} {n:>5}  {shown}{more}")
+    if s.log_path:
+        print(f"run log (every mesh, reasons, timings): {s.log_path}")
     if s.stage_seconds:
         tot = sum(s.stage_seconds.values()) or 1.0
         print("time per stage: " + ", ".join(f"{k} {v:.1f}s ({100 * v / tot:.0f}%)"
                                              for k, v in sorted(s.stage_seconds.items(),
                                                                 key=lambda kv: -kv[1])))
     print(f"catalogue: {catalog}   (ucad-index status --catalog {catalog}; "
-          f"ucad-index show ID --catalog {catalog})")
+          f"ucad-index show ID|PATH|NAME --catalog {catalog})")

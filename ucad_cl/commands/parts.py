@@ -1,7 +1,7 @@
 """``ucad-index parts MESH...``: material -> part table of meshes (segment + IoU classification).
 
 Per mesh: render the camera ring, segment the views (``--segmenter prior`` (default, offline),
-``masks DIR`` or ``onnx MODEL``), classify every material, print the table and write
+``masks:DIR`` or ``onnx:MODEL:CONFIG.json``, the same spelling as ``build``), classify every material, print the table and write
 ``OUT/NAME.parts.csv``, ``OUT/NAME.parts.json`` and ``OUT/NAME.parts.png`` (the views coloured by
 the decided part: a fixed colour per part, legend on the right).
 """
@@ -31,13 +31,11 @@ def register(sub) -> None:
                         "none = every accepted mesh)")
     p.add_argument("--catalog", type=Path, default=None, metavar="PATH",
                    help="print the stored material -> part tables of a catalogue instead")
-    p.add_argument("--segmenter", nargs="+", default=["prior"], metavar="KIND",
-                   help="'prior' (default: names, properties, geometry; no model), "
-                        "'masks DIR' (DIR/<sha256>/view_<vvv>/<part>.png + confidence.json), or "
-                        "'onnx MODEL' (see --onnx-config)")
-    p.add_argument("--onnx-config", type=Path, metavar="JSON",
-                   help="JSON for the onnx segmenter: {\"classes\": {\"0\": \"background\", "
-                        "\"1\": \"window\", ...}, \"input_size\": [H, W]}")
+    p.add_argument("--segmenter", default="prior", metavar="SPEC",
+                   help="one word, as in `build`: 'prior' (default: names, properties, geometry; "
+                        "no model), 'masks:DIR' (DIR/<sha256>/view_<vvv>/<part>.png + "
+                        "confidence.json), or 'onnx:MODEL:CONFIG.json' (CONFIG: {\"classes\": "
+                        "{\"0\": \"background\", \"1\": \"window\", ...}, \"input_size\": [H, W]})")
     p.add_argument("--out", type=Path, default=Path("out/parts"), metavar="DIR",
                    help="output folder (default out/parts)")
     p.add_argument("--threshold", type=float, default=0.5, help="score threshold (default 0.5)")
@@ -45,14 +43,12 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def make_segmenter(spec: list[str], onnx_config: Path | None):
-    """Segmenter from the ``--segmenter`` words (raises ValueError with a usage message)."""
-    from ..segment import make_segmenter as factory
+def make_segmenter(spec: str):
+    """Segmenter from a ``--segmenter`` SPEC, the one spelling of every command
+    (``ucad_cl.build.make_segmenter``; ValueError with a usage message)."""
+    from ..build import make_segmenter as from_spec
 
-    if len(spec) > 2:
-        raise ValueError(f"--segmenter {' '.join(spec)!r}: expected 'prior', 'masks DIR' or "
-                         "'onnx MODEL' (with --onnx-config JSON)")
-    return factory(spec[0], spec[1] if len(spec) == 2 else None, onnx_config)
+    return from_spec(spec)
 
 
 def write_table(table, stem: Path) -> None:
@@ -91,7 +87,7 @@ def run_catalog(args) -> int:
     with reader as r:
         metas = r.meshes(state=None)
         if args.meshes:
-            hit_ids = {m.id for k in args.meshes for m in match_meshes(metas, k)}
+            hit_ids = {m.id for k in args.meshes for m in match_meshes(r, k)}
             metas = [m for m in metas if m.id in hit_ids]
             if not metas:
                 print(f"error: no catalogued mesh matches {args.meshes}", file=sys.stderr)
@@ -99,7 +95,7 @@ def run_catalog(args) -> int:
         else:
             metas = [m for m in metas if m.state == "accepted"]
         for m in metas:
-            print(f"== {m.id} {m.path} ({m.state}{': ' + m.reason if m.reason else ''})")
+            print(f"== {m.id[:12]} {m.path} ({m.state}{': ' + m.reason if m.reason else ''})")
             rows = r.parts(m.sha256)
             if rows:
                 print(format_rows(rows))
@@ -119,15 +115,22 @@ def run(args) -> int:
     from ..sheets import part_sheet, write_png
 
     try:
-        segmenter = make_segmenter(args.segmenter, args.onnx_config)
+        segmenter = make_segmenter(args.segmenter)
     except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    from .render import output_stems
+
+    try:
+        stems = output_stems(args.meshes)
+    except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     ring = ring_from_args(args)
     args.out.mkdir(parents=True, exist_ok=True)
     failed = 0
-    for path in args.meshes:
-        stem = args.out / Path(path).name.rsplit(".", 1)[0]
+    for path, name in zip(args.meshes, stems):
+        stem = args.out / name
         try:
             mesh = load_mesh(path)
             views = render_views(mesh, ring)

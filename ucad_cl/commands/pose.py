@@ -231,7 +231,7 @@ def run_catalog(args, image, mask) -> int:
             "object": {"source": obj.source, "box": list(obj.box), "kept": round(obj.kept, 4)},
             "conventions": "azimuth/elevation degrees in each mesh's canonical frame (azimuth 0 "
                            "= front); K and w2c: the stored view's render camera",
-            "candidates": [{"rank": i + 1, "mesh": metas[mt.mesh].path,
+            "candidates": [{"rank": i + 1, "mesh": str(metas[mt.mesh].source),
                             "sha256": metas[mt.mesh].sha256, "view": mt.view,
                             "azimuth": mt.azimuth, "elevation": mt.elevation, "distance": d,
                             "score": mt.score, "K": Ks[mt.row].tolist(),
@@ -241,10 +241,10 @@ def run_catalog(args, image, mask) -> int:
         print(f"{'rank':>4s} {'azimuth':>8s} {'elev':>6s} {'dist':>6s} {'score':>7s}  mesh (view)")
         for i, (mt, d) in enumerate(rows):
             print(f"{i + 1:4d} {mt.azimuth:8.1f} {mt.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
-                  f"{metas[mt.mesh].path} ({mt.view})")
+                  f"{metas[mt.mesh].source} ({mt.view})")
         print(object_line(obj))
     try:
-        mesh = load_mesh(metas[best.mesh].path)
+        mesh = load_mesh(metas[best.mesh].source)
     except IngestError as exc:
         print(f"(no side-by-side PNG: {exc})", file=sys.stderr)
         return 0
