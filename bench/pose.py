@@ -48,8 +48,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from pose_refs import CLUTTER, make_references, real_vehicles, synth_vehicles  # noqa: E402
 from ucad_cl.features import HogExtractor  # noqa: E402
-from ucad_cl.pose import (LEGACY, ROBUST, az_diff, estimate_pose, pose_ring,  # noqa: E402
-                          twin_azimuth)
+from ucad_cl.pose import (LEGACY, ROBUST, TWINS, az_diff, estimate_pose,  # noqa: E402
+                          pose_ring, twin_azimuth)
 
 VEHICLES = ROOT.parent / "shared" / "data" / "vehicles"
 TUNING_REAL = ("o3dv_car.glb", "kenney_sedan/sedan.glb", "openmaterial_truck/truck_example.gltf",
@@ -80,7 +80,8 @@ def is_flip(answer: float, truth: float) -> bool:
 
 
 def run_queries(refs, meshes, rings, method, mode):
-    """Per reference: (azimuth error, flip, ambiguous, seconds, elevation error)."""
+    """Per reference: (azimuth error, flip, ambiguous, seconds, elevation error, azimuth error of
+    the runner-up twin (nan: none), its twin kind index in TWINS (-1: none))."""
     rows = []
     for r in refs:
         where = dict(mask=r.mask) if mode == "mask" else dict(box=r.box)
@@ -88,9 +89,11 @@ def run_queries(refs, meshes, rings, method, mode):
         est = estimate_pose(r.image, meshes[r.vehicle], coarse=rings[r.vehicle], top=2,
                             method=method, **where)
         dt = time.perf_counter() - t0
-        b = est.best
+        b, ru = est.best, est.runner_up
         rows.append((az_diff(b.azimuth, r.azimuth), is_flip(b.azimuth, r.azimuth),
-                     est.ambiguous, dt, abs(b.elevation - r.elevation)))
+                     est.ambiguous, dt, abs(b.elevation - r.elevation),
+                     az_diff(ru.azimuth, r.azimuth) if ru is not None else np.nan,
+                     TWINS.index(ru.twin) if ru is not None and ru.twin in TWINS else -1))
     return np.array(rows, np.float64)
 
 
@@ -101,6 +104,28 @@ def summary(rows) -> str:
     return (f"{np.median(err):7.2f} {np.percentile(err, 90):7.2f} {np.mean(err <= 15) * 100:6.1f}% "
             f"{np.mean(err <= 5) * 100:6.1f}% {flip.mean() * 100:6.1f}% {amb.mean() * 100:6.1f}% "
             f"{amb_wrong} {np.median(rows[:, 4]):6.2f} {np.median(dt):7.3f} {len(dt) / dt.sum():6.2f}")
+
+
+def twin_table(results):
+    """The explicit decision between the best candidate and its runner-up twin, where exactly
+    one of the two is within 15 deg of the truth: how often the right one came first."""
+    print("\ntwin decisions (new method): pairs where exactly one of best / runner-up twin is "
+          "within 15 deg of the truth")
+    print(f"{'mode':5s} {'twin':10s} {'pairs':>5s} {'right':>7s} {'ambig':>7s} {'right|clear':>11s}")
+    for (mode, name), rows in results.items():
+        if name != "new":
+            continue
+        ok_b, ok_r = rows[:, 0] <= 15, rows[:, 5] <= 15
+        pair = ok_b != ok_r
+        for k, kind in enumerate(TWINS):
+            m = pair & (rows[:, 6] == k)
+            if not m.any():
+                continue
+            amb = rows[m, 2] > 0
+            clear = ok_b[m][~amb]
+            print(f"{mode:5s} {kind:10s} {m.sum():5d} {ok_b[m].mean() * 100:6.1f}% "
+                  f"{amb.mean() * 100:6.1f}% "
+                  + (f"{clear.mean() * 100:10.1f}%" if clear.size else f"{'-':>11s}"))
 
 
 HEADER = (f"{'mode':5s} {'method':7s} {'n':>4s} {'med az':>7s} {'p90 az':>7s} {'<=15':>7s} "
@@ -116,6 +141,7 @@ def accuracy_table(refs, meshes, rings, methods, modes, by=None):
             rows = run_queries(refs, meshes, rings[name], METHODS[name], mode)
             results[(mode, name)] = rows
             print(f"{mode:5s} {name:7s} {len(rows):4d} {summary(rows)}", flush=True)
+    twin_table(results)
     if by:
         for key, label in (("source", "vehicle source"), ("clutter", "clutter kind")):
             print(f"\nby {label} (new method):")

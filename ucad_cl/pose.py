@@ -14,9 +14,10 @@ features are nearest to the photo's), made robust to what a real photo does to a
    ``bench/pose.py --tune`` on the tuning split only).
 3. **Coarse to fine**: every view of a coarse ring (``pose_ring``: rendered once, reusable for
    many photos, e.g. from a catalogue) is scored; the ``seeds`` best distinct views and the best
-   view's twins are refined on fine grids rendered on demand (stage 1: +-0.6 step in azimuth,
-   +-1/4 of the elevation spacing; stage 2: +-0.15 step, +-1/8; stage 3: the camera distance,
-   which sets the perspective, x0.7 and x1.4 around the estimate from the object's size).
+   view's twins are refined on a grid rendered on demand (+-0.6 coarse step in azimuth, +-1/4
+   of the elevation spacing, at the camera distance estimated from the object's size); the best
+   and its best twin then try the distance (which sets the perspective) x0.7 and x1.4 and two
+   finer grids (+-0.15 step and +-1/8 spacing, then +-0.075 and +-1/16).
 4. **Front/back and left/right as an explicit decision**: the best candidate is compared with its
    twins, refined alike: ``mirror`` (azimuth -a: the other side), ``opposite`` (a + 180) and
    ``front-back`` (180 - a: same side, the other end; the outline is the same, only the lamps,
@@ -90,16 +91,18 @@ class PoseMethod:
     twins: bool = True
     seeds: int = 2
     stages: tuple = (((-0.6, -0.3, 0.0, 0.3, 0.6), (-0.25, 0.0, 0.25)),
-                     ((-0.15, 0.0, 0.15), (-0.125, 0.0, 0.125)))
+                     ((-0.15, 0.0, 0.15), (-0.125, 0.0, 0.125)),
+                     ((-0.075, 0.0, 0.075), (-0.0625, 0.0, 0.0625)))
     distance_factors: tuple = (0.7, 1.4)
     refine_mask: bool = False
 
 
 ROBUST = PoseMethod()
-#: before issue 12: HOG of the box crop (background included), 3 seeds refined on one grid of
-#: +-1 step at 2 deg (10 deg steps) and half the elevation spacing, at the ring's distance
+#: before issue 12: HOG of the box crop (background included); the best coarse view and the best
+#: one >= FLIP_MIN_DEG away refined on one grid of +-1 step at 2 deg (10 deg steps) and half the
+#: elevation spacing, at the ring's distance (what the old search did with top=2)
 LEGACY = PoseMethod(weights=(("hog", 1.0),), box_weights=(("hog", 1.0),), isolate=False,
-                    fov_prior=None, twins=False, seeds=3,
+                    fov_prior=None, twins=False, seeds=1,
                     stages=((tuple(np.round(np.arange(-1.0, 1.0001, 0.2), 6)), (-0.5, 0.0, 0.5)),),
                     distance_factors=())
 
@@ -506,7 +509,10 @@ class _Search:
         for i, spec in enumerate(specs):
             groups.setdefault(max(float(spec[2]), MIN_DISTANCE), []).append(i)
         for distance, idx in groups.items():
-            fov = min(2.0 * np.degrees(np.arcsin(min(1.05 * 0.5 / distance, 1.0))), 120.0)
+            if distance == self.coarse.ring.distance:          # the ring's own field of view
+                fov = float(np.degrees(2 * np.arctan(0.5 * min(self.size) / self.f_render)))
+            else:                                              # the sphere fills it as in a ring
+                fov = min(2.0 * np.degrees(np.arcsin(min(1.05 * 0.5 / distance, 1.0))), 120.0)
             rings = [make_ring(azimuths=specs[i][0], elevations=specs[i][1], fov_deg=fov,
                                size=self.size, distance=distance) for i in idx]
             r0 = rings[0]
