@@ -81,7 +81,7 @@ def is_flip(answer: float, truth: float) -> bool:
 
 def run_queries(refs, meshes, rings, method, mode):
     """Per reference: (azimuth error, flip, ambiguous, seconds, elevation error, azimuth error of
-    the runner-up twin (nan: none), its twin kind index in TWINS (-1: none))."""
+    the runner-up twin (nan: none), its twin kind index in TWINS (-1: none), its score gap)."""
     rows = []
     for r in refs:
         where = dict(mask=r.mask) if mode == "mask" else dict(box=r.box)
@@ -93,7 +93,8 @@ def run_queries(refs, meshes, rings, method, mode):
         rows.append((az_diff(b.azimuth, r.azimuth), is_flip(b.azimuth, r.azimuth),
                      est.ambiguous, dt, abs(b.elevation - r.elevation),
                      az_diff(ru.azimuth, r.azimuth) if ru is not None else np.nan,
-                     TWINS.index(ru.twin) if ru is not None and ru.twin in TWINS else -1))
+                     TWINS.index(ru.twin) if ru is not None and ru.twin in TWINS else -1,
+                     ru.gap if ru is not None else np.nan))
     return np.array(rows, np.float64)
 
 
@@ -270,6 +271,7 @@ def main():
     ap.add_argument("--catalog", action="store_true", help="also the catalogue-wide search")
     ap.add_argument("--kernels", action="store_true", help="also the HOG kernel table")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--save", type=Path, default=None, help="save every row as .npz (analysis)")
     args = ap.parse_args()
     if (args.weights or args.set) and args.split != "tuning":
         ap.error("--weights and --set are for tuning: use them with --split tuning")
@@ -310,8 +312,10 @@ def main():
     print(f"device: {get_runtime().describe()}; load average {os.getloadavg()[0]:.1f} "
           f"(2 shared cores); ring s (coarse ring, 108 views, per mesh): "
           f"{np.median(ring_s):.2f}")
-    accuracy_table(refs, meshes, rings, methods, [m for m in args.modes.split(",") if m],
-                   by=args.by)
+    results = accuracy_table(refs, meshes, rings, methods,
+                             [m for m in args.modes.split(",") if m], by=args.by)
+    if args.save:
+        np.savez(args.save, **{f"{mode}_{name}": rows for (mode, name), rows in results.items()})
     if args.catalog:
         catalog_table(vehicles, refs, repeats=args.repeats)
 
