@@ -66,6 +66,7 @@ TWINS = ("mirror", "opposite", "front-back")
 FLIP_MIN_DEG = 135.0        # legacy flip rule (``twins=False``): best candidate this far away
 EXACT_ROWS = 50_000         # search_catalog ranks up to this many rows exactly on the host
 PRESELECT = 64              # rows taken from the OpenCL search for the exact re-rank (k <= 64)
+RERANK_BATCH = 32           # queries re-ranked together (bounds the float64 scratch to ~30 MB)
 MIN_DISTANCE = 0.55         # renders keep the camera outside the bounding sphere (radius 0.5)
 
 
@@ -318,9 +319,12 @@ def search_catalog(query: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
 
 def search_catalog_batch(queries: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
                          views: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
-                         top: int = 5, *, index=None) -> list[list[CatalogMatch]]:
+                         top: int = 5, *, index=None,
+                         exact: bool = True) -> list[list[CatalogMatch]]:
     """``search_catalog`` for (Q, D) queries: one OpenCL preselection for the whole batch (the
-    way to many queries per second), then the exact re-rank of each query."""
+    way to many queries per second), then the exact float64 re-rank of each query's PRESELECT
+    rows; ``exact=False`` keeps the index's own float32 order and squared distances (with an
+    ``index``; an f32 index, or a pca index with rerank, gives exact float32 distances)."""
     feats = np.asarray(feats)
     n = feats.shape[0] if feats.ndim == 2 else -1
     cols = [np.asarray(a) for a in (mesh_ids, views, azimuth, elevation)]
@@ -336,16 +340,19 @@ def search_catalog_batch(queries: np.ndarray, feats: np.ndarray, mesh_ids: np.nd
     else:
         from .search import search
 
-        k = min(n, max(PRESELECT, top))
-        qn = unit_rows(qs)[0].astype(np.float32)
-        cands = (index.search(qn, k) if index is not None else search(qn, feats, k))[0]
-        ranked = []
-        for q, cand in zip(qs, cands):
-            order, d_sorted = rank_features(q, feats[cand])
-            d = np.empty_like(d_sorted)
-            d[order] = d_sorted
-            o = np.lexsort((cand, d))
-            ranked.append((cand[o], d[o]))
+        k = min(n, max(PRESELECT, top)) if exact else top
+        qn32 = unit_rows(qs)[0].astype(np.float32)
+        cands, d32 = index.search(qn32, k) if index is not None else search(qn32, feats, k)
+        ranked = [] if exact else list(zip(cands, d32.astype(np.float64)))
+        for c0 in range(0, len(qs) if exact else 0, RERANK_BATCH):   # rank_features', batched
+            cand = cands[c0:c0 + RERANK_BATCH]
+            qn, q_nz = unit_rows(qs[c0:c0 + RERANK_BATCH])
+            dn, d_nz = unit_rows(feats[cand.ravel()])
+            dn = dn.reshape(cand.shape + (-1,))
+            d = q_nz[:, None] + d_nz.reshape(cand.shape) - 2.0 * (dn * qn[:, None, :]).sum(axis=2)
+            for c, dd in zip(cand, d):
+                o = np.lexsort((c, dd))
+                ranked.append((c[o], dd[o]))
     return [[CatalogMatch(row=int(r), mesh=int(cols[0][r]), view=int(cols[1][r]),
                           azimuth=float(cols[2][r]), elevation=float(cols[3][r]),
                           score=float(s)) for r, s in zip(rows[:top], d[:top])]
