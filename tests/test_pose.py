@@ -12,7 +12,7 @@ from ucad_cl.artifacts import CameraRing, Material, Mesh
 from ucad_cl.cameras import make_ring
 from ucad_cl.features import HogExtractor
 from ucad_cl.pose import (AMBIGUOUS_GAP, LEGACY, TWINS, PoseRing, az_diff, estimate_pose,
-                          pose_ring, rank_features, reference_mask, search_catalog,
+                          pose_ring, rank_features, search_catalog,
                           search_catalog_batch, twin_azimuth)
 from ucad_cl.render import render_views
 from ucad_cl.shade import shade_views
@@ -262,13 +262,6 @@ def test_search_catalog_maps_rows_to_mesh_and_view(coarse):
                                 index=FeatureIndex(feats))
     for e, f in zip(exact, fast):
         assert [(x.row, x.score) for x in e] == [(x.row, x.score) for x in f]
-
-
-def test_reference_mask_box_or_mask():
-    img = np.zeros((40, 60, 3), np.uint8)
-    assert reference_mask(img, box=(1, 2, 11, 7)).sum() == 50
-    with pytest.raises(ValueError, match="exactly one of box"):
-        reference_mask(img)
 
 
 def test_cli_table_json_and_errors(tmp_path, capsys, runtime):

@@ -113,16 +113,18 @@ def view_cues(mesh: Mesh, views: ViewSet, images: np.ndarray, extractor: Feature
 
 
 def query_cues(image: np.ndarray, mask: np.ndarray, extractor: FeatureExtractor,
-               size: int = SIZE) -> Cues:
+               size: int = SIZE, frame: np.ndarray | None = None) -> Cues:
     """Cues of one photo ``image`` (H, W, 3) uint8 (background already replaced) with its
-    object ``mask`` (H, W) bool."""
-    window = square_windows(mask[None], PAD)[0]
+    object ``mask`` (H, W) bool; the crop window is the mask's (``frame``'s, another (H, W)
+    bool mask, when given: e.g. a detector's box when the mask is only an estimate)."""
+    frame = mask if frame is None else frame
+    window = square_windows(frame[None], PAD)[0]
     crop = crop_window(image, window, size)
     sil = crop_window(mask.astype(np.float32), window, size)
     edges = cv2.Canny(crop, CANNY[0], CANNY[1], L2gradient=True) > 0
-    hog = extractor.extract(image[None], mask[None]).feats
+    hog = extractor.extract(image[None], frame[None]).feats
     return Cues(hog=hog, sil=sil[None], edges=edges[None], dist=_distances(edges[None]),
-                sides=np.array([_side(mask) / min(mask.shape)]),
+                sides=np.array([_side(frame) / min(frame.shape)]),
                 colours=crop.astype(np.float32)[None])
 
 

@@ -233,10 +233,14 @@ class CentredPhoto:
     R: np.ndarray
     K: np.ndarray
     f: float
+    frame: np.ndarray | None = None
 
 
-def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float) -> CentredPhoto:
-    """Warp ``image``/``mask`` so that the centre of the mask's box is on the optical axis.
+def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
+                   frame: np.ndarray | None = None) -> CentredPhoto:
+    """Warp ``image``/``mask`` so that the centre of the mask's box (of ``frame``'s box when
+    given: another (H, W) bool mask, e.g. the detector's box, warped alike into
+    ``CentredPhoto.frame``) is on the optical axis.
 
     A vehicle seen away from the image centre is seen obliquely by the image plane: its image is
     that of a camera looking at it, warped by the homography ``K R^T K^-1`` of the camera's turn
@@ -245,12 +249,12 @@ def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float) -> Centr
     ``fov_deg`` over the narrower image side and the principal point at the image centre (an
     error there only leaves part of the obliquity). The turn is a yaw about the camera's y axis
     then a pitch about the new x axis (an upright camera stays upright). The output is the
-    warped object's box grown by 25 % on each side (bilinear image, nearest-neighbour mask,
-    edge pixels repeated)."""
+    warped box grown by 25 % on each side (bilinear image, nearest-neighbour masks, edge pixels
+    repeated)."""
     H, W = mask.shape
     f = 0.5 * min(H, W) / np.tan(np.radians(fov_deg) / 2.0)
     K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
-    x0, y0, x1, y1 = mask_box(mask)
+    x0, y0, x1, y1 = mask_box(mask if frame is None else frame)
     R = axis_turn(K, ((x0 + x1) / 2.0, (y0 + y1) / 2.0))
     Hm = K @ R @ np.linalg.inv(K)
     corners = np.array([[x0, y0, 1.0], [x1, y0, 1.0], [x0, y1, 1.0], [x1, y1, 1.0]]) @ Hm.T
@@ -263,10 +267,15 @@ def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float) -> Centr
     M = T @ Hm
     out = cv2.warpPerspective(image, M, (w, h), flags=cv2.INTER_LINEAR,
                               borderMode=cv2.BORDER_REPLICATE)
-    m = cv2.warpPerspective(mask.view(np.uint8), M, (w, h), flags=cv2.INTER_NEAREST) > 0
-    if not m.any():                                 # degenerate warp: keep the photo as it is
-        return CentredPhoto(image=image, mask=mask, R=np.eye(3), K=K, f=float(f))
-    return CentredPhoto(image=out, mask=m, R=R, K=K, f=float(f))
+
+    def warp(a):
+        return cv2.warpPerspective(a.view(np.uint8), M, (w, h), flags=cv2.INTER_NEAREST) > 0
+
+    m = warp(mask)
+    fr = warp(frame) if frame is not None else None
+    if not m.any() or (fr is not None and not fr.any()):   # degenerate: keep the photo
+        return CentredPhoto(image=image, mask=mask, R=np.eye(3), K=K, f=float(f), frame=frame)
+    return CentredPhoto(image=out, mask=m, R=R, K=K, f=float(f), frame=fr)
 
 
 def axis_turn(K: np.ndarray, point) -> np.ndarray:

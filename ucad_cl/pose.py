@@ -5,13 +5,14 @@ features are nearest to the photo's), made robust to what a real photo does to a
 
 1. **The object, not the box** (``ucad_cl.foreground``): with a mask, the photo's background is
    replaced by the renders' flat grey; with a box, GrabCut estimates the object inside it first
-   (and is rerun at the end seeded by the best render's silhouette). The photo is then turned
+   (``PoseMethod.refine_mask`` reruns it seeded by the best render's silhouette and searches
+   again: measured no gain at twice the time, off). The photo is then turned
    virtually so the object sits on the optical axis (``centre_on_axis``, assuming a field of view
    of ``fov_prior``), as the renders see the vehicle.
 2. **Appearance-invariant cues** (``ucad_cl.cues``): HOG of the object, silhouette IoU, edge
    chamfer against the render's geometric and material edges, and how well the render's material
-   regions explain the photo's colours, combined with the weights of ``PoseMethod`` (chosen by
-   ``bench/pose.py --tune`` on the tuning split only).
+   regions explain the photo's colours, combined with the weights of ``PoseMethod`` (chosen with
+   ``bench/pose.py --split tuning`` on the tuning split only).
 3. **Coarse to fine**: every view of a coarse ring (``pose_ring``: rendered once, reusable for
    many photos, e.g. from a catalogue) is scored; the ``seeds`` best distinct views and the best
    view's twins are refined on a grid rendered on demand (+-0.6 coarse step in azimuth, +-1/4
@@ -51,7 +52,7 @@ import numpy as np
 from .artifacts import CameraRing, Mesh
 from .cameras import look_at_w2c, make_ring
 from .cues import Cues, combine, cue_distances, hog_distance, query_cues, view_cues
-from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows, view_features
+from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
 from .foreground import (RENDER_BACKGROUND, ObjectMask, axis_turn, centre_on_axis, composite,
                          mask_box, object_mask, refine_with_silhouette)
 from .render import render_views
@@ -85,7 +86,10 @@ class PoseMethod:
     the first for every hypothesis, the others for the best and its runner-up.
     distance_factors: camera distances tried around the estimate (perspective) last.
     refine_mask: with a box, rerun GrabCut seeded by the best render's silhouette and search
-    again (measured: no gain at twice the time, see bench/pose.py; off).
+    again (measured: no gain at twice the time, see bench/pose.py; off). box_frame: with a box,
+    crop, centre and size the photo by the box rather than by GrabCut's mask (GrabCut then only
+    decides which pixels keep their colours) when a side of the mask's box is more than
+    ``box_frame`` x the box's size away from the box's side (0: always; None: never).
     """
 
     weights: tuple = (("hog", 1.0), ("silhouette", 1.0), ("chamfer", 1.0), ("region", 1.0))
@@ -99,6 +103,7 @@ class PoseMethod:
                      ((-0.075, 0.0, 0.075), (-0.0625, 0.0, 0.0625)))
     distance_factors: tuple = (0.8, 1.25)
     refine_mask: bool = False
+    box_frame: float | None = 0.08
 
 
 ROBUST = PoseMethod()
@@ -190,7 +195,13 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
                          kept=1.0)
     weights = dict(method.weights if obj.source == "mask" else method.box_weights)
     search = _Search(mesh, coarse, weights, method, refine)
-    search.set_photo(image, obj.mask)
+    frame = None
+    if method.box_frame is not None and obj.source != "mask":
+        b, m = np.array(obj.box, float), np.array(mask_box(obj.mask), float)
+        size = np.array([b[2] - b[0], b[3] - b[1]] * 2)
+        if np.any(np.abs(m - b) > method.box_frame * size):
+            frame = box_mask(obj.mask.shape, obj.box)
+    search.set_photo(image, obj.mask, frame)
     found = search.run()
     if method.refine_mask and refine and obj.source == "grabcut":
         fg = refine_with_silhouette(image, search.silhouette_in_photo(found[0]))
@@ -198,7 +209,7 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
             x0, y0, x1, y1 = obj.box
             obj = ObjectMask(mask=fg, source="grabcut+render", box=obj.box,
                              kept=float(fg[y0:y1, x0:x1].mean()))
-            search.set_photo(image, obj.mask)
+            search.set_photo(image, obj.mask, frame)
             found = search.run()
     cands = search.report(found, top)
     runner = next((c for c in cands if c.flipped), None)
@@ -228,29 +239,6 @@ def render_cues(mesh: Mesh, ring: CameraRing, extractor: FeatureExtractor,
         normals = face_normals(mesh)
     images = shade_views(mesh, views, background=RENDER_BACKGROUND, normals=normals)
     return view_cues(mesh, views, images, extractor, normals=normals)
-
-
-def reference_mask(image: np.ndarray, *, box=None, mask=None) -> np.ndarray:
-    """(H, W) bool: ``mask``, or the pixels of ``box`` (exactly one; no foreground estimate)."""
-    obj = object_mask(image, mask=mask) if mask is not None or box is None else None
-    if obj is not None:
-        return obj.mask
-    return box_mask(np.asarray(image).shape[:2], box)
-
-
-def render_features(mesh: Mesh, ring: CameraRing, extractor: FeatureExtractor,
-                    **shade_kwargs) -> tuple[np.ndarray, np.ndarray]:
-    """Features (V, D) of shaded renders of ``ring`` and each view's longer box side (pixels)."""
-    shade_kwargs.setdefault("background", RENDER_BACKGROUND)
-    views = render_views(mesh, ring)
-    masks = np.isfinite(views.depth)
-    empty = np.flatnonzero(~masks.any(axis=(1, 2)))
-    if empty.size:
-        raise ValueError(f"mesh {mesh.path!r}: nothing visible in view(s) {empty.tolist()}")
-    images = shade_views(mesh, views, **shade_kwargs)
-    feats = view_features(extractor, images, views).feats
-    sides = np.array([_box_side(m) for m in masks], np.float64)
-    return feats, sides
 
 
 def query_features(image: np.ndarray, extractor: FeatureExtractor | None = None, *, box=None,
@@ -415,21 +403,22 @@ class _Search:
         self.normals = face_normals(mesh)
 
     # -- the photo
-    def set_photo(self, image, mask):
+    def set_photo(self, image, mask, frame=None):
         """Prepare the photo: background replaced (method.isolate), object centred on the
-        optical axis (method.fov_prior), its cues."""
+        optical axis (method.fov_prior), its cues; ``frame`` (a bool mask, e.g. the box) sets
+        the crop, the centre and the size instead of ``mask``."""
         m = self.method
         self.image_shape = mask.shape
-        self.box_photo = mask_box(mask)
+        self.box_photo = mask_box(mask if frame is None else frame)
         img = composite(image, mask) if m.isolate else image
         if m.fov_prior is not None:
-            c = centre_on_axis(img, mask, m.fov_prior)
-            img, mask = c.image, c.mask
+            c = centre_on_axis(img, mask, m.fov_prior, frame)
+            img, mask, frame = c.image, c.mask, c.frame
             self.fov_prior = m.fov_prior
         else:
             self.fov_prior = 2.0 * np.degrees(np.arctan(0.5 * min(self.size) / self.f_render))
-        self.query = query_cues(img, mask, self.coarse.extractor)
-        x0, y0, x1, y1 = mask_box(mask)
+        self.query = query_cues(img, mask, self.coarse.extractor, frame=frame)
+        x0, y0, x1, y1 = mask_box(mask if frame is None else frame)
         self.photo_side = float(max(x1 - x0, y1 - y0))
 
     def scores(self, cues: Cues) -> tuple[np.ndarray, dict]:
