@@ -93,7 +93,7 @@ class PoseMethod:
     """
 
     weights: tuple = (("hog", 1.0), ("silhouette", 1.0), ("chamfer", 1.0), ("region", 1.0))
-    box_weights: tuple = (("hog", 1.0), ("silhouette", 0.25), ("chamfer", 1.0), ("region", 0.25))
+    box_weights: tuple = (("hog", 1.0), ("chamfer", 1.0))
     isolate: bool = True
     fov_prior: float | None = FOV_PRIOR
     twins: bool = True
