@@ -71,7 +71,7 @@ def test_build_labels_rejections_and_skip(library, tmp_path, runtime):
                 ok += part == truth[name]
         assert {k for k, _ in rec["artifacts"]} >= {"views.exr", "features.npy", "parts.png",
                                                       "edges.npy.gz"}
-    assert total > 100 and ok / total >= 0.80, f"prior labels: {ok}/{total}"
+    assert total > 100 and ok / total >= 0.80, f"labels: {ok}/{total}"
     # second run: everything unchanged is skipped
     s2 = build(library, cat, OPTS, progress=False, log=lambda *a: None)
     assert s2.skipped == 10 and s2.processed == 0
@@ -128,19 +128,31 @@ def test_sigkill_resume_equals_uninterrupted_build(library, tmp_path, runtime):
 
 
 def test_crashing_and_hanging_loaders_are_isolated(library, tmp_path, runtime, monkeypatch):
+    """A native crash is recorded against the mesh the worker held alone; a hang is killed after
+    --timeout, retried alone with twice the time, then recorded; the build goes on."""
     names = sorted(p.name for p in library.glob("synth_*.glb"))
     monkeypatch.setenv("UCAD_FAULT_INJECT", f"crash:{names[1]},hang:{names[4]}")
     cat = tmp_path / "cat"
-    s = build(library, cat, OPTS, progress=False, timeout=8.0, log=lambda *a: None)
+    t0 = time.monotonic()
+    s = build(library, cat, OPTS, progress=False, timeout=4.0, log=lambda *a: None)
     content = catalogue_content(cat)
     by_name = {rec["path"]: rec for rec in content.values()}
     assert by_name[names[1]]["state"] == "rejected"
     assert by_name[names[1]]["reason"] == "loader_crashed"
     assert by_name[names[4]]["reason"] == "timeout"
     assert s.accepted == 6 and s.rejected == 4 and len(content) == 10, (s.reasons, content)
+    assert s.retried >= 1 and time.monotonic() - t0 >= 4.0 + 8.0     # the hang had its retry
     log = (cat / "logs" / "run-00001.log").read_text()       # the run says what happened
     assert f"{names[1]} reason=loader_crashed" in log and "reason=timeout" in log
     assert "finished: 6 accepted, 4 rejected" in log
+    # --retry-failed re-processes recorded failures (the fault is gone now); plain runs skip them
+    monkeypatch.delenv("UCAD_FAULT_INJECT")
+    assert build(library, cat, OPTS, progress=False, log=lambda *a: None).processed == 0
+    s2 = build(library, cat, OPTS, progress=False, log=lambda *a: None,
+               retry_failed=["timeout", "loader_crashed"])
+    assert (s2.processed, s2.accepted, s2.skipped) == (2, 2, 8)
+    assert {rec["state"] for rec in catalogue_content(cat).values()
+            if rec["path"] in names[1:5:3]} == {"accepted"}
 
 
 def test_two_workers_give_the_same_catalogue(library, tmp_path, runtime):

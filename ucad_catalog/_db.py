@@ -242,3 +242,129 @@ def mesh_records(conn: sqlite3.Connection, where: str = "", args: tuple = ()) ->
                                   "ORDER BY kind", (mid,))}
         out.append(rec)
     return out
+
+
+# ----------------------------------------------------------------------------- shared read paths
+# Used by both the writer (``Catalog``) and the reader (``CatalogReader``): none takes the lock.
+
+TMP_PREFIX = ".tmp-"
+
+
+def printable(text: str) -> str:
+    """``text`` as valid UTF-8 for SQLite and JSON: the bytes of a non-UTF-8 file name (Python's
+    surrogate escapes) become ``\\xNN``, other lone surrogates ``\\udNNN``; valid text unchanged."""
+    text = text if isinstance(text, str) else str(text)
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def catalog_status(conn: sqlite3.Connection, root: Path) -> dict:
+    """Counts by state and by rejection reason, object totals, and the last run (one snapshot)."""
+    conn.execute("BEGIN")
+    try:
+        by_state = {"accepted": 0, "rejected": 0}
+        by_state.update(dict(conn.execute("SELECT state, count(*) FROM meshes GROUP BY state")))
+        by_reason = dict(conn.execute("SELECT reason, count(*) FROM meshes WHERE "
+                                      "state='rejected' GROUP BY reason ORDER BY reason"))
+        n_obj, n_bytes = conn.execute("SELECT count(*), coalesce(sum(bytes), 0) FROM "
+                                      "(SELECT DISTINCT sha256, bytes FROM artifacts)").fetchone()
+        last = conn.execute("SELECT id, started, finished, engine, options_hash, counts, "
+                            "meshes_per_s FROM runs ORDER BY id DESC LIMIT 1").fetchone()
+        n_runs = conn.execute("SELECT count(*) FROM runs").fetchone()[0]
+    finally:
+        conn.execute("COMMIT")
+    last_run = None if last is None else {
+        "id": last[0], "started": last[1], "finished": last[2], "engine": last[3],
+        "options_hash": last[4], "counts": json.loads(last[5]) if last[5] else None,
+        "meshes_per_s": last[6]}
+    return {"root": str(root), "schema_version": SCHEMA_VERSION,
+            "meshes": sum(by_state.values()), "by_state": by_state,
+            "by_reason": by_reason, "objects": n_obj, "object_bytes": n_bytes,
+            "runs": n_runs, "last_run": last_run}
+
+
+def remove_stale_exports(out: Path) -> None:
+    """Delete ``.tmp-<name>.<pid>.*`` files next to ``out`` whose exporting process is gone
+    (``ucad_catalog.export`` names its temporary files so)."""
+    import os
+
+    prefix = f"{TMP_PREFIX}{out.name}."
+    try:
+        siblings = list(out.parent.iterdir())
+    except OSError:
+        return
+    for p in siblings:
+        if not p.name.startswith(prefix):
+            continue
+        pid = p.name[len(prefix):].split(".", 1)[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            p.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    import os
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def verify_catalog(conn: sqlite3.Connection, root: Path, rehash: bool = True) -> dict:
+    """Read-only consistency check. Returns ``{"problems": [...], "unreferenced": [(name,
+    bytes)], "tmp_files": [(name, bytes)], "objects": n, "bytes": n}``.
+
+    Problems (the catalogue is damaged): ``PRAGMA integrity_check`` and ``foreign_key_check``
+    findings, referenced objects that are missing, or whose size or sha256 (with ``rehash``)
+    does not match their name. Not problems (``gc`` reclaims them): objects nothing references
+    (a killed build's last objects, superseded artifacts) and ``.tmp-*`` files; while a build
+    runs, the objects it is about to commit also show as unreferenced.
+    """
+    import hashlib
+
+    problems: list[str] = []
+    conn.execute("BEGIN")
+    try:
+        for (line,) in conn.execute("PRAGMA integrity_check"):
+            if line != "ok":
+                problems.append(f"integrity: {line}")
+        for row in conn.execute("PRAGMA foreign_key_check"):
+            problems.append(f"foreign key: table {row[0]} rowid {row[1]} -> {row[2]}")
+        refs = conn.execute("SELECT DISTINCT sha256, bytes FROM artifacts ORDER BY sha256"
+                            ).fetchall()
+    finally:
+        conn.execute("COMMIT")
+    live = set()
+    total = 0
+    for sha, n in refs:
+        live.add(sha)
+        p = object_path(root, sha)
+        if not p.is_file():
+            problems.append(f"missing object {sha}")
+            continue
+        size = p.stat().st_size
+        total += size
+        if size != n:
+            problems.append(f"corrupt object {sha}: {size} bytes, expected {n}")
+        elif rehash:
+            h = hashlib.sha256()
+            with open(p, "rb") as f:
+                while chunk := f.read(1 << 20):
+                    h.update(chunk)
+            if h.hexdigest() != sha:
+                problems.append(f"corrupt object {sha}: content does not match its name")
+    unreferenced, tmp_files = [], []
+    objects = root / OBJECTS_DIR
+    shards = sorted(p for p in objects.iterdir() if p.is_dir()) if objects.is_dir() else []
+    for shard in shards:
+        for f in sorted(shard.iterdir()):
+            if f.name.startswith(TMP_PREFIX):
+                tmp_files.append((f"{shard.name}/{f.name}", f.stat().st_size))
+            elif f.name not in live:
+                unreferenced.append((f"{shard.name}/{f.name}", f.stat().st_size))
+    return {"problems": problems, "unreferenced": unreferenced, "tmp_files": tmp_files,
+            "objects": len(live), "bytes": total}

@@ -84,6 +84,9 @@ class CatalogEntry:
             for r in table.rows:
                 mat = by_index.get(int(r.material))
                 props = {k: v for k, v in vars(mat).items() if k != "name"} if mat else {}
+                for k in ("prob", "split"):            # the labeller's, when it labelled
+                    if getattr(r, k, None) is not None:
+                        props[k] = getattr(r, k)
                 mats.append(MaterialRow(int(r.material), r.name, r.part, float(r.score),
                                         float(r.iou), int(r.view), r.decision, int(r.pixels),
                                         props))

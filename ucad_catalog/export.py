@@ -24,7 +24,7 @@ import uuid
 from pathlib import Path
 
 from . import __version__
-from ._db import SCHEMA_VERSION, CatalogError, canonical_json
+from ._db import SCHEMA_VERSION, CatalogError, canonical_json, remove_stale_exports
 from .exr import CONVENTIONS
 from .parts import PART_NAMES, UNSEEN
 
@@ -147,7 +147,9 @@ def rows(records: list[dict]) -> tuple[list[dict], list[dict]]:
 
 def write_export(records: list[dict], out: str | Path, format: str | None = None) -> int:
     """Write the meshes table to ``out`` and the materials table beside it (``materials_path``);
-    returns the number of meshes. Files appear whole (temporary name, then rename)."""
+    returns the number of meshes. Files appear whole (``.tmp-<name>.<pid>.<random>``, then
+    rename); the temporary file is removed on any error, and one a killed export left (its
+    process gone) by the next export to the same name."""
     fmt = format_for(out, format)
     out = Path(out)
     if out.parent != Path("") and not out.parent.is_dir():
@@ -165,7 +167,8 @@ def write_export(records: list[dict], out: str | Path, format: str | None = None
         meta = {k: v for k, v in export_metadata("meshes").items() if k != "ucad:table"}
         targets_meta = out.with_name(out.name + ".meta.json")
     for path, table, columns, data in targets:
-        tmp = path.with_name(f".tmp-{path.name}.{uuid.uuid4().hex}")
+        remove_stale_exports(path)                  # left by a killed export (process gone)
+        tmp = path.with_name(f".tmp-{path.name}.{os.getpid()}.{uuid.uuid4().hex[:12]}")
         try:
             if fmt == "parquet":
                 _write_parquet(tmp, table, columns, data)

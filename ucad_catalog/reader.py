@@ -40,8 +40,8 @@ from typing import Iterator, NamedTuple
 
 import numpy as np
 
-from ._db import (MESH_ORDER, CatalogError, check_catalog_db, locate_db, mesh_records,
-                  object_path)
+from ._db import (MESH_ORDER, CatalogError, catalog_status, check_catalog_db, locate_db,
+                  mesh_records, object_path, verify_catalog)
 
 MIN_ID_PREFIX = 8          # hex digits of a sha256 prefix accepted as a mesh id
 _OPEN_STACKS = 8           # view-stack headers kept per reader
@@ -196,6 +196,23 @@ class CatalogReader:
             yield self
         finally:
             self._conn.execute("COMMIT")
+
+    # ------------------------------------------------------------------ whole catalogue
+    def status(self) -> dict:
+        """Counts by state and reason, object totals, last run (as ``Catalog.status``)."""
+        return catalog_status(self._conn, self.root)
+
+    def verify(self, rehash: bool = True) -> dict:
+        """Consistency report (``_db.verify_catalog``): problems, unreferenced objects."""
+        return verify_catalog(self._conn, self.root, rehash)
+
+    def runs(self, n: int = 5) -> list[dict]:
+        """The last ``n`` runs, newest first: id, started, finished, engine, counts, meshes/s."""
+        rows = self._conn.execute("SELECT id, started, finished, engine, counts, meshes_per_s "
+                                  "FROM runs ORDER BY id DESC LIMIT ?", (int(n),)).fetchall()
+        return [{"id": r[0], "started": r[1], "finished": r[2], "engine": r[3],
+                 "counts": json.loads(r[4]) if r[4] else {}, "meshes_per_s": r[5]}
+                for r in rows]
 
     # ------------------------------------------------------------------ index
     def meshes(self, state: str | None = "accepted") -> list[MeshInfo]:

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import errno
 import hashlib
-import json
 import os
 import sqlite3
 import time
@@ -34,8 +33,8 @@ from typing import Any
 import numpy as np
 
 from ._db import (DB_NAME, FORMAT_NAME, LOCK_NAME, OBJECTS_DIR, SCHEMA_SQL, SCHEMA_VERSION,
-                  CatalogError, canonical_json, check_catalog_db, is_sha256, mesh_records,
-                  object_path, options_hash)
+                  TMP_PREFIX, CatalogError, canonical_json, catalog_status, check_catalog_db,
+                  is_sha256, mesh_records, object_path, options_hash, printable, verify_catalog)
 from .entry import CatalogEntry
 
 try:                                   # POSIX advisory lock for the single-writer rule
@@ -44,7 +43,7 @@ except ImportError:                    # pragma: no cover - non-POSIX: lock not 
     fcntl = None
 
 _CHUNK = 1 << 20
-_TMP_PREFIX = ".tmp-"
+_TMP_PREFIX = TMP_PREFIX
 
 
 class Catalog:
@@ -58,6 +57,7 @@ class Catalog:
         self._lock_fd = lock_fd
         self._run_id: int | None = None
         self._run_hash: str | None = None
+        self.superseded_bytes = 0    # objects that lost their last reference in this session
 
     # ------------------------------------------------------------------ open / close
     @classmethod
@@ -172,8 +172,14 @@ class Catalog:
         skip re-hashing unchanged files."""
         row = self._db.execute("SELECT sha256, size, mtime FROM meshes WHERE library_root=? "
                                "AND path=? ORDER BY id DESC LIMIT 1",
-                               (str(library_root), str(path))).fetchone()
+                               (printable(str(library_root)), printable(str(path)))).fetchone()
         return None if row is None else (row[0], int(row[1]), float(row[2]))
+
+    def mesh_verdict(self, sha: str) -> tuple[str, str, str] | None:
+        """(state, reason, options_hash) of content ``sha``, or None when it is not catalogued."""
+        row = self._db.execute("SELECT state, reason, options_hash FROM meshes WHERE sha256=?",
+                               (sha,)).fetchone()
+        return None if row is None else (row[0], row[1], row[2])
 
     def commit_mesh(self, entry: CatalogEntry, *, move_files: bool = False) -> int:
         """Store the artifacts, then all rows of ``entry`` in one transaction; returns mesh id.
@@ -188,17 +194,23 @@ class Catalog:
         stored = {kind: self._put_object(data, kind, entry.path, move=move_files)
                   for kind, data in sorted(entry.artifacts.items())}
         conn = self._db
+        path = printable(entry.path)                        # text columns are valid UTF-8
         conn.execute("BEGIN IMMEDIATE")
         try:
+            root = printable(entry.library_root)
+            old = conn.execute("SELECT DISTINCT a.sha256, a.bytes FROM artifacts a JOIN meshes m "
+                               "ON a.mesh_id=m.id WHERE (m.library_root=? AND m.path=? AND "
+                               "m.sha256<>?) OR m.sha256=?",
+                               (root, path, entry.sha256, entry.sha256)).fetchall()
             conn.execute("DELETE FROM meshes WHERE library_root=? AND path=? AND sha256<>?",
-                         (entry.library_root, entry.path, entry.sha256))  # changed file: old out
-            values = (entry.path, int(entry.size), float(entry.mtime), entry.state,
-                      entry.reason, entry.detail, int(entry.n_triangles),
+                         (root, path, entry.sha256))          # changed file: old out
+            values = (path, int(entry.size), float(entry.mtime), entry.state,
+                      printable(entry.reason), printable(entry.detail), int(entry.n_triangles),
                       int(entry.n_materials), canonical_json(_floats(entry.file_to_norm)),
-                      opt_hash, self._run_id, canonical_json(entry.timings),
-                      entry.library_root,
-                      None if entry.orientation is None else canonical_json(entry.orientation),
-                      canonical_json(entry.meta))
+                      opt_hash, self._run_id, printable(canonical_json(entry.timings)), root,
+                      None if entry.orientation is None
+                      else printable(canonical_json(entry.orientation)),
+                      printable(canonical_json(entry.meta)))
             row = conn.execute("SELECT id FROM meshes WHERE sha256=?",
                                (entry.sha256,)).fetchone()
             if row is None:
@@ -219,47 +231,34 @@ class Catalog:
             conn.executemany(
                 "INSERT INTO materials (mesh_id, idx, name, part, score, iou, view, decision, "
                 "pixels, props) VALUES (?,?,?,?,?,?,?,?,?,?)",
-                [(mid, int(m.index), str(m.name), str(m.part), float(m.score), float(m.iou),
-                  int(m.view), str(m.decision), int(m.pixels), canonical_json(m.props))
+                [(mid, int(m.index), printable(m.name), printable(m.part), float(m.score),
+                  float(m.iou), int(m.view), printable(m.decision), int(m.pixels),
+                  printable(canonical_json(m.props)))
                  for m in sorted(entry.materials, key=lambda m: m.index)])
             conn.executemany(
                 "INSERT INTO views (mesh_id, view, azimuth, elevation, K, w2c, stats) "
                 "VALUES (?,?,?,?,?,?,?)",
                 [(mid, int(v.index), float(v.azimuth), float(v.elevation),
                   canonical_json(_floats(v.K)), canonical_json(_floats(v.w2c)),
-                  canonical_json(v.stats))
+                  printable(canonical_json(v.stats)))
                  for v in sorted(entry.views, key=lambda v: v.index)])
             conn.executemany(
                 "INSERT INTO artifacts (mesh_id, kind, sha256, bytes) VALUES (?,?,?,?)",
                 [(mid, kind, sha, n) for kind, (sha, n) in stored.items()])
+            gone = [(sha, n) for sha, n in old if conn.execute(
+                "SELECT 1 FROM artifacts WHERE sha256=? LIMIT 1", (sha,)).fetchone() is None]
             conn.execute("COMMIT")
         except BaseException:
             if conn.in_transaction:
                 conn.execute("ROLLBACK")
             raise
+        self.superseded_bytes += sum(n for _, n in gone)   # left for gc(): readers may hold them
         return int(mid)
 
     # ------------------------------------------------------------------ maintenance
     def status(self) -> dict:
         """Counts by state and by rejection reason, object totals, and the last run."""
-        db = self._db
-        by_state = {"accepted": 0, "rejected": 0}
-        by_state.update(dict(db.execute("SELECT state, count(*) FROM meshes GROUP BY state")))
-        by_reason = dict(db.execute("SELECT reason, count(*) FROM meshes WHERE "
-                                    "state='rejected' GROUP BY reason ORDER BY reason"))
-        n_obj, n_bytes = db.execute("SELECT count(*), coalesce(sum(bytes), 0) FROM "
-                                    "(SELECT DISTINCT sha256, bytes FROM artifacts)").fetchone()
-        last = db.execute("SELECT id, started, finished, engine, options_hash, counts, "
-                          "meshes_per_s FROM runs ORDER BY id DESC LIMIT 1").fetchone()
-        last_run = None if last is None else {
-            "id": last[0], "started": last[1], "finished": last[2], "engine": last[3],
-            "options_hash": last[4], "counts": json.loads(last[5]) if last[5] else None,
-            "meshes_per_s": last[6]}
-        return {"root": str(self.root), "schema_version": SCHEMA_VERSION,
-                "meshes": sum(by_state.values()), "by_state": by_state,
-                "by_reason": by_reason, "objects": n_obj, "object_bytes": n_bytes,
-                "runs": db.execute("SELECT count(*) FROM runs").fetchone()[0],
-                "last_run": last_run}
+        return catalog_status(self._db, self.root)
 
     def export(self, path: str | Path, format: str | None = None) -> int:
         """Write the meshes table to ``path`` and the materials table beside it; returns the
@@ -294,17 +293,15 @@ class Catalog:
                 shard.rmdir()
         return {"objects_removed": removed, "tmp_removed": tmp_removed, "bytes_freed": freed}
 
+    def verify_report(self, rehash: bool = True) -> dict:
+        """The full consistency report (``_db.verify_catalog``), unreferenced objects included."""
+        return verify_catalog(self._db, self.root, rehash)
+
     def verify(self) -> list[str]:
-        """Problems found re-hashing every referenced object (empty list = consistent)."""
-        problems = []
-        for sha, n in self._db.execute("SELECT DISTINCT sha256, bytes FROM artifacts "
-                                       "ORDER BY sha256"):
-            p = object_path(self.root, sha)
-            if not p.is_file():
-                problems.append(f"missing object {sha}")
-            elif p.stat().st_size != n or _hash_file(p)[0] != sha:
-                problems.append(f"corrupt object {sha}")
-        return problems
+        """Problems found (empty list = consistent): integrity and foreign-key checks, missing
+        or corrupt referenced objects (re-hashed). See ``_db.verify_catalog`` for the full
+        report, unreferenced objects included."""
+        return verify_catalog(self._db, self.root)["problems"]
 
     # ------------------------------------------------------------------ internals
     @property

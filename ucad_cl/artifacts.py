@@ -123,6 +123,9 @@ class PartMasks:
 
     ``parts``: P names from ``PART_NAMES``; ``confidence``: (V, P) float32 in [0, 1]. A part with
     no mask in a view has an all-False mask and confidence 0. ``source`` names the segmenter.
+    ``labels``: the per-material answer of a segmenter that labels materials (the learned
+    labeller's ``MaterialLabels``: probabilities, the layer behind glass, shared-material
+    splits), which ``classify_parts`` reports beside its decisions; None for image segmenters.
     """
 
     MAX_PARTS = 16                      # bits of the packed form
@@ -133,6 +136,7 @@ class PartMasks:
         self.confidence = confidence
         self.source = source
         self.masks = masks
+        self.labels = None
 
     @classmethod
     def from_bits(cls, parts: list[str], bits: np.ndarray, confidence: np.ndarray,
@@ -143,6 +147,7 @@ class PartMasks:
         self.confidence = confidence
         self.source = source
         self.bits = bits
+        self.labels = None
         return self
 
     @property
@@ -207,6 +212,8 @@ class MaterialPart:
     view: int                     # deciding view (-1 when none)
     decision: str                 # 'best-view' | 'vote' | 'merged-body' | 'symmetric' | 'unseen' | ...
     pixels: int = 0               # visible pixels over all views
+    prob: float | None = None     # the labeller's probability of ``part`` (None: no labeller)
+    split: list | None = None     # shared material: parts per group of connected components
 
 
 @dataclass

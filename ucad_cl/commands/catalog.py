@@ -62,24 +62,13 @@ def match_meshes(reader, key: str) -> list:
     return reader.find(key)
 
 
-def _open(path):
-    from ucad_catalog._db import CatalogError
-    from ucad_catalog.store import Catalog
-    try:
-        return Catalog.open(path, create=False)
-    except CatalogError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return None
-
-
 def run_status(args) -> int:
-    cat = _open(args.catalog)
-    if cat is None:
+    r = open_reader(args.catalog)                   # read-only: works while a build runs
+    if r is None:
         return 2
-    with cat:
-        st = cat.status()
-        runs = cat._db.execute("SELECT id, started, finished, engine, counts, meshes_per_s FROM runs "
-                               "ORDER BY id DESC LIMIT 5").fetchall()
+    with r:
+        st = r.status()
+        runs = r.runs(5)
     if args.json:
         print(json.dumps(st, indent=1))
         return 0
@@ -91,12 +80,14 @@ def run_status(args) -> int:
     print(f"  objects: {st['objects']} ({st['object_bytes'] / 2**20:.1f} MiB)")
     print("  recent runs:")
     print(f"    {'run':>4} {'started':>19} {'engine':>6} {'processed':>9} {'skipped':>7} {'meshes/s':>8}")
-    for rid, started, finished, engine, counts, rate in runs:
-        c = json.loads(counts) if counts else {}
+    for run in runs:
+        c = run["counts"]
         n = c.get("accepted", 0) + c.get("rejected", 0)
-        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started))
-        state = f"{rate:8.2f}" if finished else " running/killed"
-        print(f"    {rid:>4} {when:>19} {engine:>6} {n:>9} {c.get('skipped', 0):>7} {state}")
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(run["started"]))
+        state = (f" stopped: {c['stopped']}" if c.get("stopped") else
+                 f"{run['meshes_per_s']:8.2f}" if run["finished"] else " running/killed")
+        print(f"    {run['id']:>4} {when:>19} {run['engine']:>6} {n:>9} {c.get('skipped', 0):>7} "
+              f"{state}")
     return 0
 
 
@@ -138,13 +129,13 @@ def run_show(args) -> int:
 def run_export(args) -> int:
     from ucad_catalog._db import CatalogError
 
-    r = open_reader(args.catalog)
+    r = open_reader(args.catalog)                   # read-only: works while a build runs
     if r is None:
         return 2
     with r:
         try:
             n = r.export(args.out, format=args.format)
-        except CatalogError as exc:
+        except (CatalogError, OSError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
     from ucad_catalog.export import materials_path

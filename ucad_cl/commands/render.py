@@ -67,7 +67,8 @@ def run(args) -> int:
 
     from ucad_catalog.exr import write_viewset_exr
 
-    from ..ingest import IngestError, load_mesh
+    from ..build import printable
+    from ..ingest import IngestError, describe_exception, load_mesh
     from ..render import render_views
     from ..sheets import material_sheet, write_png
 
@@ -92,10 +93,16 @@ def run(args) -> int:
             if not args.no_sheet:
                 write_png(args.out / f"{stem}.sheet.png",
                           material_sheet(views, [m.name for m in mesh.materials]))
-            bar.write(f"ok    {path}: {mesh.n_faces} triangles, {len(mesh.materials)} materials, "
+            bar.write(f"ok    {printable(path)}: {mesh.n_faces} triangles, {len(mesh.materials)} materials, "
                       f"{views.n_views} views -> {args.out / (stem + '.views.exr')}")
-        except (IngestError, ValueError, OSError) as exc:
+        except IngestError as exc:                  # every file gets its line, none stops us
             failed += 1
-            bar.write(f"FAIL  {path}: {exc}", file=sys.stderr)
+            bar.write(f"FAIL  {printable(str(exc))}", file=sys.stderr)
+        except MemoryError:
+            failed += 1
+            bar.write(f"FAIL  {printable(path)}: out of memory [too_large]", file=sys.stderr)
+        except Exception as exc:                    # noqa: BLE001 - reported per file
+            failed += 1
+            bar.write(f"FAIL  {printable(path)}: {describe_exception(exc)}", file=sys.stderr)
     print(f"{len(args.meshes) - failed} rendered, {failed} failed; outputs in {args.out}")
     return 1 if failed else 0
