@@ -366,8 +366,6 @@ def az_diff(a: float, b: float) -> float:
     return min(d, 360.0 - d)
 
 
-_az_diff = az_diff
-
 
 # ----------------------------------------------------------------------------- the search
 

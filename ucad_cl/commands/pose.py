@@ -170,7 +170,7 @@ def run_catalog(args, image, mask) -> int:
     import cv2
     import numpy as np
 
-    from ucad_catalog._db import CatalogError
+    from ucad_catalog import CatalogError
 
     from ..features import HogExtractor
     from ..ingest import IngestError, load_mesh
