@@ -23,8 +23,9 @@ azimuth error of the best candidate, share within 15 and 5 deg, flip rate (answe
 the truth and within 15 deg of one of its twins -a, a + 180, 180 - a; flips count as errors
 everywhere), share flagged ambiguous and share of wrong answers among those, median seconds per
 query against one mesh with refinement (the coarse ring precomputed, as a catalogue stores it;
-"ring s" = its median build time per mesh) and queries/s. The machine is shared: read times as
-ratios within one run. ``--catalog`` adds the catalogue-wide search: references' descriptors
+"ring s" = its median build time per mesh), median CPU seconds per query (the process, all
+threads: less sensitive than wall time to other users of the machine) and queries/s. The
+machine is shared: read times as ratios within one run. ``--catalog`` adds the catalogue-wide search: references' descriptors
 against 72,000 stored views (see ``catalog_table``).
 
     .venv/bin/python bench/pose.py                       # report split, both modes, both methods
@@ -82,20 +83,21 @@ def is_flip(answer: float, truth: float) -> bool:
 
 def run_queries(refs, meshes, rings, method, mode):
     """Per reference: (azimuth error, flip, ambiguous, seconds, elevation error, azimuth error of
-    the runner-up twin (nan: none), its twin kind index in TWINS (-1: none), its score gap)."""
+    the runner-up twin (nan: none), its twin kind index in TWINS (-1: none), its score gap,
+    CPU seconds of the process, all threads)."""
     rows = []
     for r in refs:
         where = dict(mask=r.mask) if mode == "mask" else dict(box=r.box)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         est = estimate_pose(r.image, meshes[r.vehicle], coarse=rings[r.vehicle], top=2,
                             method=method, **where)
-        dt = time.perf_counter() - t0
+        dt, cpu = time.perf_counter() - t0, time.process_time() - c0
         b, ru = est.best, est.runner_up
         rows.append((az_diff(b.azimuth, r.azimuth), is_flip(b.azimuth, r.azimuth),
                      est.ambiguous, dt, abs(b.elevation - r.elevation),
                      az_diff(ru.azimuth, r.azimuth) if ru is not None else np.nan,
                      TWINS.index(ru.twin) if ru is not None and ru.twin in TWINS else -1,
-                     ru.gap if ru is not None else np.nan))
+                     ru.gap if ru is not None else np.nan, cpu))
     return np.array(rows, np.float64)
 
 
@@ -105,7 +107,8 @@ def summary(rows) -> str:
     amb_wrong = f"{wrong[amb].mean() * 100:5.0f}%" if amb.any() else "    -"
     return (f"{np.median(err):7.2f} {np.percentile(err, 90):7.2f} {np.mean(err <= 15) * 100:6.1f}% "
             f"{np.mean(err <= 5) * 100:6.1f}% {flip.mean() * 100:6.1f}% {amb.mean() * 100:6.1f}% "
-            f"{amb_wrong} {np.median(rows[:, 4]):6.2f} {np.median(dt):7.3f} {len(dt) / dt.sum():6.2f}")
+            f"{amb_wrong} {np.median(rows[:, 4]):6.2f} {np.median(dt):7.3f} "
+            f"{np.median(rows[:, 8]):7.3f} {len(dt) / dt.sum():6.2f}")
 
 
 def twin_table(results):
@@ -132,7 +135,7 @@ def twin_table(results):
 
 HEADER = (f"{'mode':5s} {'method':7s} {'n':>4s} {'med az':>7s} {'p90 az':>7s} {'<=15':>7s} "
           f"{'<=5':>7s} {'flips':>7s} {'ambig':>7s} {'a.wrong':>6s} {'med el':>6s} "
-          f"{'s/query':>7s} {'q/s':>6s}")
+          f"{'s/query':>7s} {'cpu s/q':>7s} {'q/s':>6s}")
 
 
 def accuracy_table(refs, meshes, rings, methods, modes, by=None):

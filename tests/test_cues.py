@@ -146,6 +146,11 @@ def test_a_render_is_nearest_to_itself(rendered):
     for name in cues.CUES:
         assert int(np.argmin(d[name])) == 1, name
     assert int(np.argmin(cues.combine(d, {"hog": 1, "silhouette": 1, "chamfer": 1}))) == 1
+    # asking for some cues gives exactly those, with the same values
+    some = cues.cue_distances(q, c, ("hog", "chamfer"))
+    assert set(some) == {"hog", "chamfer"}
+    for name in some:
+        np.testing.assert_array_equal(some[name], d[name])
 
 
 def test_combine_and_offsets(rendered):

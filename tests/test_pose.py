@@ -11,7 +11,7 @@ import pytest
 from ucad_cl.artifacts import CameraRing, Material, Mesh
 from ucad_cl.cameras import make_ring
 from ucad_cl.features import HogExtractor
-from ucad_cl.pose import (AMBIGUOUS_GAP, LEGACY, TWINS, PoseRing, az_diff, estimate_pose,
+from ucad_cl.pose import (AMBIGUOUS_GAP, LEGACY, ROBUST, TWINS, PoseRing, az_diff, estimate_pose,
                           pose_ring, rank_features, search_catalog,
                           search_catalog_batch, twin_azimuth)
 from ucad_cl.render import render_views
@@ -96,7 +96,10 @@ def test_recovers_the_true_pose_of_a_repainted_car_over_clutter(vehicle, coarse,
     assert runner is est.candidates[1] and runner.flipped and runner.twin in TWINS
     assert az_diff(runner.azimuth, twin_azimuth(best.azimuth, runner.twin)) <= 15.0
     assert runner.gap == pytest.approx(runner.score - best.score) and runner.gap >= 0
-    assert set(best.cues) == {"hog", "silhouette", "chamfer", "region"}
+    # the score is the weighted sum of the cues of the query's mode, and only those are computed
+    weights = dict(ROBUST.weights if mode == "mask" else ROBUST.box_weights)
+    assert set(best.cues) == set(weights)
+    assert best.score == pytest.approx(sum(w * best.cues[k] for k, w in weights.items()))
 
 
 def test_a_render_of_the_mesh_itself_is_found_within_one_degree(vehicle, coarse):

@@ -128,16 +128,23 @@ def query_cues(image: np.ndarray, mask: np.ndarray, extractor: FeatureExtractor,
                 colours=crop.astype(np.float32)[None])
 
 
-def cue_distances(query: Cues, views: Cues) -> dict[str, np.ndarray]:
-    """{cue: (V,) float64} distances of the photo ``query`` to every view (see module doc)."""
-    out = {"hog": 0.5 * hog_distance(query.hog[0], views.hog)}
-    q = query.sil[0].astype(np.float64).ravel()
-    s = views.sil.reshape(len(views), -1).astype(np.float64)
-    inter = np.minimum(s, q).sum(1)
-    union = np.maximum(s, q).sum(1)
-    out["silhouette"] = 1.0 - np.divide(inter, union, out=np.zeros_like(inter), where=union > 0)
-    out["chamfer"] = _chamfer(query, views)
-    out["region"] = _region(query, views)
+def cue_distances(query: Cues, views: Cues, names=CUES) -> dict[str, np.ndarray]:
+    """{cue: (V,) float64} distances of the photo ``query`` to every view (see module doc), for
+    the cues in ``names`` (default all; pose search asks only for the cues it weighs)."""
+    out = {}
+    if "hog" in names:
+        out["hog"] = 0.5 * hog_distance(query.hog[0], views.hog)
+    if "silhouette" in names:
+        q = query.sil[0].astype(np.float64).ravel()
+        s = views.sil.reshape(len(views), -1).astype(np.float64)
+        inter = np.minimum(s, q).sum(1)
+        union = np.maximum(s, q).sum(1)
+        out["silhouette"] = 1.0 - np.divide(inter, union, out=np.zeros_like(inter),
+                                            where=union > 0)
+    if "chamfer" in names:
+        out["chamfer"] = _chamfer(query, views)
+    if "region" in names:
+        out["region"] = _region(query, views)
     return out
 
 

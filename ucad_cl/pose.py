@@ -129,7 +129,7 @@ class PoseCandidate:
     flipped: bool = False       # the best twin of the best candidate (see ``twin``)
     twin: str = ""              # 'mirror' | 'opposite' | 'front-back' relation to the best
     gap: float = 0.0            # score minus the best candidate's score
-    cues: dict = field(default_factory=dict)     # cue -> distance
+    cues: dict = field(default_factory=dict)     # cue -> distance (the cues the score weighs)
     K: np.ndarray | None = field(default=None, repr=False, compare=False)
     w2c: np.ndarray | None = field(default=None, repr=False, compare=False)
 
@@ -420,7 +420,7 @@ class _Search:
         self.photo_side = float(max(x1 - x0, y1 - y0))
 
     def scores(self, cues: Cues) -> tuple[np.ndarray, dict]:
-        d = cue_distances(self.query, cues)
+        d = cue_distances(self.query, cues, [k for k, w in self.weights.items() if w])
         return combine(d, self.weights), d
 
     # -- stages
