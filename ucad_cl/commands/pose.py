@@ -177,7 +177,7 @@ def run_catalog(args, image, mask) -> int:
     from ..foreground import mask_box
     from ..pose import PoseCandidate, query_features, search_catalog
 
-    from .catalog import open_reader
+    from .common import open_reader
 
     reader = open_reader(args.catalog)
     if reader is None:
