@@ -41,6 +41,7 @@ import numpy as np
 
 from .artifacts import BACKGROUND_TRI, Mesh, ViewSet
 from .features import FeatureExtractor, crop_window, square_windows, unit_rows
+from .shade import face_normals
 
 CUES = ("hog", "silhouette", "chamfer", "region")
 SIZE = 64               # crop side of the cue maps (pixels)
@@ -85,7 +86,6 @@ def view_cues(mesh: Mesh, views: ViewSet, images: np.ndarray, extractor: Feature
     sampled there at the nearest pixel (the source pixel under each crop pixel's centre, indices
     clamped to the image), and the render edges (``map_edges``) found on those samples."""
     if normals is None:
-        from .shade import face_normals
         normals = face_normals(mesh)
     masks = np.isfinite(views.depth)
     windows = square_windows(masks, PAD)

@@ -56,6 +56,7 @@ from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
 from .foreground import (RENDER_BACKGROUND, ObjectMask, axis_turn, centre_on_axis, composite,
                          mask_box, object_mask, refine_with_silhouette)
 from .render import render_views
+from .search import search as knn_search
 from .shade import face_normals, shade_views
 
 FOV_PRIOR = 45.0            # assumed field of view of a photo over its narrower side, degrees
@@ -326,11 +327,9 @@ def search_catalog_batch(queries: np.ndarray, feats: np.ndarray, mesh_ids: np.nd
     if index is None and n <= EXACT_ROWS:
         ranked = [rank_features(q, feats) for q in qs]
     else:
-        from .search import search
-
         k = min(n, max(PRESELECT, top)) if exact else top
         qn32 = unit_rows(qs)[0].astype(np.float32)
-        cands, d32 = index.search(qn32, k) if index is not None else search(qn32, feats, k)
+        cands, d32 = index.search(qn32, k) if index is not None else knn_search(qn32, feats, k)
         ranked = [] if exact else list(zip(cands, d32.astype(np.float64)))
         for c0 in range(0, len(qs) if exact else 0, RERANK_BATCH):   # rank_features', batched
             cand = cands[c0:c0 + RERANK_BATCH]

@@ -70,7 +70,6 @@ def register(sub) -> None:
 
 def run(args) -> int:
     import cv2
-    import numpy as np
 
     from ..features import HogExtractor, OnnxExtractor
     from ..ingest import IngestError, load_mesh
