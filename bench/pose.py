@@ -216,6 +216,7 @@ def catalog_table(vehicles, refs, n_meshes: int = 100, repeats: int = 5, k: int 
             ("f32 index, float64 re-rank of 64", dict(mode="f32"), True),
             ("f32 index", dict(mode="f32"), False),
             ("pca 128 + f32 rerank 64", dict(mode="pca", pca_dims=128, rerank=64), False),
+            ("pca 128 + f32 rerank 16", dict(mode="pca", pca_dims=128, rerank=16), False),
             ("pca 128 + rerank 64, float64 re-rank", dict(mode="pca", pca_dims=128, rerank=64),
              True)):
         t0 = time.perf_counter()
@@ -329,7 +330,7 @@ def main():
         print(f"new method: {METHODS['new']}")
     print(f"device: {get_runtime().describe()}; load average {os.getloadavg()[0]:.1f} "
           f"(2 shared cores); ring s (coarse ring, 108 views, per mesh): "
-          f"{np.median(ring_s):.2f}")
+          + (f"{np.median(ring_s):.2f}" if ring_s else "-"))
     results = accuracy_table(refs, meshes, rings, methods,
                              [m for m in args.modes.split(",") if m], by=args.by)
     if args.save:
