@@ -240,6 +240,14 @@ def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
     best = lines[1].split()
     assert best[-2] == str(target) and float(best[1]) in (90.0, 120.0), lines
     assert (tmp_path / "ref_pose.png").exists()
+    assert main(["pose", str(ref), "--box", *box, "--catalog", str(cat), "--top", "3",
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [c["rank"] for c in doc["candidates"]] == [1, 2, 3]
+    c0 = doc["candidates"][0]
+    assert c0["mesh"] == str(target) and c0["azimuth"] == float(best[1])
+    assert np.asarray(c0["K"]).shape == (3, 3) and np.asarray(c0["w2c"]).shape == (4, 4)
+    assert c0["distance"] > 0 and c0["score"] >= 0
     assert main(["pose", str(ref), "--box", *box]) == 2           # neither MESH nor --catalog
 
 
