@@ -190,7 +190,7 @@ def test_status_counts_and_same_input_same_bytes(tmp_path):
     assert st["meshes"] == 4 and st["by_state"] == {"accepted": 1, "rejected": 3}
     assert st["by_reason"] == {"broken": 1, "no-wheels": 2}
     assert st["last_run"]["counts"] == {"accepted": 1, "rejected": 3}
-    assert st["last_run"]["meshes_per_s"] > 0 and st["schema_version"] == 1
+    assert st["last_run"]["meshes_per_s"] > 0 and st["schema_version"] == 2
     a.export(tmp_path / "a.jsonl")
     b.export(tmp_path / "b.jsonl")
     assert (tmp_path / "a.jsonl").read_bytes() == (tmp_path / "b.jsonl").read_bytes()

@@ -18,7 +18,8 @@ from typing import Any
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2              # 2: meshes.orientation (1 is read, and migrated by the writer)
+READABLE_VERSIONS = (1, 2)
 FORMAT_NAME = "ucad-catalog"
 DB_NAME = "catalog.sqlite"
 OBJECTS_DIR = "objects"
@@ -58,7 +59,8 @@ CREATE TABLE meshes (
     file_to_norm TEXT NOT NULL,
     options_hash TEXT NOT NULL,
     run_id       INTEGER NOT NULL REFERENCES runs(id),
-    timings      TEXT NOT NULL
+    timings      TEXT NOT NULL,
+    orientation  TEXT NOT NULL DEFAULT '{}'
 );
 CREATE INDEX meshes_path ON meshes(path);
 CREATE INDEX meshes_state ON meshes(state, reason);
@@ -139,8 +141,9 @@ def object_path(root: Path, sha: str) -> Path:
     return root / OBJECTS_DIR / sha[:2] / sha
 
 
-def check_catalog_db(conn: sqlite3.Connection, where: Path) -> None:
-    """Raise CatalogError unless ``conn`` is a ucad catalogue of this schema version."""
+def check_catalog_db(conn: sqlite3.Connection, where: Path) -> int:
+    """The schema version of the ucad catalogue ``conn``; CatalogError unless it is one this
+    code reads (READABLE_VERSIONS)."""
     try:
         rows = dict(conn.execute("SELECT key, value FROM meta").fetchall())
     except sqlite3.DatabaseError as exc:   # not a database, or no meta table
@@ -148,9 +151,31 @@ def check_catalog_db(conn: sqlite3.Connection, where: Path) -> None:
     if rows.get("format") != FORMAT_NAME:
         raise CatalogError(f"not a ucad catalogue: {where} (meta.format={rows.get('format')!r})")
     version = int(rows.get("schema_version", -1))
-    if version != SCHEMA_VERSION:
+    if version not in READABLE_VERSIONS:
         raise CatalogError(f"{where}: catalogue schema_version {version}, this code reads "
                            f"schema_version {SCHEMA_VERSION}")
+    return version
+
+
+def migrate(conn: sqlite3.Connection) -> None:
+    """Bring a readable older catalogue to SCHEMA_VERSION in one transaction (the writer
+    does this when it opens one): 1 -> 2 adds ``meshes.orientation`` ('{}' for old rows)."""
+    if orientation_column(conn) == "orientation":
+        return
+    conn.execute("BEGIN IMMEDIATE")
+    try:
+        conn.execute("ALTER TABLE meshes ADD COLUMN orientation TEXT NOT NULL DEFAULT '{}'")
+        conn.execute("UPDATE meta SET value=? WHERE key='schema_version'", (str(SCHEMA_VERSION),))
+        conn.execute("COMMIT")
+    except BaseException:
+        conn.execute("ROLLBACK")
+        raise
+
+
+def orientation_column(conn: sqlite3.Connection) -> str:
+    """SQL for the meshes' orientation JSON: the column, or '{}' in a version 1 catalogue."""
+    cols = {r[1] for r in conn.execute("PRAGMA table_info(meshes)")}
+    return "orientation" if "orientation" in cols else "'{}'"
 
 
 def locate_db(path: str | Path) -> tuple[Path, Path]:
@@ -172,13 +197,14 @@ def mesh_records(conn: sqlite3.Connection, where: str = "", args: tuple = ()) ->
     out = []
     for row in conn.execute(
             "SELECT id, sha256, path, size, mtime, state, reason, detail, n_triangles, "
-            "n_materials, file_to_norm, options_hash, run_id, timings FROM meshes "
-            f"{where} ORDER BY id", args).fetchall():
+            f"n_materials, file_to_norm, options_hash, run_id, timings, "
+            f"{orientation_column(conn)} FROM meshes {where} ORDER BY id", args).fetchall():
         mid = row[0]
         rec = dict(zip(("id", "sha256", "path", "size", "mtime", "state", "reason", "detail",
                         "n_triangles", "n_materials"), row[:10]))
         rec["file_to_norm"] = json.loads(row[10])
         rec["options_hash"], rec["run_id"], rec["timings"] = row[11], row[12], json.loads(row[13])
+        rec["orientation"] = json.loads(row[14])
         rec["materials"] = [
             {"index": r[0], "name": r[1], "part": r[2], "score": r[3], "iou": r[4], "view": r[5],
              "decision": r[6], "pixels": r[7], "props": json.loads(r[8])}

@@ -67,6 +67,7 @@ class CatalogEntry:
     artifacts: dict[str, bytes | Path] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     options_hash: str | None = None
+    orientation: dict = field(default_factory=dict)   # ``Orientation.as_dict()``; {} = none
 
     @classmethod
     def from_results(cls, *, sha256: str, path: str, size: int, mtime: float, verdict: Any,
@@ -74,7 +75,8 @@ class CatalogEntry:
                      artifacts: dict | None = None, timings: dict | None = None,
                      view_stats: list[dict] | None = None) -> "CatalogEntry":
         """Entry from ``Verdict``, ``Mesh``, ``PartTable`` and ``CameraRing`` (any may be None
-        except the verdict). Material props record the ``Material`` fields of the mesh."""
+        except the verdict). Material props record the ``Material`` fields of the mesh; the
+        mesh's orientation record (``mesh.orientation.as_dict()``) is kept as is."""
         mats: list[MaterialRow] = []
         if table is not None:
             by_index = {m: mesh.materials[m] for m in range(len(mesh.materials))} if mesh else {}
@@ -99,7 +101,8 @@ class CatalogEntry:
                    file_to_norm=(np.asarray(mesh.file_to_norm, np.float64) if mesh is not None
                                  else np.eye(4)),
                    materials=mats, views=views, artifacts=dict(artifacts or {}),
-                   timings=dict(timings or {}))
+                   timings=dict(timings or {}),
+                   orientation=_orientation_record(getattr(mesh, "orientation", None)))
 
     def validate(self) -> None:
         """Raise CatalogError naming the first problem (the entry's path is in the message)."""
@@ -118,6 +121,10 @@ class CatalogEntry:
         if self.options_hash is not None and not is_sha256(self.options_hash):
             raise CatalogError(f"{where}: options_hash must be a sha256 hex digest")
         _check_matrix(self.file_to_norm, (4, 4), f"{where}: file_to_norm")
+        if not isinstance(self.orientation, dict):
+            raise CatalogError(f"{where}: orientation must be a dict (Orientation.as_dict())")
+        if "rotation" in self.orientation:
+            _check_matrix(self.orientation["rotation"], (3, 3), f"{where}: orientation rotation")
         seen: set[int] = set()
         for m in self.materials:
             if m.index in seen:
@@ -143,6 +150,11 @@ class CatalogEntry:
             elif not isinstance(data, (bytes, bytearray, memoryview)):
                 raise CatalogError(f"{where}: artifact {kind!r} must be bytes or a Path, got "
                                    f"{type(data).__name__}")
+
+
+def _orientation_record(orientation: Any) -> dict:
+    """The plain record of an orientation object (anything with ``as_dict``), {} for None."""
+    return dict(orientation.as_dict()) if orientation is not None else {}
 
 
 def _check_matrix(a: Any, shape: tuple[int, int], what: str) -> None:

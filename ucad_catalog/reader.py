@@ -19,7 +19,8 @@ from typing import Iterator, NamedTuple
 
 import numpy as np
 
-from ._db import CatalogError, check_catalog_db, locate_db, mesh_records, object_path
+from ._db import (CatalogError, check_catalog_db, locate_db, mesh_records, object_path,
+                  orientation_column)
 
 
 @dataclass
@@ -40,6 +41,7 @@ class MeshInfo:
     options_hash: str
     run_id: int
     timings: dict
+    orientation: dict = field(default_factory=dict)   # see ucad_cl.artifacts.Orientation
 
 
 class PartRow(NamedTuple):
@@ -235,10 +237,10 @@ class CatalogReader:
     def _query_meshes(self, where: str, args: tuple) -> list[MeshInfo]:
         rows = self._conn.execute(
             "SELECT id, sha256, path, size, mtime, state, reason, detail, n_triangles, "
-            f"n_materials, file_to_norm, options_hash, run_id, timings FROM meshes {where} "
-            "ORDER BY id", args).fetchall()
+            f"n_materials, file_to_norm, options_hash, run_id, timings, "
+            f"{orientation_column(self._conn)} FROM meshes {where} ORDER BY id", args).fetchall()
         return [MeshInfo(*r[:10], np.array(json.loads(r[10]), np.float64), r[11], r[12],
-                         json.loads(r[13])) for r in rows]
+                         json.loads(r[13]), json.loads(r[14])) for r in rows]
 
     def _view_stack(self, sha: str) -> dict[str, np.ndarray]:
         if self._stack is not None and self._stack[0] == sha:

@@ -35,7 +35,7 @@ import numpy as np
 
 from ._db import (DB_NAME, FORMAT_NAME, LOCK_NAME, OBJECTS_DIR, SCHEMA_SQL, SCHEMA_VERSION,
                   CatalogError, canonical_json, check_catalog_db, is_sha256, mesh_records,
-                  object_path, options_hash)
+                  migrate, object_path, options_hash)
 from .entry import CatalogEntry
 
 try:                                   # POSIX advisory lock for the single-writer rule
@@ -97,6 +97,7 @@ class Catalog:
                     raise CatalogError(f"not a ucad catalogue: {db} is empty")
                 _init_schema(conn)
             check_catalog_db(conn, db)
+            migrate(conn)
             conn.execute("PRAGMA journal_mode=WAL")
             conn.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
             conn.execute("PRAGMA foreign_keys=ON")
@@ -192,20 +193,22 @@ class Catalog:
             values = (entry.path, int(entry.size), float(entry.mtime), entry.state,
                       entry.reason, entry.detail, int(entry.n_triangles),
                       int(entry.n_materials), canonical_json(_floats(entry.file_to_norm)),
-                      opt_hash, self._run_id, canonical_json(entry.timings))
+                      opt_hash, self._run_id, canonical_json(entry.timings),
+                      canonical_json(entry.orientation))
             row = conn.execute("SELECT id FROM meshes WHERE sha256=?",
                                (entry.sha256,)).fetchone()
             if row is None:
                 mid = conn.execute(
                     "INSERT INTO meshes (path, size, mtime, state, reason, detail, n_triangles, "
-                    "n_materials, file_to_norm, options_hash, run_id, timings, sha256) "
-                    "VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)", values + (entry.sha256,)).lastrowid
+                    "n_materials, file_to_norm, options_hash, run_id, timings, orientation, "
+                    "sha256) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    values + (entry.sha256,)).lastrowid
             else:                                              # re-processed: keep the id
                 mid = row[0]
                 conn.execute(
                     "UPDATE meshes SET path=?, size=?, mtime=?, state=?, reason=?, detail=?, "
                     "n_triangles=?, n_materials=?, file_to_norm=?, options_hash=?, run_id=?, "
-                    "timings=? WHERE id=?", values + (mid,))
+                    "timings=?, orientation=? WHERE id=?", values + (mid,))
                 for table in ("materials", "views", "artifacts"):
                     conn.execute(f"DELETE FROM {table} WHERE mesh_id=?", (mid,))
             conn.executemany(
@@ -233,12 +236,17 @@ class Catalog:
 
     # ------------------------------------------------------------------ maintenance
     def status(self) -> dict:
-        """Counts by state and by rejection reason, object totals, and the last run."""
+        """Counts by state and by rejection reason, accepted meshes flagged by reason
+        (``uncertain_orientation``: an orientation estimate under the confidence threshold),
+        object totals, and the last run."""
         db = self._db
         by_state = {"accepted": 0, "rejected": 0}
         by_state.update(dict(db.execute("SELECT state, count(*) FROM meshes GROUP BY state")))
         by_reason = dict(db.execute("SELECT reason, count(*) FROM meshes WHERE "
                                     "state='rejected' GROUP BY reason ORDER BY reason"))
+        flagged = {"uncertain_orientation": db.execute(     # canonical JSON: no spaces
+            "SELECT count(*) FROM meshes WHERE state='accepted' AND "
+            "instr(orientation, '\"uncertain\":true') > 0").fetchone()[0]}
         n_obj, n_bytes = db.execute("SELECT count(*), coalesce(sum(bytes), 0) FROM "
                                     "(SELECT DISTINCT sha256, bytes FROM artifacts)").fetchone()
         last = db.execute("SELECT id, started, finished, engine, options_hash, counts, "
@@ -249,7 +257,8 @@ class Catalog:
             "meshes_per_s": last[6]}
         return {"root": str(self.root), "schema_version": SCHEMA_VERSION,
                 "meshes": sum(by_state.values()), "by_state": by_state,
-                "by_reason": by_reason, "objects": n_obj, "object_bytes": n_bytes,
+                "by_reason": by_reason, "flagged": flagged, "objects": n_obj,
+                "object_bytes": n_bytes,
                 "runs": db.execute("SELECT count(*) FROM runs").fetchone()[0],
                 "last_run": last_run}
 
@@ -257,7 +266,8 @@ class Catalog:
         """Write one record per mesh (ordered by id) to ``path``; returns the record count.
 
         jsonl: one canonical JSON object per line (see SCHEMA.md). parquet: the same records,
-        with the free-form dicts (timings, props, stats) as JSON strings; needs pyarrow.
+        with the free-form dicts (timings, orientation, props, stats) as JSON strings; needs
+        pyarrow.
         """
         if format not in ("jsonl", "parquet"):
             raise CatalogError(f"export format must be 'jsonl' or 'parquet', got {format!r}")
@@ -283,6 +293,7 @@ class Catalog:
         else:
             for rec in records:
                 rec["timings"] = canonical_json(rec["timings"])
+                rec["orientation"] = canonical_json(rec["orientation"])
                 rec["artifacts"] = [{"kind": k, **v} for k, v in rec["artifacts"].items()]
                 for m in rec["materials"]:
                     m["props"] = canonical_json(m["props"])

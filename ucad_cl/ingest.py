@@ -14,7 +14,10 @@ Conventions and decisions (see also ``ucad_cl/artifacts.py``):
 * **Up axis / units.** glTF is +Y up (spec). OBJ, PLY, OFF and STL carry no convention; we assume
   +Y up as well and do not rotate them. The file frame is the flattened scene frame (file units).
 * **Canonical frame.** ``c`` = centre of the axis-aligned bounding box of the returned vertices,
-  ``d`` = its diagonal length; ``canonical = (file - c) / d`` in float64, and
+  ``d`` = its diagonal length (squares summed smallest first, so a re-posed file gives the same
+  bits); ``(file - c) / d`` in float64, then the orientation stage (``ucad_cl.orient``,
+  ``orientation=``: ``"auto"`` by default) turns it into the canonical vehicle frame and
+  folds its rotation and placement into ``file_to_norm``; ``orientation="file"`` keeps
   ``file_to_norm = [[I/d, -c/d], [0, 1]]``. A mesh whose extent is zero is rejected (``empty``).
 * **Materials.** One material index per face, built per geometry (never via trimesh
   concatenate). Material identity = the file's material: for glTF the material index of the
@@ -92,8 +95,15 @@ class IngestError(ValueError):
         return (IngestError, (self.path, self.reason, self.message))
 
 
-def load_mesh(path: str | os.PathLike, *, clean: bool = True) -> Mesh:
-    """Load a CAD file into a canonical-frame Mesh with one material index per face."""
+def load_mesh(path: str | os.PathLike, *, clean: bool = True, orientation="auto",
+              overrides=None) -> Mesh:
+    """Load a CAD file into a canonical-frame Mesh with one material index per face.
+
+    orientation: ``"auto"`` (estimate the vehicle frame), ``"file"`` (trust the file's +Y up)
+    or ``"UP,FRONT"`` / ``(up, front)`` signed file axes (see ``ucad_cl.orient``); None skips
+    the stage (the bounding-box normalisation only; ``mesh.orientation`` stays None, for a
+    caller that orients it itself). overrides: an ``orient.OrientationOverrides`` whose entry
+    for this file (by path or sha256) replaces ``orientation``."""
     path = Path(path)
     raw = _read_bytes(path)
     suffix = path.suffix.lower()
@@ -138,16 +148,23 @@ def load_mesh(path: str | os.PathLike, *, clean: bool = True) -> Mesh:
 
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     centre = (lo + hi) / 2.0
-    diag = float(np.linalg.norm(hi - lo))
+    diag = float(np.sqrt(np.sort((hi - lo) ** 2).sum()))       # same bits for any axis order
     if not np.isfinite(diag) or diag <= 0.0:
         raise IngestError(path, "empty", f"mesh has zero extent (bbox diagonal {diag})")
     file_to_norm = np.eye(4)
     file_to_norm[:3, :3] /= diag
     file_to_norm[:3, 3] = -centre / diag
-    return Mesh(path=str(path), sha256=sha, vertices=(vertices - centre) / diag,
+    mesh = Mesh(path=str(path), sha256=sha, vertices=(vertices - centre) / diag,
                 faces=faces.astype(np.uint32), face_material=face_material.astype(np.uint16),
                 materials=materials, file_to_norm=file_to_norm,
                 face_node=face_node.astype(np.int32), node_names=node_names, report=report)
+    if orientation is None:
+        return mesh
+    from .orient import orient_mesh
+
+    if overrides is not None:
+        orientation = overrides.mode_for(path, sha, orientation)
+    return orient_mesh(mesh, orientation)
 
 
 def file_sha256(path: str | os.PathLike) -> str:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .render import add_camera_args
+from .render import add_camera_args, add_orientation_args, orientation_from_args
 
 
 def register(sub) -> None:
@@ -47,12 +47,21 @@ def register(sub) -> None:
     p.add_argument("--timeout", type=float, default=600.0,
                    help="seconds without progress on one mesh before it is rejected (default 600)")
     add_camera_args(p)
+    add_orientation_args(p)
+    p.add_argument("--reject-uncertain-orientation", action="store_true",
+                   help="reject meshes whose estimated orientation has a confidence under 0.5 "
+                        "(reason uncertain_orientation); by default they are accepted and "
+                        "counted as flagged in `status`")
     p.set_defaults(func=run)
 
 
 def options_from_args(args):
     from ..build import BuildOptions
-    return BuildOptions(azimuth_step=args.azimuth_step, elevations=tuple(args.elevations),
+    mode, overrides = orientation_from_args(args)
+    return BuildOptions(orientation=args.orientation,
+                        orientation_overrides=overrides.as_items() if overrides else (),
+                        reject_uncertain_orientation=args.reject_uncertain_orientation,
+                        azimuth_step=args.azimuth_step, elevations=tuple(args.elevations),
                         fov_deg=args.fov, size=args.size, segmenter=args.segmenter,
                         threshold=args.threshold, min_materials=args.min_materials,
                         max_triangles=args.max_triangles, triangle_budget=args.triangle_budget,

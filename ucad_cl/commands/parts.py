@@ -13,7 +13,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
-from .render import add_camera_args, ring_from_args
+from .render import add_camera_args, add_orientation_args, orientation_from_args, ring_from_args
 
 COLUMNS = ("material", "name", "part", "score", "iou", "view", "decision", "pixels")
 
@@ -42,6 +42,7 @@ def register(sub) -> None:
                    help="output folder (default out/parts)")
     p.add_argument("--threshold", type=float, default=0.5, help="score threshold (default 0.5)")
     add_camera_args(p)
+    add_orientation_args(p)
     p.set_defaults(func=run)
 
 
@@ -120,6 +121,7 @@ def run(args) -> int:
 
     try:
         segmenter = make_segmenter(args.segmenter, args.onnx_config)
+        mode, overrides = orientation_from_args(args)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -129,7 +131,7 @@ def run(args) -> int:
     for path in args.meshes:
         stem = args.out / Path(path).name.rsplit(".", 1)[0]
         try:
-            mesh = load_mesh(path)
+            mesh = load_mesh(path, orientation=mode, overrides=overrides)
             views = render_views(mesh, ring)
             masks = segmenter.segment(mesh, views)
             table = classify_parts(mesh, views, masks, threshold=args.threshold,

@@ -34,6 +34,8 @@ def register(sub) -> None:
     p.add_argument("--catalog", type=Path, default=None, metavar="PATH",
                    help="search every stored view of every accepted mesh of this catalogue "
                         "(built-in features) instead of rendering one MESH")
+    from .render import add_orientation_args
+    add_orientation_args(p)
     p.set_defaults(func=run, late_positional="mesh")
 
 
@@ -62,8 +64,14 @@ def run(args) -> int:
         mask = m > 0
     if args.catalog is not None:
         return run_catalog(args, image, mask)
+    from .render import orientation_from_args
     try:
-        mesh = load_mesh(args.mesh)
+        mode, overrides = orientation_from_args(args)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        mesh = load_mesh(args.mesh, orientation=mode, overrides=overrides)
     except IngestError as exc:
         print(str(exc), file=sys.stderr)
         return 1
@@ -142,9 +150,11 @@ def run_catalog(args, image, mask) -> int:
         print(f"{i + 1:4d} {mt.azimuth:8.1f} {mt.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
               f"{metas[mt.mesh].path} ({mt.view})")
     best = matches[0]
-    try:
-        mesh = load_mesh(metas[best.mesh].path)
-    except IngestError as exc:
+    try:                          # in the frame the catalogue stored (its cameras are in it)
+        from ..orient import in_frame
+        mesh = in_frame(load_mesh(metas[best.mesh].path, orientation=None),
+                        metas[best.mesh].file_to_norm)
+    except (IngestError, ValueError) as exc:
         print(f"(no side-by-side PNG: {exc})", file=sys.stderr)
         return 0
     cand = PoseCandidate(best.azimuth, best.elevation, dist[best.row], best.score, best.view)
