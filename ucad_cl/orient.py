@@ -63,6 +63,7 @@ from .artifacts import Mesh, Orientation
 AXES: dict[str, np.ndarray] = {f"{s}{a}": (1.0 if s == "+" else -1.0) * np.eye(3)[i]
                                for i, a in enumerate("XYZ") for s in "+-"}
 N_SAMPLES = 4096                # area-weighted surface samples
+MIRROR_STRIDE = 4               # every 4th sample (1,024) builds the mirror plane
 SAMPLE_SEED = 0x0DE7            # fixed random stream: the same mesh gives the same samples
 SNAP_DEG = 1.5                  # snap front, and up levelled on wheels, within this angle
 SNAP_DEG_COARSE = 6.0           # snap up within this angle when no wheels level it
@@ -461,10 +462,10 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     Candidates: the principal axes, the file axes and in-between directions (15-degree steps
     between the two minor axes, whose order is arbitrary when width and height are alike;
     45 degrees between the major and each minor one), each through the centroid. They are
-    ranked by the share of 256 reflected samples landing within 3 sample spacings of a
-    sample (KD tree of 1,024 samples); the best three are refined
-    (``_refine_plane``). Quality: the share of samples whose reflection lands within 2.5
-    sample spacings of a sample; the best quality wins, except that among planes within 0.03
+    ranked by the share of 128 reflected samples landing near a sample (KD tree of every
+    2 x MIRROR_STRIDE-th sample); the best two at least 25 degrees apart are refined
+    (``_refine_plane``, on the same samples). Quality: the share of every MIRROR_STRIDE-th
+    sample whose reflection lands within 2.5 sample spacings of a sample; the best quality wins, except that among planes within 0.03
     of the best the one whose normal is the longest extent (1.5 times another's) is dropped:
     a vehicle is longer than wide, so a front/back-symmetric body keeps its width axis."""
     from scipy.spatial import cKDTree
@@ -480,17 +481,26 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
         if all(abs(float(n @ k)) < math.cos(math.radians(10.0)) for k in distinct):
             distinct.append(n)
     cands = distinct
-    sub = p[::4]
+    sub, sub_n = p[::MIRROR_STRIDE], nrm[::MIRROR_STRIDE]
     tree = cKDTree(sub)
     spacing, _ = tree.query(sub[::8], k=2)
     step = float(_quantile(spacing[:, 1], 0.5)) + 1e-12    # typical sample spacing
-    few = sub[::4]
-    scores = [float(np.mean(tree.query(_reflect(few, n, float(mu @ n)), k=1)[0] < 3.0 * step))
+    coarse, coarse_n = sub[::2], sub_n[::2]                # ranking and refining: half of them
+    ctree = cKDTree(coarse)
+    few = coarse[::max(1, len(coarse) // 128)]
+    scores = [float(np.mean(ctree.query(_reflect(few, n, float(mu @ n)), k=1)[0] < 4.0 * step))
               for n in cands]
     order = sorted(range(len(cands)), key=lambda i: (-scores[i], i))   # tie: candidate order
+    picked: list[int] = []                                 # the best 2 in different basins
+    for i in order:
+        if len(picked) == 2:
+            break
+        if all(abs(float(cands[i] @ cands[k])) < math.cos(math.radians(25.0)) for k in picked):
+            picked.append(i)
     refined = []
-    for i in order[:3]:
-        n, d = _refine_plane(tree, sub, nrm[::4], cands[i], float(mu @ cands[i]), step)
+    for i in picked:
+        n, d = _refine_plane(ctree, coarse, coarse_n, cands[i], float(mu @ cands[i]),
+                             1.4 * step)
         dist, _ = tree.query(_reflect(sub, n, d), k=1)
         refined.append((float(np.mean(dist < 2.5 * step)), float(np.ptp(sub @ n)), n, d))
     top = max(r[0] for r in refined)
@@ -504,24 +514,26 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
 
 
 def _refine_plane(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: float,
-                  step: float, iters: int = 10) -> tuple[np.ndarray, float]:
+                  step: float, iters: int = 8) -> tuple[np.ndarray, float]:
     """Symmetric ICP, point to plane: each sample x is reflected, paired with the nearest
     sample y (kept when closer than tau and when the reflected normal of x agrees with the
     normal of y within 45 degrees), and the plane is moved to minimise the squared distances
     of the reflected samples to the tangent planes at their partners (Gauss-Newton on the
-    normal's two degrees of freedom and the offset). tau shrinks from 8 to 1.5 sample
-    spacings (``step``); it stops when the normal moves less than 0.01 degree. Converges from
+    normal's two degrees of freedom and the offset). tau halves from 6 to 1.5 sample
+    spacings (``step``); it stops when the normal moves less than 0.02 degree. Converges from
     about 10 degrees off to a few hundredths of a degree on a mirror-symmetric surface."""
-    tau, tau_min = 8.0 * step, 1.5 * step
-    for _ in range(iters):
-        rx = _reflect(p, n, d)
+    tau, tau_min = 6.0 * step, 1.5 * step
+    for it in range(iters):
+        stride = 2 if it < 2 else 1                       # the first steps on fewer samples
+        half, half_n = p[::stride], nrm[::stride]
+        rx = _reflect(half, n, d)
         dist, j = tree.query(rx, k=1)
         m = nrm[j]
-        rn = nrm - 2.0 * (nrm @ n)[:, None] * n
+        rn = half_n - 2.0 * (half_n @ n)[:, None] * n
         ok = (dist < tau) & (np.abs(np.einsum("ij,ij->i", rn, m)) > 0.7)
         if ok.sum() < 16:
             break
-        x, mm = p[ok], m[ok]
+        x, mm = half[ok], m[ok]
         u = np.cross(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
         u /= np.linalg.norm(u)
         v = np.cross(n, u)
@@ -529,14 +541,14 @@ def _refine_plane(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: float,
         xn, mn = x @ n - d, mm @ n
         J = np.stack([-2.0 * (x @ u) * mn - 2.0 * xn * (mm @ u),
                       -2.0 * (x @ v) * mn - 2.0 * xn * (mm @ v), 2.0 * mn], axis=1)
-        step = np.linalg.lstsq(J, -e0, rcond=None)[0]
+        step = np.linalg.solve(J.T @ J + 1e-12 * np.eye(3), -(J.T @ e0))
         n2 = n + step[0] * u + step[1] * v
         n2 /= np.linalg.norm(n2)
         moved = float(n2 @ n)
         n, d = n2, d + float(step[2])
-        if tau <= tau_min and moved > math.cos(math.radians(0.01)):
+        if tau <= tau_min and moved > math.cos(math.radians(0.02)):
             break
-        tau = max(0.6 * tau, tau_min)
+        tau = max(0.5 * tau, tau_min)
     return n, d
 
 
@@ -693,13 +705,13 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
     """Tyre treads: samples (area and face samples) whose normals are perpendicular to the
     width axis, away from the mirror plane, vote for each radius r for the circle centres
     p -+ r n in the side view (a Hough transform with normals, both normal signs; cells of
-    0.15 r, summed over 3 x 3; the 8 highest peaks per radius are checked). A peak is a wheel pair
+    0.15 r, summed over 3 x 3; the 5 highest peaks per radius are checked). A peak is a wheel pair
     when it is fed from at least 6 of 8 directions around the circle, from both sides of the mirror plane, by samples in a narrow band across (a
     tyre, not a body arc: 60 % within a quarter of the half-width), evenly (sector entropy
     >= 0.8 of the maximum) and at a consistent distance (median deviation <= 6 % of the
     radius); it scores votes x evenness. Wheels: the peaks with a radius within 0.65-1.5 of the strongest
     one's, on a line within 30 degrees of the length axis, at least two radii apart.
-    Radii searched: 2.5 % to 20 % of the length. None when fewer than two are found."""
+    Radii searched: 2.5 % to 13 % of the length (8 steps). None when fewer than two are found."""
     L, H = ctx.half_len, ctx.half_h
     S = ctx.S
     pts = np.r_[S.points, S.detail_points]                 # area samples and face samples
@@ -713,8 +725,8 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
     m = np.stack([nrm[sel] @ ctx.a, nrm[sel] @ ctx.b], axis=1)
     m /= np.maximum(np.hypot(m[:, 0], m[:, 1]), 1e-12)[:, None]
     left, aq = q[sel] > 0, np.abs(q[sel])
-    found = []
-    for r in 2 * L * np.geomspace(0.025, 0.2, 10):
+    found, tried = [], []
+    for r in 2 * L * np.geomspace(0.025, 0.13, 8):
         h = 0.15 * r
         cx, cy = x - r * m[:, 0], y - r * m[:, 1]
         ix = np.floor((cx + L) / h).astype(np.intp)
@@ -726,11 +738,19 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
         peak = np.flatnonzero(((box >= WHEEL_MIN_VOTES) & (box == _max3(box))).ravel())
         if peak.size == 0:
             continue
-        peak = peak[np.argsort(-box.ravel()[peak], kind="stable")[:8]]
+        peak = peak[np.argsort(-box.ravel()[peak], kind="stable")[:5]]
         for i, j in zip(*np.unravel_index(peak, box.shape)):
+            centre = np.array([(i + 1.0) * h - L, (j + 1.0) * h - H - r])    # 3 x 3 middle
+            if abs(centre[1]) < 0.25 * H or r > 0.26 * L:
+                continue                                  # mid-height or too big: a body arc
+            if any(abs(r / r_ - 1.0) < 0.3 and np.hypot(*(centre - c_)) < 0.3 * r
+                   for r_, c_ in tried):
+                continue                                  # the same circle, one step apart
+            tried.append((r, centre))
             mem = np.flatnonzero(ok & (np.abs(ix - i) <= 1) & (np.abs(iy - j) <= 1))
-            wheel = _check_circle(x, y, m, left, aq, np.array([cx[mem].mean(), cy[mem].mean()]),
-                                  r, L, H)
+            c0 = np.array([cx[mem].mean(), cy[mem].mean()])
+            box_ = np.flatnonzero((np.abs(x - c0[0]) < 1.5 * r) & (np.abs(y - c0[1]) < 1.5 * r))
+            wheel = _check_circle(x[box_], y[box_], m[box_], left[box_], aq[box_], c0, r, L, H)
             if wheel is not None:
                 found.append(wheel)
     if not found:
@@ -823,13 +843,9 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
         if near.sum() < WHEEL_MIN_VOTES:
             return None
         X, Y = x[near], y[near]
-        A = np.stack([X, Y, np.ones_like(X)], axis=1)
-        sol = np.linalg.lstsq(A, X * X + Y * Y, rcond=None)[0]
-        c = np.array([sol[0] / 2.0, sol[1] / 2.0])
-        r2 = sol[2] + c @ c
-        if not r2 > 0.0:
+        c, r = _fit_circle(X, Y)
+        if r is None:
             return None
-        r = math.sqrt(r2)
     if r > 0.24 * half_len or abs(c[1]) < 0.35 * half_h:
         return None                                       # too big, or not low: a body arc
     if left[near].all() or not left[near].any():
@@ -850,6 +866,23 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
     if np.unique(turns).size < 6:
         return None                                       # a few flat faces (a box), not round
     return float(near.sum()) * even, r, c
+
+
+def _fit_circle(X: np.ndarray, Y: np.ndarray):
+    """Algebraic (Kasa) least-squares circle through points: (centre, radius), or (None,
+    None) when they are collinear. Centred normal equations, 2 x 2."""
+    mx, my = X.mean(), Y.mean()
+    u, v = X - mx, Y - my
+    suu, svv, suv = u @ u, v @ v, u @ v
+    det = suu * svv - suv * suv
+    if not abs(det) > 1e-30:
+        return None, None
+    rhs_u = 0.5 * (u @ (u * u) + u @ (v * v))
+    rhs_v = 0.5 * (v @ (v * v) + v @ (u * u))
+    uc = (rhs_u * svv - rhs_v * suv) / det
+    vc = (rhs_v * suu - rhs_u * suv) / det
+    r2 = uc * uc + vc * vc + (suu + svv) / X.size
+    return np.array([uc + mx, vc + my]), math.sqrt(r2)
 
 
 def _band_share(v: np.ndarray, width: float) -> float:
@@ -956,11 +989,12 @@ class _NameTable:
             fn = np.asarray(mesh.face_node).astype(np.intp)
             if fn.size and fn.min() >= 0 and fn.max() < len(mesh.node_names):
                 self.groupings.append((fn, list(mesh.node_names)))
-        total = max(float(self.area.sum()), 1e-300)
+        self.total_area = total = max(float(self.area.sum()), 1e-300)
         self.share = [np.bincount(lab, weights=self.area, minlength=len(names)) / total
                       for lab, names in self.groupings]      # surface share of each group
         self._words: dict[str, tuple[str, ...]] = {}
         self._tests: dict = {}
+        self._means: dict = {}          # (grouping, id(value)) -> (value kept alive, means)
         self.glass, self.lamp, self.colour = _material_kinds(self)
 
     def words(self, name: str) -> tuple[str, ...]:
@@ -983,11 +1017,15 @@ class _NameTable:
         return self._tests[key]
 
     def means(self, g: int, value: np.ndarray) -> np.ndarray:
-        """(K,) area-weighted mean of a per-face ``value`` over each group of grouping g."""
-        lab = self.groupings[g][0]
-        tot = np.bincount(lab, weights=self.area, minlength=self.share[g].size)
-        return np.bincount(lab, weights=self.area * value, minlength=tot.size) / np.maximum(
-            tot, 1e-300)
+        """(K,) area-weighted mean of a per-face ``value`` over each group of grouping g
+        (the last few are remembered: the cues ask for the same value several times)."""
+        key = (g, id(value))
+        if key not in self._means:
+            lab = self.groupings[g][0]
+            tot = np.maximum(self.share[g] * self.total_area, 1e-300)
+            self._means[key] = (value, np.bincount(lab, weights=self.area * value,
+                                                   minlength=tot.size) / tot)
+        return self._means[key][1]
 
     def votes(self, match, value: np.ndarray) -> list[tuple[float, float]]:
         """(weight, area-weighted mean of the per-face ``value``) of the groups whose name
