@@ -119,7 +119,7 @@ def test_generator_file_truth_round_trip(tmp_path):
         mesh = load_mesh(v.write(tmp_path))
         t = v.truth["orientation"]
         up_err, front_err = _errors(mesh.orientation, t["up"], t["front"])
-        assert up_err < 0.5 and front_err < 0.5, (kw, up_err, front_err)
+        assert up_err < 1.0 and front_err < 1.0, (kw, up_err, front_err)
         ref = np.array(v.truth["file_to_canonical"])
         np.testing.assert_allclose(mesh.file_to_norm, ref, atol=2e-3 * np.abs(ref).max())
 
@@ -362,3 +362,26 @@ def test_version_1_catalogue_is_read_and_migrated(tmp_path):
         cat.commit_mesh(CatalogEntry(sha256="2" * 64, path="b.glb", size=1, mtime=0.0,
                                      orientation={"uncertain": True, "source": "auto"}))
         assert cat.status()["flagged"] == {"uncertain_orientation": 1}
+
+
+def test_default_demo_library_comes_out_upright_facing_plus_x(tmp_path):
+    """The demo's library (24 vehicles, seed 0, its messy share: odd units, Z-up, rotated,
+    offsets...): every readable vehicle comes out upright with its front at +X, so every
+    contact sheet's first view (azimuth 0) is its front view."""
+    from ucad_cl.ingest import IngestError
+    from ucad_cl.synth import write_library
+
+    paths = write_library(tmp_path, 24, seed=0, messy_fraction=0.55, progress=False)
+    checked = 0
+    for p in paths:
+        truth = json.loads(p.with_suffix(".json").read_text())
+        try:
+            mesh = load_mesh(p)
+        except IngestError:
+            assert truth["expected_reject"] is not None
+            continue
+        t = truth["orientation"]
+        up_err, front_err = _errors(mesh.orientation, t["up"], t["front"])
+        assert up_err < 10 and front_err < 15, (p.name, truth["messy"], mesh.orientation.cues)
+        checked += 1
+    assert checked >= 20

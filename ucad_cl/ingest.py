@@ -11,8 +11,9 @@ Conventions and decisions (see also ``ucad_cl/artifacts.py``):
   nodes is drawn at each.
   Faces of a node whose transform mirrors (det < 0) get their winding flipped so that faces keep
   facing outward. ``face_node`` indexes ``node_names`` (trimesh's unique node names).
-* **Up axis / units.** glTF is +Y up (spec). OBJ, PLY, OFF and STL carry no convention; we assume
-  +Y up as well and do not rotate them. The file frame is the flattened scene frame (file units).
+* **Up axis / units.** glTF is +Y up (spec); OBJ, PLY, OFF and STL carry no convention. The file
+  frame is the flattened scene frame (file units); which way is up and front is found by the
+  orientation stage (below), not assumed.
 * **Canonical frame.** ``c`` = centre of the axis-aligned bounding box of the returned vertices,
   ``d`` = its diagonal length (squares summed smallest first, so a re-posed file gives the same
   bits); ``(file - c) / d`` in float64, then the orientation stage (``ucad_cl.orient``,

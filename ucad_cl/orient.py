@@ -357,9 +357,9 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
         p = S.points
         flags.append("ground_plane")
     mu = p.mean(axis=0)
-    _, evecs = np.linalg.eigh(np.cov((p - mu).T))
+    evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
     pca = evecs[:, ::-1]                                   # columns: major -> minor
-    w, wd, sym = _mirror_plane(p, S.normals, mu, pca)
+    w, wd, sym = _mirror_plane(p, S.normals, mu, pca, evals[::-1])
     if sym < 0.35:
         flags.append("asymmetric")
     ctx = _Context(mesh, S, w, wd)
@@ -391,7 +391,7 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
         flags.append("up_ambiguous")
     if front_conf < UNCERTAIN_BELOW:
         flags.append("front_ambiguous")
-    if _several_vehicles(ctx):
+    if _several_vehicles(ctx) or _overlapping_vehicles(ctx, names):
         flags.append("multiple_vehicles")
     R = _snap(ctx.b, front_sign * ctx.a, snap_up)
     cues = {f"up.{k}": round(float(up_sign * v), 4) for k, v in up_cues.items()}
@@ -456,7 +456,8 @@ def _reflect(p: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
     return p - 2.0 * (p @ n - d)[:, None] * n
 
 
-def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarray):
+def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarray,
+                  evals: np.ndarray | None = None):
     """(unit normal n, offset d, quality) of the best mirror plane ``x . n = d``.
 
     Candidates: the principal axes, the file axes and in-between directions (15-degree steps
@@ -480,7 +481,12 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     for n in cands:                                        # drop repeats (within 10 degrees)
         if all(abs(float(n @ k)) < math.cos(math.radians(10.0)) for k in distinct):
             distinct.append(n)
-    cands = distinct
+    if evals is not None and evals[0] >= 2.0 * evals[1]:
+        # clearly elongated: the mirror plane contains the length axis, so its normal is
+        # not within 30 degrees of it (a bus's front/back symmetry is not its mirror plane)
+        cands = [n for n in distinct if abs(float(n @ pca[:, 0])) < math.cos(math.radians(30))]
+    else:
+        cands = distinct
     sub, sub_n = p[::MIRROR_STRIDE], nrm[::MIRROR_STRIDE]
     tree = cKDTree(sub)
     spacing, _ = tree.query(sub[::8], k=2)
@@ -741,7 +747,7 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
         peak = peak[np.argsort(-box.ravel()[peak], kind="stable")[:5]]
         for i, j in zip(*np.unravel_index(peak, box.shape)):
             centre = np.array([(i + 1.0) * h - L, (j + 1.0) * h - H - r])    # 3 x 3 middle
-            if abs(centre[1]) < 0.25 * H or r > 0.26 * L:
+            if abs(centre[1]) < 0.25 * H or r > 0.32 * L:
                 continue                                  # mid-height or too big: a body arc
             if any(abs(r / r_ - 1.0) < 0.3 and np.hypot(*(centre - c_)) < 0.3 * r
                    for r_, c_ in tried):
@@ -785,7 +791,7 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
 
 def _wheel_group(circles: list, side: np.ndarray, half_len: float) -> list | None:
     """The road wheels among verified circles [(score, radius, centre)]: the group with the
-    highest total score of at least two circles of radii within 0.75-1.34 of each other, two
+    highest total score of at least two circles of radii within 0.6-1.67 of each other, two
     radii or more apart along the length, on the same side of the middle, on a line within
     20 degrees of the length axis, that stands on
     the ground: for one of the two height directions, the line through the undersides of
@@ -794,7 +800,7 @@ def _wheel_group(circles: list, side: np.ndarray, half_len: float) -> list | Non
     them). A lone circle is never a wheel set. None when no group qualifies."""
     best, best_score = None, 0.0
     for k in circles:
-        group = [c for c in circles if 0.75 <= c[1] / k[1] <= 1.34
+        group = [c for c in circles if 0.6 <= c[1] / k[1] <= 1.67
                  and c[2][1] * k[2][1] > 0 and (
                      c is k or abs(c[2][1] - k[2][1]) <= math.tan(math.radians(20)) * abs(
                          c[2][0] - k[2][0]))]
@@ -828,7 +834,7 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
     """(score, radius, centre) of the wheel pair around a Hough peak (centre ``c``, radius
     ``r``), or None. Its support: the voters within 15 % of r from the circle whose normal
     points along the radius (either sign); centre and radius are refitted to it (algebraic
-    circle fit, twice). A wheel pair: a radius at most 12 % of the length; a centre in the
+    circle fit, twice). A wheel pair: a radius at most 15 % of the length; a centre in the
     lower or upper 32.5 % of the height (wheels sit low); support from both sides of the mirror
     plane, 60 % of it within a quarter of the half-width across (a tyre, not a body arc),
     all around the circle (no gap wider than 90 degrees; sector entropy at least 0.8 of the
@@ -846,7 +852,7 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
         c, r = _fit_circle(X, Y)
         if r is None:
             return None
-    if r > 0.24 * half_len or abs(c[1]) < 0.35 * half_h:
+    if r > 0.3 * half_len or abs(c[1]) < 0.35 * half_h:
         return None                                       # too big, or not low: a body arc
     if left[near].all() or not left[near].any():
         return None                                       # one side only: not a wheel pair
@@ -1240,6 +1246,34 @@ def _profile(ctx: _Context) -> float:
 
 
 # ----------------------------------------------------------------------------- many vehicles
+
+def _overlapping_vehicles(ctx: _Context, names: "_NameTable") -> bool:
+    """Vehicles on top of each other (a game's vehicle pack at the origin): two or more node
+    groups (node names without trimesh's '_xxxxxx' suffix) that each look like a whole
+    vehicle: two or more materials, glazing or lamps among them, and at least half of the
+    length and 40 % of the height of the model."""
+    mesh = ctx.mesh
+    if len(names.groupings) < 2:
+        return False
+    node_of_face, node_names = names.groupings[1]
+    stems = [re.sub(r"_[0-9a-f]{6}$", "", str(n)) for n in node_names]
+    stem_ids = {st: k for k, st in enumerate(dict.fromkeys(stems))}
+    if len(stem_ids) < 2:
+        return False
+    group = np.array([stem_ids[st] for st in stems])[node_of_face]
+    fm = np.asarray(mesh.face_material).astype(np.intp)
+    special = (names.glass | names.lamp)[fm]
+    fc = ctx.S.face_centroid
+    fs, ft = fc @ ctx.a, fc @ ctx.b
+    span_s, span_t = float(np.ptp(fs)), float(np.ptp(ft))
+    whole = 0
+    for k in range(len(stem_ids)):
+        sel = group == k
+        if sel.sum() < 4 or not special[sel].any() or np.unique(fm[sel]).size < 2:
+            continue
+        if np.ptp(fs[sel]) >= 0.5 * span_s and np.ptp(ft[sel]) >= 0.4 * span_t:
+            whole += 1
+    return whole >= 2
 
 def _several_vehicles(ctx: _Context) -> bool:
     """Vehicles side by side: nothing crosses the mirror plane (under 0.3 % of the samples

@@ -22,6 +22,10 @@ Frames and units:
 
 Messy traits (``MESSY_TRAITS``) imitate broken real libraries; ``write_library`` gives a share of
 the vehicles one each (and sometimes an extra pose trait), recorded in ``truth["messy"]``.
+Orientation cases (``make_vehicle(pose=...)``, ``POSES``: one of the 24 axis-aligned rotations,
+an arbitrary yaw, a tilt of up to 3 degrees) and body variants (``body=...``, ``BODIES``: a
+trailer, both ends alike, two vehicles side by side); ``truth["orientation"]`` always gives the
+file-frame up and front directions (and whether the body has a front).
 Determinism: everything derives from ``numpy.random.default_rng(seed)``; the same seed gives the
 same GLB bytes. Ties (majority part of a merged material) go to the part earlier in PART_NAMES.
 """
