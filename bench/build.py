@@ -4,7 +4,12 @@ Generates (once, cached in --library) a library of procedural vehicles of about 
 triangles with the usual messy share, then builds it with the local engine at each --workers
 count into a fresh catalogue, sampling the resident memory of the whole process tree (driver +
 workers) every 0.5 s to show it stays flat. Defaults are the acceptance configuration:
-1,000 vehicles, 50k triangles, 72 views x 256 px, prior segmenter.
+1,000 vehicles, 50k triangles, 72 views x 256 px, the default (learned labeller) segmenter.
+
+Labelling row: the learned labeller's own cost per mesh (``LabellerSegmenter.segment``:
+features, the layer behind glass, ONNX trees, painting the masks) on --label-meshes meshes of
+the library, medians of 3 runs each, beside the hand-written prior segmenter's, in one process
+with one PoCL thread per worker as in the build (``POCL_MAX_PTHREAD_COUNT``).
 
     python bench/build.py                              # the full run (long)
     python bench/build.py --count 40 --workers 1 2     # quick look
@@ -60,6 +65,9 @@ def main() -> None:
     ap.add_argument("--catalog", type=Path, default=Path("/tmp/ucad-bench-catalog"))
     ap.add_argument("--azimuth-step", type=float, default=5.0)
     ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--label-meshes", type=int, default=20,
+                    help="meshes for the labelling row (0: skip)")
+    ap.add_argument("--segmenter", default="labeller")
     args = ap.parse_args()
 
     from ucad_cl.build import BuildOptions, build
@@ -72,7 +80,10 @@ def main() -> None:
         write_library(lib, args.count, seed=2026, target_triangles=args.triangles)
         (lib / ".complete").write_text("ok")
         print(f"generated {args.count} vehicles in {time.perf_counter() - t0:.0f} s -> {lib}")
-    opts = BuildOptions(azimuth_step=args.azimuth_step, size=args.size)
+    if args.label_meshes:
+        label_row(lib, args)
+    opts = BuildOptions(azimuth_step=args.azimuth_step, size=args.size,
+                        segmenter=args.segmenter)
     rows, orient_ms = [], []
     for w in args.workers:
         cat = args.catalog / f"w{w}"
@@ -114,6 +125,50 @@ def main() -> None:
     print(f"{'workers':>7} {'meshes':>6} {'median ms':>10} {'p90 ms':>8} {'triangles':>10}")
     for (w, *_), (med, p90, k) in zip(rows, orient_ms):
         print(f"{w:>7} {k:>6} {med:>10.1f} {p90:>8.1f} {args.triangles:>10}")
+
+
+def label_row(lib: Path, args) -> None:
+    """Median seconds per mesh of the labeller and of the prior segmenter (same meshes, views)."""
+    import numpy as np
+
+    from ucad_cl.cameras import make_ring
+    from ucad_cl.filter import filter_mesh
+    from ucad_cl.ingest import IngestError, load_mesh
+    from ucad_cl.render import render_views
+    from ucad_cl.segment import LabellerSegmenter, PriorSegmenter
+
+    ring = make_ring(azimuth_step=args.azimuth_step, elevations=(15.0,), size=args.size)
+    segs = {"labeller": LabellerSegmenter(), "prior": PriorSegmenter()}
+    t = {k: [] for k in segs}
+    tris = []
+    for path in sorted(lib.glob("*.glb")):
+        if len(tris) >= args.label_meshes:
+            break
+        try:
+            mesh = load_mesh(path)
+        except IngestError:
+            continue
+        if not filter_mesh(mesh).accepted:
+            continue
+        views = render_views(mesh, ring)
+        views.material_counts()                  # cached by the build's filter before segment
+        tris.append(mesh.n_faces)
+        for k, seg in segs.items():
+            runs = []
+            for _ in range(3):
+                t0 = time.perf_counter()
+                seg.segment(mesh, views)
+                runs.append(time.perf_counter() - t0)
+            t[k].append(float(np.median(runs)))
+    if not tris:
+        return
+    print(f"\nlabelling per mesh ({len(tris)} meshes, median {int(np.median(tris))} triangles, "
+          f"{ring.n_views} views x {args.size} px; medians of 3 runs per mesh)")
+    print(f"{'segmenter':>10} {'median ms':>10} {'p90 ms':>8}")
+    for k, v in t.items():
+        print(f"{k:>10} {1000 * np.median(v):>10.1f} {1000 * np.percentile(v, 90):>8.1f}")
+    print(f"{'added':>10} {1000 * (np.median(t['labeller']) - np.median(t['prior'])):>10.1f}"
+          "   (labeller - prior, medians)")
 
 
 if __name__ == "__main__":

@@ -11,6 +11,10 @@ turns pyopencl's binary cache off). "diff" counts pixels differing from cv2.Cann
 (must be 0 for ours). "scratch" is our device memory for the batch (input, planes, map, worklist).
 
     .venv/bin/python bench/edges.py [--sizes 128 256 512] [--views 72] [--runs 7] [--warm-cache]
+                                    [--device P:D]
+
+Without --device, every PoCL build present is measured in its own subprocess and our throughput
+is compared side by side (bench/devices.py).
 """
 from __future__ import annotations
 
@@ -24,8 +28,12 @@ if "--warm-cache" not in sys.argv:
     os.environ["PYOPENCL_NO_CACHE"] = "1"
 
 import argparse  # noqa: E402
+import json  # noqa: E402
 import resource  # noqa: E402
 import time  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from devices import per_device, side_by_side  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -58,7 +66,15 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=72)
     ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--warm-cache", action="store_true", help="keep PoCL's kernel cache")
+    ap.add_argument("--device", default=None, help="OpenCL device P:D (default: every PoCL build, "
+                                                   "side by side)")
+    ap.add_argument("--json", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    runs = per_device(sys.argv[1:], args.device)
+    if runs is not None:
+        side_by_side(runs, "images/s")
+        return
+    results = {}
 
     from ucad_cl.edges import canny
     from ucad_cl.runtime import get_runtime
@@ -97,9 +113,13 @@ def main() -> None:
             t_ocl = median_time(ocl, max(1, args.runs // 2))
             C = imgs.shape[-1] if imgs.ndim == 4 else 1
             scratch = B * size * size * (C + (C if C > 1 else 0) + 1 + 4) / 2**20
+            results[f"canny {size} px {name}, ours"] = B / t_ours
             print(f"{size:>5} {name:>5} | {B / t_ours:>10.0f} {first:>7.2f} {diff:>5} | "
                   f"{B / t_cpu:>13.0f} | {B / t_ocl:>13.0f} {first_ocl:>7.2f} {diff_ocl:>5} | "
                   f"{t_cpu / t_ours:>8.2f} {t_ocl / t_ours:>8.1f} {scratch:>11.1f}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f)
     print(f"\nmax RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB; "
           f"program build times: {rt.compile_seconds}")
 

@@ -1,13 +1,24 @@
-"""Part classification bench: prior-segmenter accuracy on the real vehicles and IoU-pass speed.
+"""Part labelling bench: leave-one-model-out accuracy on the real vehicles, generated held-out
+vehicles, and the IoU-pass speed.
 
-    .venv/bin/python bench/parts.py [--size 128] [--azimuth-step 15] [--repeats 5] [--models a,b]
+    .venv/bin/python bench/parts.py                       # everything (about 15-25 min on 2 cores)
+    .venv/bin/python bench/parts.py --skip-speed --folds kenney_sedan/sedan.glb,o3dv_car.glb
 
-Table 1: per real model of ``../shared/data/vehicles`` (loaded with ``ucad_cl.ingest.load_mesh``,
-material names REPLACED by ``Material.000``...), the prior segmenter + ``classify_parts`` against
-the manifest's material -> part mapping. Accuracy counts visible materials (not 'unseen'), and
-also all materials. The same with the real names, for comparison.
+Accuracy (needs the ``[train]`` extra). The learned labeller (``ucad_cl.labeller``) is retrained
+for every fold without the scored real model (generated vehicles of the training recipe + the
+other real models of ``../shared/data/vehicles``, the recipe of ``scripts/train_labeller.py``),
+then the scored model goes through the whole path (render the build's ring, ``LabellerSegmenter``
+painting masks, ``classify_parts``) with its names as published and with names hidden (materials
+renamed m0, m1, ..., nodes n0, ...). Today's hand-written ``prior`` segmenter is scored side by
+side on the same renders (it was tuned on these models: its figures are not held out). A
+material is right when its part is the manifest's or one of its ``ambiguous_alternatives``;
+'unseen' counts as not right (and is counted). Pixel-weighted: each material weighs its visible
+pixels (behind-glass pixels for materials labelled through glass). The real models are brought
+into the vehicle frame by the manifest's ``up``/``front`` (``labeller_train.load_real_models``).
+Generated vehicles: seeds of another run than the training run (never trained on or tuned on),
+scored with the model trained on all training data, against the generator's truth.
 
-Table 2: the histogram pass (``ucad_cl/kernels/parts.cl``) in views/s for several local sizes and
+Speed: the histogram pass (``ucad_cl/kernels/parts.cl``) in views/s for several local sizes and
 pixels-per-item, side by side with the NumPy peer (``np.bincount`` per view and part), medians of
 ``--repeats`` runs (total = host packing + upload + kernel + read back; kernel = enqueue to read
 back), plus the first call per configuration and peak host memory. The first call includes
@@ -20,6 +31,7 @@ import argparse
 import json
 import resource
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -33,10 +45,10 @@ VEHICLES = ROOT.parent / "shared" / "data" / "vehicles"
 from ucad_cl.cameras import make_ring  # noqa: E402
 from ucad_cl.classify import classify_parts, last_timing, part_histogram  # noqa: E402
 from ucad_cl.render import render_views  # noqa: E402
-from ucad_cl.segment import PriorSegmenter  # noqa: E402
+from ucad_cl.segment import LabellerSegmenter, PriorSegmenter, name_priors  # noqa: E402
 from ucad_cl.artifacts import PART_NAMES  # noqa: E402
 
-SKIP = {"ferrari_458.glb"}      # same model as ferrari_458_nodraco.glb
+COLS = list(PART_NAMES) + ["unseen"]
 
 
 def numpy_histogram(mat_id, masks, n_ids):
@@ -50,51 +62,161 @@ def numpy_histogram(mat_id, masks, n_ids):
     return out
 
 
-def accuracy_table(args):
-    from ucad_cl.ingest import load_mesh
+class Score:
+    """Materials right / all, pixel-weighted, unseen count and a confusion matrix."""
 
-    manifest = json.loads((VEHICLES / "manifest.json").read_text())
-    ring = make_ring(azimuth_step=args.azimuth_step, elevations=(15.0, 45.0), size=args.size)
-    print(f"\n## Prior segmenter on real vehicles ({ring.n_views} views, {args.size} px), "
-          "names replaced by Material.NNN")
-    print(f"{'model':44s} {'mats':>4s} {'seen':>4s} {'acc seen':>8s} {'acc all':>7s} "
-          f"{'acc w/ names':>12s}  wrong (material: got/expected)")
-    tot_ok = tot_n = 0
-    per_model = []
-    for model in manifest["models"]:
-        if model["file"] in SKIP or (args.models and model["file"] not in args.models):
+    def __init__(self):
+        self.ok = self.n = self.unseen = 0
+        self.px_ok = self.px = 0.0
+        self.conf = np.zeros((len(PART_NAMES), len(COLS)), np.int64)
+
+    def add(self, truth: str, alts, row) -> bool:
+        right = row.part == truth or row.part in alts
+        self.n += 1
+        self.ok += right
+        self.unseen += row.part == "unseen"
+        self.px += row.pixels
+        self.px_ok += row.pixels * right
+        self.conf[PART_NAMES.index(truth), COLS.index(truth if right else row.part)] += 1
+        return right
+
+    def __iadd__(self, o):
+        self.ok += o.ok; self.n += o.n; self.unseen += o.unseen  # noqa: E702
+        self.px_ok += o.px_ok; self.px += o.px; self.conf += o.conf  # noqa: E702
+        return self
+
+    @property
+    def acc(self):
+        return self.ok / max(self.n, 1)
+
+    @property
+    def pix(self):
+        return self.px_ok / max(self.px, 1)
+
+
+def score_model(mesh, truth, alts, views, segmenter) -> tuple[Score, list[str]]:
+    masks = segmenter.segment(mesh, views)
+    table = classify_parts(mesh, views, masks, priors=name_priors(mesh))
+    sc, wrong = Score(), []
+    for r, orig in zip(table.rows, truth["names"]):
+        exp = truth["parts"].get(orig)
+        if exp is None:
             continue
-        mesh = load_mesh(VEHICLES / model["file"])
-        truth = model["materials"]
-        views = render_views(mesh, ring)
-        anon = replace(mesh, materials=[replace(m, name=f"Material.{i:03d}")
-                                        for i, m in enumerate(mesh.materials)])
+        if not sc.add(exp, alts.get(orig, []), r):
+            wrong.append(f"{orig}:{r.part}/{exp}")
+    return sc, wrong
+
+
+def print_confusion(title, conf):
+    print(f"\n{title} (rows: truth; columns: decided; an accepted alternative counts on the "
+          "diagonal)")
+    print(f"{'':9s}" + "".join(f"{c[:7]:>8s}" for c in COLS))
+    for i, p in enumerate(PART_NAMES):
+        print(f"{p:9s}" + "".join(f"{int(x):8d}" for x in conf[i]))
+
+
+def accuracy_table(args):
+    from ucad_cl import labeller_train as T
+
+    models = T.load_real_models(VEHICLES)
+    if args.folds:
+        scored = [m for m in models if m.file in args.folds]
+    else:
+        scored = models
+    ring = T.make_ring_of(0)
+    print(f"\n## Labeller, leave-one-model-out on {len(scored)} real models "
+          f"({ring.n_views} views, {ring.width} px; training recipe: {args.vehicles} generated "
+          f"vehicles seed {args.seed} + the other real models)")
+    t0 = time.perf_counter()
+    synth = load_synth_rows(args)
+    real = T.real_rows(models)
+    print(f"training rows: {synth.X.shape[0]} generated, "
+          f"{sum(r.X.shape[0] for r in real.values())} real ({time.perf_counter() - t0:.0f} s)")
+    tmp = Path(tempfile.mkdtemp(prefix="ucad-lomo-"))
+    tot = {k: Score() for k in ("lab_named", "lab_hidden", "prior_named", "prior_hidden")}
+    print(f"{'model':44s} {'mats':>4s} | {'labeller named':>14s} {'hidden':>13s} | "
+          f"{'prior named':>13s} {'hidden':>13s} | wrong (labeller, names hidden)")
+    for rm in scored:
+        t1 = time.perf_counter()
+        rows = T.Rows.concat([synth] + [r for f, r in real.items() if f != rm.file])
+        clf = T.fit(rows, args.seed)
+        path = T.export_onnx(clf, tmp / f"fold_{len(list(tmp.iterdir()))}.onnx",
+                             {"leave_out": rm.file})
+        views = render_views(rm.mesh, ring)
+        truth = {"names": [m.name for m in rm.mesh.materials], "parts": rm.truth}
         res = {}
-        for tag, msh in (("anon", anon), ("named", mesh)):
-            masks = PriorSegmenter().segment(msh, views)
-            res[tag] = classify_parts(msh, views, masks)
-        ok = n = ok_all = ok_named = 0
-        wrong = []
-        for r_anon, r_named, orig in zip(res["anon"].rows, res["named"].rows, mesh.materials):
-            exp = truth.get(orig.name)
-            if exp is None:
-                continue
-            ok_all += r_anon.part == exp
-            ok_named += r_named.part == exp
-            if r_anon.part != "unseen":
-                n += 1
-                ok += r_anon.part == exp
-                if r_anon.part != exp:
-                    wrong.append(f"{orig.name}: {r_anon.part}/{exp}")
-        tot_ok += ok
-        tot_n += n
-        acc = ok / n if n else float("nan")
-        per_model.append(acc)
-        print(f"{model['file']:44s} {len(truth):4d} {n:4d} {acc:8.1%} {ok_all / len(truth):7.1%} "
-              f"{ok_named / len(truth):12.1%}  {'; '.join(wrong[:6])}")
-    print(f"{'ALL (pooled over seen materials)':44s} {'':4s} {tot_n:4d} "
-          f"{tot_ok / max(tot_n, 1):8.1%}"
-          f"   median per model {np.nanmedian(per_model):.1%}")
+        for tag, mesh in (("named", rm.mesh), ("hidden", T.hide_names(rm.mesh))):
+            res[f"lab_{tag}"] = score_model(mesh, truth, rm.alternatives, views,
+                                            LabellerSegmenter(path))
+            res[f"prior_{tag}"] = (score_model(mesh, truth, rm.alternatives, views,
+                                               PriorSegmenter()) if not args.no_prior
+                                   else (Score(), []))
+        for k, (sc, _) in res.items():
+            tot[k] += sc
+        cell = lambda k: f"{res[k][0].acc:6.0%} {res[k][0].pix:6.0%}"  # noqa: E731
+        print(f"{rm.file:44s} {res['lab_named'][0].n:4d} | {cell('lab_named'):>14s} "
+              f"{cell('lab_hidden'):>13s} | {cell('prior_named'):>13s} "
+              f"{cell('prior_hidden'):>13s} | {'; '.join(res['lab_hidden'][1][:5])} "
+              f"({time.perf_counter() - t1:.0f} s)", flush=True)
+    print(f"\n{'ALL (pooled materials / pixel-weighted)':44s}")
+    for k, sc in tot.items():
+        print(f"  {k:14s} materials right {sc.ok:4d}/{sc.n:<4d} = {sc.acc:6.1%}   "
+              f"pixel-weighted {sc.pix:6.1%}   unseen {sc.unseen}")
+    print_confusion("Confusion, labeller, names hidden, leave-one-model-out",
+                    tot["lab_hidden"].conf)
+    print_confusion("Confusion, labeller, names kept, leave-one-model-out", tot["lab_named"].conf)
+    if args.generated:
+        generated_table(args, synth, real)
+
+
+def load_synth_rows(args):
+    """The recipe's generated training rows, cached in ``--cache`` (keyed by count, seed, the
+    recipe and the source of the feature and generator modules)."""
+    from ucad_cl import labeller_train as T
+
+    import hashlib
+
+    import ucad_cl.labeller
+    import ucad_cl.synth
+
+    key = hashlib.sha256(json.dumps([T.REALISM_PROB, T.HIDE_NAMES, T.RINGS]).encode()
+                         + Path(ucad_cl.labeller.__file__).read_bytes()
+                         + Path(ucad_cl.synth.__file__).read_bytes()).hexdigest()[:12]
+    cache = Path(args.cache) / f"synth_{args.vehicles}_{args.seed}_{key}.npz"
+    if cache.exists():
+        z = np.load(cache, allow_pickle=True)
+        return T.Rows(z["X"], z["y"], z["w"], z["group"])
+    rows = T.synth_rows(args.vehicles, args.seed)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(cache, X=rows.X, y=rows.y, w=rows.w, group=rows.group)
+    return rows
+
+
+def generated_table(args, synth, real):
+    """Generated vehicles of another seed, scored through the whole path against the truth."""
+    from ucad_cl import labeller_train as T
+    from ucad_cl.synth import make_vehicle
+
+    clf = T.fit(T.Rows.concat([synth] + list(real.values())), args.seed)
+    path = T.export_onnx(clf, Path(tempfile.mkdtemp(prefix="ucad-gen-")) / "all.onnx", {})
+    test_seed = args.seed + 1_000_003
+    tot = {k: Score() for k in ("lab_named", "lab_hidden", "prior_named", "prior_hidden")}
+    for i in range(args.generated):
+        rec = T.synth_recipe(test_seed, i)
+        veh = make_vehicle(rec["seed"], rec["kind"], realism=rec["realism"])
+        mesh = veh.mesh()
+        views = render_views(mesh, T.make_ring_of(0))
+        truth = {"names": [m.name for m in mesh.materials], "parts": veh.truth["materials"]}
+        for tag, msh in (("named", mesh), ("hidden", T.hide_names(mesh))):
+            tot[f"lab_{tag}"] += score_model(msh, truth, {}, views, LabellerSegmenter(path))[0]
+            tot[f"prior_{tag}"] += score_model(msh, truth, {}, views, PriorSegmenter())[0]
+    print(f"\n## Generated vehicles of seed run {test_seed} (never used for training), "
+          f"{args.generated} vehicles, realism traits as in the training recipe")
+    for k, sc in tot.items():
+        print(f"  {k:14s} materials right {sc.ok:5d}/{sc.n:<5d} = {sc.acc:6.1%}   "
+              f"pixel-weighted {sc.pix:6.1%}   unseen {sc.unseen}")
+    print_confusion("Confusion, labeller, generated held-out, names hidden",
+                    tot["lab_hidden"].conf)
 
 
 def speed_table(args):
@@ -150,7 +272,15 @@ def main():
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--azimuth-step", type=float, default=15.0)
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--models", type=lambda s: s.split(","), default=None)
+    ap.add_argument("--folds", type=lambda s: s.split(","), default=None,
+                    help="score only these real model files (default: all)")
+    ap.add_argument("--vehicles", type=int, default=None,
+                    help="generated training vehicles (default: the training script's)")
+    ap.add_argument("--seed", type=int, default=2026)
+    ap.add_argument("--generated", type=int, default=100,
+                    help="generated held-out vehicles to score (0: skip)")
+    ap.add_argument("--cache", default="/tmp/ucad-labeller-cache")
+    ap.add_argument("--no-prior", action="store_true", help="skip the prior segmenter's columns")
     ap.add_argument("--skip-accuracy", action="store_true")
     ap.add_argument("--local-sizes", type=lambda s: [int(x) for x in s.split(",")],
                     default=[1, 4, 16, 64, 256])
@@ -158,6 +288,9 @@ def main():
                     default=[64, 256, 1024])
     ap.add_argument("--skip-speed", action="store_true")
     args = ap.parse_args()
+    if args.vehicles is None:
+        from ucad_cl.labeller_train import DEFAULT_VEHICLES
+        args.vehicles = DEFAULT_VEHICLES
     if not args.skip_accuracy:
         if (VEHICLES / "manifest.json").exists():
             accuracy_table(args)

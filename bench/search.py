@@ -9,15 +9,23 @@ kernel at its first launch) and "build" the index construction (upload, PCA fit,
 
 Reference: float64 exact distances (host, expansion in float64, error ~1e-16 relative).
 Usage: python bench/search.py [--meshes 1000] [--dim 512] [--queries 100] [--k 10] [--runs 5]
+                              [--device P:D]
+Without --device, every PoCL build present is measured in its own subprocess and the ucad rows
+are compared side by side (bench/devices.py).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing as mp
 import os
+import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from devices import per_device, side_by_side  # noqa: E402
 
 
 def _mesh_params(meshes: int, dim: int, seed: int) -> np.ndarray:
@@ -130,7 +138,16 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--pca-dims", default="64,128", help="comma-separated reduced dims")
     ap.add_argument("--rerank", type=int, default=32)
+    ap.add_argument("--device", default=None, help="OpenCL device P:D (default: every PoCL build, "
+                                                   "side by side)")
+    ap.add_argument("--json", default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--no-peers", action="store_true", help="skip NumPy and faiss")
     args = ap.parse_args()
+    argv = [a for a in sys.argv[1:]]
+    runs = per_device(argv, args.device)
+    if runs is not None:
+        side_by_side(runs, "queries/s")
+        return
 
     db = make_features(args.meshes, args.views, args.dim)
     q = make_queries(args.meshes, args.dim, args.queries)
@@ -146,9 +163,11 @@ def main() -> None:
     ref_top = np.argsort(d64, axis=1, kind="stable")[:, :k]
     del d64
 
-    methods = [
+    methods = [] if args.no_peers else [
         ("numpy sgemm scan", _run_numpy),
         ("faiss IndexFlatL2", _run_faiss),
+    ]
+    methods += [
         ("ucad runtime only (N=16)", lambda d, qq, kk: _run_ours(d[:16], qq, kk, "f32")),
         ("ucad f32, cold caches", lambda d, qq, kk: _run_ours(d, qq, kk, "f32", cold=True)),
         ("ucad f32", lambda d, qq, kk: _run_ours(d, qq, kk, "f32")),
@@ -168,6 +187,7 @@ def main() -> None:
         a, b = ctx.Pipe(False)
         p = ctx.Process(target=_child, args=(b, name, maker, db, q, k, args.runs))
         p.start()
+        b.close()                      # so that a child that dies gives EOFError, not a hang
         try:
             results[name] = a.recv()
         except EOFError:
@@ -188,6 +208,10 @@ def main() -> None:
         r1 = float(np.mean(idx[:, 0] == ref_top[:, 0]))
         r10 = float(np.mean([len(set(a) & set(b)) / k for a, b in zip(idx, ref_top)]))
         print(f"{row} {top1_32:9.3f} {r1:6.3f} {r10:6.3f}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({name: len(q) / float(np.median(r[3])) for name, r in results.items()
+                       if name.startswith("ucad") and "cold" not in name}, f)
     print("\nR@1 / R@10: overlap with the float64 reference top-1 / top-10 (top1=f32: same top-1 "
           "as ucad f32). 'build': index construction incl. program build; 'first': first search, "
           "incl. PoCL's compile of each kernel at its first launch (cold row: empty caches). Peak: "

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ucad_catalog import (Catalog, CatalogEntry, CatalogError, CatalogReader, MaterialRow,
-                          ViewRow, options_hash)
+from ucad_catalog import (SCHEMA_VERSION, Catalog, CatalogEntry, CatalogError, CatalogReader,
+                          MaterialRow, ViewRow, options_hash)
 
 ROOT = Path(__file__).resolve().parents[1]
 KINDS = ("features.npy", "views.npz")
@@ -190,7 +190,7 @@ def test_status_counts_and_same_input_same_bytes(tmp_path):
     assert st["meshes"] == 4 and st["by_state"] == {"accepted": 1, "rejected": 3}
     assert st["by_reason"] == {"broken": 1, "no-wheels": 2}
     assert st["last_run"]["counts"] == {"accepted": 1, "rejected": 3}
-    assert st["last_run"]["meshes_per_s"] > 0 and st["schema_version"] == 2
+    assert st["last_run"]["meshes_per_s"] > 0 and st["schema_version"] == SCHEMA_VERSION
     a.export(tmp_path / "a.jsonl")
     b.export(tmp_path / "b.jsonl")
     assert (tmp_path / "a.jsonl").read_bytes() == (tmp_path / "b.jsonl").read_bytes()
@@ -400,7 +400,8 @@ def test_needs_processing_policy(tmp_path):
     assert cat.needs_processing(changed.path, changed.sha256, ha)
     cat.commit_mesh(changed)
     with CatalogReader(tmp_path / "cat") as r:
-        assert [m.sha256 for m in r.meshes(None)] == [e1.sha256, changed.sha256]
+        # listed by path: changed took e0's path lib/m000.glb, e1 is lib/m001.glb
+        assert [m.sha256 for m in r.meshes(None)] == [changed.sha256, e1.sha256]
         with pytest.raises(CatalogError, match="no mesh"):
             r.parts(e0.sha256)
 
@@ -493,41 +494,77 @@ print("ok")
 
 # ---------------------------------------------------------------------------- export
 def test_export_jsonl_round_trip(tmp_path):
-    entries = [make_entry(i) for i in range(3)]
+    """Meshes table + materials table, values equal to the entries committed (independent
+    reference: the CatalogEntry objects), metadata sidecar, same bytes twice."""
+    entries = [make_entry(i) for i in (2, 0, 1)]
+    entries[0].orientation = {"rotation": np.eye(3), "up_confidence": 0.9}
+    entries[0].meta = {"source": "test"}
     cat = build(tmp_path / "cat", entries)
     assert cat.export(tmp_path / "out.jsonl") == 3
-    lines = (tmp_path / "out.jsonl").read_text(encoding="utf-8").splitlines()
-    recs = [json.loads(x) for x in lines]
-    for rec, e in zip(recs, entries):
-        assert (rec["sha256"], rec["path"], rec["mtime"]) == (e.sha256, e.path, e.mtime)
-        assert np.array_equal(np.array(rec["file_to_norm"]), e.file_to_norm)
-        assert [np.array_equal(np.array(v["w2c"]), x.w2c) for v, x in
+    recs = [json.loads(x) for x in (tmp_path / "out.jsonl").read_text("utf-8").splitlines()]
+    mats = [json.loads(x) for x in
+            (tmp_path / "out.materials.jsonl").read_text("utf-8").splitlines()]
+    by_path = sorted(entries, key=lambda e: e.path)
+    assert [r["id"] for r in recs] == [e.sha256 for e in by_path]     # listed by path
+    for rec, e in zip(recs, by_path):
+        assert (rec["path"], rec["mtime"], rec["export_version"]) == (e.path, e.mtime, 1)
+        assert np.array_equal(np.array(rec["file_to_norm"]).reshape(4, 4), e.file_to_norm)
+        assert [np.array_equal(np.array(v["w2c"]).reshape(4, 4), x.w2c) for v, x in
                 zip(rec["views"], e.views)] == [True] * 3
-        assert [m["name"] for m in rec["materials"]] == [m.name for m in e.materials]
-        assert {k: a["sha256"] for k, a in rec["artifacts"].items()} == \
+        assert {a["kind"]: a["sha256"] for a in rec["artifacts"]} == \
             {k: hashlib.sha256(v).hexdigest() for k, v in e.artifacts.items()}
-    with CatalogReader(tmp_path / "cat") as r:
-        assert recs == [r.record(e.sha256) for e in entries]
+        assert "timings" not in rec and "run_id" not in rec           # not content
+    assert recs[2]["orientation"] == {"rotation": np.eye(3).tolist(), "up_confidence": 0.9}
+    assert recs[0]["orientation"] is None and recs[2]["meta"] == {"source": "test"}
+    assert [(m["mesh_id"], m["index"], m["name"], m["part"]) for m in mats] == \
+        [(e.sha256, x.index, x.name, x.part) for e in by_path for x in e.materials]
+    assert mats[0]["metallic"] == 0.5 and mats[0]["base_color"] is None   # typed from props
+    meta = json.loads((tmp_path / "out.jsonl.meta.json").read_text())
+    assert meta["ucad:export_version"] == "1" and "canonical frame" in meta["ucad:conventions"]
+    first = (tmp_path / "out.jsonl").read_bytes()
+    cat.export(tmp_path / "out.jsonl")
+    assert (tmp_path / "out.jsonl").read_bytes() == first
     with pytest.raises(CatalogError, match="jsonl"):
         cat.export(tmp_path / "out.csv", format="csv")
+    with pytest.raises(CatalogError, match="suffix"):
+        cat.export(tmp_path / "out.csv")
     cat.close()
 
 
-def test_export_parquet_or_clear_error(tmp_path, monkeypatch):
+def test_export_parquet_schema_concatenates_and_carries_metadata(tmp_path, monkeypatch):
+    """An all-rejected catalogue and a normal one export the same schema (concat_tables joins
+    them), with the export version and conventions in the file metadata; the suffix picks the
+    format; without pyarrow, a clear error."""
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
     cat = build(tmp_path / "cat", [make_entry(0), make_entry(1)])
-    try:
-        import pyarrow.parquet as pq
-    except ImportError:
-        pq = None
-    if pq is not None:
-        assert cat.export(tmp_path / "out.parquet", format="parquet") == 2
-        t = pq.read_table(tmp_path / "out.parquet").to_pylist()
-        assert [x["sha256"] for x in t] == [make_entry(i).sha256 for i in range(2)]
-        assert t[1]["materials"][2]["name"] == "mat_2_ü"
+    rej = make_entry(5)
+    rej.state, rej.reason, rej.materials, rej.views, rej.artifacts = "rejected", "empty", [], \
+        [], {}
+    bad = build(tmp_path / "bad", [rej])
+    assert cat.export(tmp_path / "a.parquet") == 2
+    assert bad.export(tmp_path / "b.parquet") == 1
+    a, b = pq.read_table(tmp_path / "a.parquet"), pq.read_table(tmp_path / "b.parquet")
+    assert a.schema.equals(b.schema, check_metadata=True)
+    both = pa.concat_tables([a, b])
+    assert both.column("id").to_pylist() == [make_entry(0).sha256, make_entry(1).sha256,
+                                             rej.sha256]
+    assert both.column("state").to_pylist() == ["accepted", "accepted", "rejected"]
+    ma = pq.read_table(tmp_path / "a.materials.parquet")
+    mb = pq.read_table(tmp_path / "b.materials.parquet")
+    assert mb.num_rows == 0 and pa.concat_tables([ma, mb]).num_rows == 6
+    assert ma.column("name").to_pylist()[2] == "mat_2_ü"
+    md = a.schema.metadata
+    assert md[b"ucad:export_version"] == b"1" and md[b"ucad:table"] == b"meshes"
+    assert b"+Y up" in md[b"ucad:conventions"] and md[b"ucad:catalog_schema_version"] == \
+        str(SCHEMA_VERSION).encode()
+    views = a.column("views").to_pylist()[0]
+    assert np.array_equal(np.array(views[1]["w2c"]).reshape(4, 4), make_entry(0).views[1].w2c)
     monkeypatch.setitem(sys.modules, "pyarrow", None)
     with pytest.raises(CatalogError, match="pyarrow"):
-        cat.export(tmp_path / "x.parquet", format="parquet")
-    cat.close()
+        cat.export(tmp_path / "x.parquet")
+    cat.close(), bad.close()
 
 
 # ---------------------------------------------------------------------------- search
@@ -542,20 +579,21 @@ def test_nearest_views_exact_with_tie_rule(tmp_path):
     r = CatalogReader(tmp_path / "cat")
     q = f0[3].astype(np.float64)
     got = r.nearest_views(q, 4)
-    assert [(s, v, d) for s, v, d in got[:4]] == [
-        (entries[0].sha256, 3, 0.0), (entries[3].sha256, 1, 0.0),
-        (entries[3].sha256, 3, 0.0), (entries[3].sha256, 4, 0.0)]
+    first, second = sorted([entries[0].sha256, entries[3].sha256])   # ties: lower sha256, view
+    want = {entries[0].sha256: [3], entries[3].sha256: [1, 3, 4]}
+    assert [(s, v, d) for s, v, d in got[:4]] == \
+        [(x, v, 0.0) for x in (first, second) for v in want[x]][:4]
     rng = np.random.default_rng(7)
     for _ in range(5):                          # brute force reference, python loop
         q = rng.standard_normal(6)
         ref = []
-        for rank, e in enumerate(entries):
+        for e in entries:
             if e.state != "accepted":
                 continue
             f = np.load(io.BytesIO(e.artifacts["features.npy"])).astype(np.float64)
-            for v in range(f.shape[0]):
+            for v in range(f.shape[0]):                 # ties: lower (sha256, view)
                 ref.append((sum((float(a) - float(b)) ** 2 for a, b in zip(f[v], q)),
-                            rank, v, e.sha256))
+                            e.sha256, v, e.sha256))
         ref.sort()
         got = r.nearest_views(q, 7)
         assert [(s, v) for s, v, _ in got] == [(x[3], x[2]) for x in ref[:7]]

@@ -180,17 +180,30 @@ def test_material_properties_from_gltf_json():
     assert not any(m.has_texture for m in load_mesh(_vehicle("o3dv_car.glb")).materials)
 
 
-def test_sha256_of_file_and_gltf_buffers():
+def _identity(fmt: str, *blobs: bytes) -> str:
+    """Independent reference of the content key: tag, format, then length-prefixed blobs."""
+    h = hashlib.sha256(b"ucad-mesh/1\0" + fmt.encode() + b"\0")
+    for b in blobs:
+        h.update(len(b).to_bytes(8, "little") + b)
+    return h.hexdigest()
+
+
+def test_sha256_of_file_and_gltf_buffers(tmp_path):
     glb = _vehicle("o3dv_car.glb")
-    assert load_mesh(glb).sha256 == hashlib.sha256(glb.read_bytes()).hexdigest()
+    assert load_mesh(glb).sha256 == _identity("glb", glb.read_bytes())
     gltf = _vehicle("openmaterial_vehicle/vehicle_example.gltf")
-    h = hashlib.sha256(gltf.read_bytes())
-    h.update(gltf.with_suffix(".bin").read_bytes())
-    assert load_mesh(gltf).sha256 == h.hexdigest() == ingest.file_sha256(gltf)
+    key = _identity("gltf", gltf.read_bytes(), gltf.with_suffix(".bin").read_bytes())
+    assert load_mesh(gltf).sha256 == key == ingest.mesh_identity(gltf)
     obj = _vehicle("a_frame_car/car.obj")
-    h = hashlib.sha256(obj.read_bytes())
-    h.update((obj.parent / "car.mtl").read_bytes())
-    assert load_mesh(obj).sha256 == h.hexdigest() == ingest.file_sha256(obj)
+    key = _identity("obj", obj.read_bytes(), (obj.parent / "car.mtl").read_bytes())
+    assert load_mesh(obj).sha256 == key == ingest.mesh_identity(obj)
+    # identity = content + format: the same bytes under another suffix are another mesh, the
+    # same bytes under another name with the same suffix the same mesh
+    (tmp_path / "copy.glb").write_bytes(glb.read_bytes())
+    (tmp_path / "copy.stl").write_bytes(glb.read_bytes())
+    assert ingest.mesh_identity(tmp_path / "copy.glb") == load_mesh(glb).sha256
+    assert ingest.mesh_identity(tmp_path / "copy.stl") == _identity("stl", glb.read_bytes())
+    assert ingest.mesh_identity(tmp_path / "copy.stl") != load_mesh(glb).sha256
 
 
 def test_deterministic_bit_identical():
@@ -388,7 +401,7 @@ def test_truncated_glb(tmp_path):
 def test_gltf_missing_buffer(tmp_path):
     src = _vehicle("openmaterial_vehicle/vehicle_example.gltf")
     (tmp_path / "v.gltf").write_bytes(src.read_bytes())        # .bin not copied
-    assert "vehicle_example.bin" in _expect(tmp_path / "v.gltf", "unreadable")
+    assert "vehicle_example.bin" in _expect(tmp_path / "v.gltf", "missing_reference")
 
 
 def test_too_many_materials_for_uint16_ids(monkeypatch):
@@ -449,7 +462,7 @@ def test_isolated_errors(tmp_path):
     t0 = time.monotonic()
     with pytest.raises(IngestError) as e:
         load_mesh_isolated(tmp_path / "slow.glb", timeout=1.0, loader=_sleepy_loader)
-    assert e.value.reason == "loader_timeout" and "slow.glb" in str(e.value)
+    assert e.value.reason == "timeout" and "slow.glb" in str(e.value)
     assert time.monotonic() - t0 < 20
     with pytest.raises(IngestError, match="native library said no"):
         load_mesh_isolated(tmp_path / "r.glb", timeout=60, loader=_raising_loader)

@@ -321,7 +321,7 @@ def test_catalogue_records_flags_and_rejects_uncertain_orientation(tmp_path, run
     s = build(lib, tmp_path / "cat", opts, progress=False, log=lambda *a: None)
     assert s.accepted == 2
     with CatalogReader(tmp_path / "cat") as r:
-        by_name = {m.path.rsplit("/", 1)[-1]: m for m in r.meshes()}
+        by_name = {m.source.name: m for m in r.meshes()}
         sym, car = by_name["van_00000040.glb"], by_name["sedan_00000041.glb"]
         assert sym.orientation["uncertain"] and "front_ambiguous" in sym.orientation["flags"]
         assert not car.orientation["uncertain"] and car.orientation["source"] == "auto"
@@ -330,6 +330,7 @@ def test_catalogue_records_flags_and_rejects_uncertain_orientation(tmp_path, run
         np.testing.assert_array_equal(car.file_to_norm[:3, :3] / abs(car.file_to_norm[0, 0]),
                                       car.orientation["rotation"])
         assert r.record(car.sha256)["orientation"] == car.orientation
+        assert r.status()["flagged"] == {"uncertain_orientation": 1}
     assert main(["status", "--catalog", str(tmp_path / "cat")]) == 0
     assert "flagged  uncertain_orientation" in capsys.readouterr().out
     assert main(["show", "van_00000040.glb", "--catalog", str(tmp_path / "cat")]) == 0
@@ -338,30 +339,6 @@ def test_catalogue_records_flags_and_rejects_uncertain_orientation(tmp_path, run
     s = build(lib, tmp_path / "cat2", replace(opts, reject_uncertain_orientation=True),
               progress=False, log=lambda *a: None)
     assert (s.accepted, s.rejected, s.reasons) == (1, 1, {"uncertain_orientation": 1})
-
-
-def test_version_1_catalogue_is_read_and_migrated(tmp_path):
-    import sqlite3
-
-    from ucad_catalog.entry import CatalogEntry
-    from ucad_catalog.reader import CatalogReader
-    from ucad_catalog.store import Catalog
-
-    with Catalog.open(tmp_path / "c") as cat:
-        cat.begin_run({"x": 1}, "test")
-        cat.commit_mesh(CatalogEntry(sha256="1" * 64, path="a.glb", size=1, mtime=0.0))
-    con = sqlite3.connect(tmp_path / "c" / "catalog.sqlite")      # make it a version 1 one
-    con.executescript("ALTER TABLE meshes DROP COLUMN orientation; "
-                      "UPDATE meta SET value='1' WHERE key='schema_version';")
-    con.close()
-    with CatalogReader(tmp_path / "c") as r:
-        assert r.meshes()[0].orientation == {}
-    with Catalog.open(tmp_path / "c") as cat:
-        assert cat.status()["schema_version"] == 2
-        cat.begin_run({"x": 1}, "test")
-        cat.commit_mesh(CatalogEntry(sha256="2" * 64, path="b.glb", size=1, mtime=0.0,
-                                     orientation={"uncertain": True, "source": "auto"}))
-        assert cat.status()["flagged"] == {"uncertain_orientation": 1}
 
 
 def test_default_demo_library_comes_out_upright_facing_plus_x(tmp_path):

@@ -359,7 +359,7 @@ def test_cli_parts_writes_table_and_sheet(vehicles_dir, tmp_path, runtime):
     import cv2
     sheet = cv2.imread(str(out / "o3dv_car.parts.png"))
     assert sheet is not None and sheet.shape[0] >= 64
-    assert main(["parts", "x.glb", "--segmenter", "onnx", "m.onnx"]) == 2       # no config
+    assert main(["parts", "x.glb", "--segmenter", "onnx:m.onnx"]) == 2          # no config
     assert main(["parts", str(vehicles_dir / "missing.glb"), "--out", str(out)]) == 1
 
 

@@ -79,6 +79,8 @@ def test_every_kind_builds_with_parts_and_realistic_materials(cars):
                 assert mat.transmission > 0
             elif part == "light":
                 assert max(mat.emissive) > 0.5
+            elif mat.name == "grille":               # trim policy: grilles count as chrome
+                assert part == "chrome" and mat.metallic == 0.0
             elif part in ("chrome", "rim"):
                 assert mat.metallic == 1.0 and mat.roughness <= 0.2
             elif part == "wheel":
@@ -363,3 +365,62 @@ def test_cli_writes_library(tmp_path):
     assert kinds <= {"bus", "pickup"}
     with pytest.raises(SystemExit):
         main(["synth", str(tmp_path / "x"), "--kinds", "boat"])
+
+
+def test_realism_traits_change_materials_as_documented():
+    from ucad_cl.segment import name_prior
+    from ucad_cl.synth import REALISM_TRAITS, apply_realism  # noqa: F401
+
+    base = make_vehicle(21, "sedan")
+    n_base = len(base.truth["materials"])
+
+    def v(*traits):
+        out = make_vehicle(21, "sedan", realism=traits)
+        assert out.truth["realism"] == [t for t in REALISM_TRAITS if t in traits]
+        return out.truth
+
+    t = v("one_paint")
+    assert "paint" in t["materials"] and t["materials"]["paint"] == "body"
+    assert not any(n.startswith("paint_") for n in t["materials"])
+    t = v("one_paint", "paint_rims")                 # one paint on panels and rims
+    assert t["material_part_faces"]["paint"].keys() == {"body", "rim"}
+    assert not any(n.startswith("rim_") for n in t["materials"])
+    t = v("shared_black")
+    assert t["material_part_faces"]["black"].keys() >= {"wheel", "chrome"}
+    assert t["materials"]["black"] == majority_part(t["material_part_faces"]["black"])
+    t = v("dark_trim")
+    assert t["materials"]["trim_dark"] == "chrome"
+    t = v("textured_body")
+    assert t["materials"]["body_tex"] == "body" and "glass_windshield" in t["materials"]
+    t = v("no_rims")
+    assert "rim" not in t["materials"].values()
+    t = v("chassis_only")
+    assert not {"wheel", "rim", "interior"} & set(t["materials"].values())
+    t = v("brake_discs")
+    assert t["materials"]["brake_disc"] == "other" and t["materials"]["brake_calliper"] == "other"
+    t = v("lens_lamps")
+    assert t["materials"]["lamp_lens"] == "light"
+    t = v("rich_interior")
+    assert t["materials"]["steering_wheel"] == "interior"
+    assert t["materials"]["leather_seats"] == t["materials"]["door_panel"] == "interior"
+    assert not any(n.startswith("interior_seat") for n in t["materials"])   # one leather
+    assert len(t["materials"]) == n_base - 3 + 3        # 3 seat materials -> 1, + 2 new
+    t = v("meaningless_names")
+    assert all(n.startswith("Material.") for n in t["materials"])
+    assert all(name_prior(n) is None for n in t["materials"])
+    assert all(n.startswith("Object_") for n in t["nodes"])
+    t = v("misleading_names")
+    lies = [n for n, p in t["materials"].items() if name_prior(n) not in (None, p)]
+    assert 0 < len(lies) < len(t["materials"]) / 2
+    m = make_vehicle(21, "sedan", realism=["mtl_like", "opaque_glass", "plain_lights"]).mesh()
+    assert all(x.metallic == 0 and x.roughness == 1 and max(x.emissive) == 0
+               and x.transmission == 0 for x in m.materials)
+    assert all(x.alpha_mode == "OPAQUE" for x in m.materials)
+
+
+def test_realism_traits_are_deterministic_and_checked():
+    a = make_vehicle(5, "van", realism=["brake_discs", "lens_lamps", "shared_black"])
+    b = make_vehicle(5, "van", realism=["shared_black", "lens_lamps", "brake_discs"])
+    assert a.glb_bytes() == b.glb_bytes()               # applied in REALISM_TRAITS order
+    with pytest.raises(ValueError, match="unknown realism trait"):
+        make_vehicle(5, "van", realism=["chrome_everything"])

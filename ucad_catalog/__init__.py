@@ -1,13 +1,27 @@
 """ucad_catalog: the part-labelled catalogue (SQLite index + content-addressed artifacts).
 
-Writer: :class:`Catalog` (``store.py``), used by the build driver. Reader: :class:`CatalogReader`
-(``reader.py``), for consumers on any machine. Nothing in this package imports OpenCL.
-Layout and schema: ``ucad_catalog/SCHEMA.md``.
+Reader: ``ucad_catalog.open(path)`` -> :class:`CatalogReader` (``reader.py``), for consumers on
+any machine: meshes by id (the content sha256, or a prefix of at least 8 hex digits), part
+tables, cameras, one view at a time by index or angle, part masks, edges, features, exports.
+Writer: :class:`Catalog` (``store.py``), used by the build driver. Nothing in this package
+imports OpenCL; it needs NumPy and OpenEXR (pyarrow for Parquet exports). It installs on its own
+(``pip install ./ucad_catalog``) or with the whole project. Layout and schema:
+``ucad_catalog/SCHEMA.md``.
 """
-from ._db import SCHEMA_VERSION, CatalogError, options_hash
-from .entry import CatalogEntry, MaterialRow, ViewRow
-from .reader import CatalogReader, MeshInfo, PartRow, ViewRecord
-from .store import Catalog
+__version__ = "0.1.0"
 
-__all__ = ["SCHEMA_VERSION", "Catalog", "CatalogEntry", "CatalogError", "CatalogReader",
-           "MaterialRow", "MeshInfo", "PartRow", "ViewRecord", "ViewRow", "options_hash"]
+from ._db import SCHEMA_VERSION, CatalogError, options_hash  # noqa: E402
+from .entry import CatalogEntry, MaterialRow, ViewRow  # noqa: E402
+from .reader import (MIN_ID_PREFIX, CatalogReader, MeshEntry, MeshInfo, PartRow,  # noqa: E402
+                     ViewInfo, ViewRecord)
+from .store import Catalog  # noqa: E402
+
+
+def open(path) -> CatalogReader:  # noqa: A001 - ucad_catalog.open(path), like gzip.open
+    """Open the catalogue directory ``path`` for reading (see :class:`CatalogReader`)."""
+    return CatalogReader(path)
+
+
+__all__ = ["MIN_ID_PREFIX", "SCHEMA_VERSION", "Catalog", "CatalogEntry", "CatalogError",
+           "CatalogReader", "MaterialRow", "MeshEntry", "MeshInfo", "PartRow", "ViewInfo", "ViewRecord",
+           "ViewRow", "open", "options_hash"]

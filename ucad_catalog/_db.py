@@ -18,12 +18,31 @@ from typing import Any
 
 import numpy as np
 
-SCHEMA_VERSION = 2              # 2: meshes.orientation (1 is read, and migrated by the writer)
-READABLE_VERSIONS = (1, 2)
+SCHEMA_VERSION = 2
+UPGRADABLE = {1: """
+ALTER TABLE meshes ADD COLUMN library_root TEXT NOT NULL DEFAULT '';
+ALTER TABLE meshes ADD COLUMN orientation TEXT;
+ALTER TABLE meshes ADD COLUMN meta TEXT NOT NULL DEFAULT '{}';
+DROP INDEX meshes_path;
+CREATE INDEX meshes_path ON meshes(library_root, path);
+"""}                                  # schema_version -> SQL that brings it to SCHEMA_VERSION
 FORMAT_NAME = "ucad-catalog"
 DB_NAME = "catalog.sqlite"
 OBJECTS_DIR = "objects"
 LOCK_NAME = "write.lock"
+
+
+# the artifact kinds the build writes (SCHEMA.md, "Artifact kinds", is tested against this);
+# other kinds are allowed (any non-empty name without '/')
+ARTIFACT_KINDS = {
+    "views.exr": "the view stack: tri, mat, Z per view + cameras (ucad_catalog.exr, format 2)",
+    "views.npz": "fallback view stack: NumPy .npz with tri_id u32, mat_id u16, depth f32, "
+                 "each (V, H, W)",
+    "edges.npy.gz": "Canny edges of the material maps: gzip of an .npy (V, H, ceil(W/8)) uint8, "
+                    "np.packbits(edges > 0, axis=-1); unpack with np.unpackbits(axis=-1, count=W)",
+    "features.npy": "(V, D) float32 pose features (HOG of the shaded views), np.save, no pickle",
+    "parts.png": "contact sheet of up to 24 views coloured by part, legend on the right (PNG)",
+}
 
 
 class CatalogError(Exception):
@@ -60,9 +79,11 @@ CREATE TABLE meshes (
     options_hash TEXT NOT NULL,
     run_id       INTEGER NOT NULL REFERENCES runs(id),
     timings      TEXT NOT NULL,
-    orientation  TEXT NOT NULL DEFAULT '{}'
+    library_root TEXT NOT NULL DEFAULT '',
+    orientation  TEXT,
+    meta         TEXT NOT NULL DEFAULT '{}'
 );
-CREATE INDEX meshes_path ON meshes(path);
+CREATE INDEX meshes_path ON meshes(library_root, path);
 CREATE INDEX meshes_state ON meshes(state, reason);
 CREATE TABLE materials (
     mesh_id  INTEGER NOT NULL REFERENCES meshes(id) ON DELETE CASCADE,
@@ -141,9 +162,11 @@ def object_path(root: Path, sha: str) -> Path:
     return root / OBJECTS_DIR / sha[:2] / sha
 
 
-def check_catalog_db(conn: sqlite3.Connection, where: Path) -> int:
-    """The schema version of the ucad catalogue ``conn``; CatalogError unless it is one this
-    code reads (READABLE_VERSIONS)."""
+def check_catalog_db(conn: sqlite3.Connection, where: Path, upgrade: bool = False) -> None:
+    """Raise CatalogError unless ``conn`` is a ucad catalogue of this schema version.
+
+    ``upgrade`` (the writer): an older version listed in ``UPGRADABLE`` is brought to this one
+    in one transaction; the read-only reader says how to upgrade instead."""
     try:
         rows = dict(conn.execute("SELECT key, value FROM meta").fetchall())
     except sqlite3.DatabaseError as exc:   # not a database, or no meta table
@@ -151,31 +174,19 @@ def check_catalog_db(conn: sqlite3.Connection, where: Path) -> int:
     if rows.get("format") != FORMAT_NAME:
         raise CatalogError(f"not a ucad catalogue: {where} (meta.format={rows.get('format')!r})")
     version = int(rows.get("schema_version", -1))
-    if version not in READABLE_VERSIONS:
+    if version in UPGRADABLE and upgrade:
+        conn.executescript("BEGIN IMMEDIATE;" + UPGRADABLE[version]
+                           + f"UPDATE meta SET value='{SCHEMA_VERSION}' WHERE key='schema_version';"
+                           + "COMMIT;")
+        return
+    if version in UPGRADABLE:
+        raise CatalogError(f"{where}: catalogue schema_version {version}, this code reads "
+                           f"schema_version {SCHEMA_VERSION}; upgrade it in place once with "
+                           f"`ucad-index status --catalog {Path(where).parent}` (needs write "
+                           "access)")
+    if version != SCHEMA_VERSION:
         raise CatalogError(f"{where}: catalogue schema_version {version}, this code reads "
                            f"schema_version {SCHEMA_VERSION}")
-    return version
-
-
-def migrate(conn: sqlite3.Connection) -> None:
-    """Bring a readable older catalogue to SCHEMA_VERSION in one transaction (the writer
-    does this when it opens one): 1 -> 2 adds ``meshes.orientation`` ('{}' for old rows)."""
-    if orientation_column(conn) == "orientation":
-        return
-    conn.execute("BEGIN IMMEDIATE")
-    try:
-        conn.execute("ALTER TABLE meshes ADD COLUMN orientation TEXT NOT NULL DEFAULT '{}'")
-        conn.execute("UPDATE meta SET value=? WHERE key='schema_version'", (str(SCHEMA_VERSION),))
-        conn.execute("COMMIT")
-    except BaseException:
-        conn.execute("ROLLBACK")
-        raise
-
-
-def orientation_column(conn: sqlite3.Connection) -> str:
-    """SQL for the meshes' orientation JSON: the column, or '{}' in a version 1 catalogue."""
-    cols = {r[1] for r in conn.execute("PRAGMA table_info(meshes)")}
-    return "orientation" if "orientation" in cols else "'{}'"
 
 
 def locate_db(path: str | Path) -> tuple[Path, Path]:
@@ -192,19 +203,29 @@ def locate_db(path: str | Path) -> tuple[Path, Path]:
     return root, db
 
 
+# the one order of meshes everywhere (reader listings, exports): independent of commit order,
+# so builds with any number of workers list and export the same rows
+MESH_ORDER = "library_root, path, sha256"
+
+
 def mesh_records(conn: sqlite3.Connection, where: str = "", args: tuple = ()) -> list[dict]:
-    """Full plain-JSON records of meshes (ordered by mesh id): the export / round-trip format."""
+    """Full plain-JSON records of meshes (in ``MESH_ORDER``), ``CatalogReader.record``'s format.
+    ``id`` is the internal row id (commit order); the public id is ``sha256``."""
     out = []
     for row in conn.execute(
             "SELECT id, sha256, path, size, mtime, state, reason, detail, n_triangles, "
-            f"n_materials, file_to_norm, options_hash, run_id, timings, "
-            f"{orientation_column(conn)} FROM meshes {where} ORDER BY id", args).fetchall():
+            "n_materials, file_to_norm, options_hash, run_id, timings, library_root, "
+            f"orientation, meta FROM meshes {where} ORDER BY {MESH_ORDER}", args).fetchall():
         mid = row[0]
-        rec = dict(zip(("id", "sha256", "path", "size", "mtime", "state", "reason", "detail",
+        rec = dict(zip(("_rowid", "sha256", "path", "size", "mtime", "state", "reason", "detail",
                         "n_triangles", "n_materials"), row[:10]))
         rec["file_to_norm"] = json.loads(row[10])
         rec["options_hash"], rec["run_id"], rec["timings"] = row[11], row[12], json.loads(row[13])
-        rec["orientation"] = json.loads(row[14])
+        rec["library_root"] = row[14]
+        rec["orientation"] = json.loads(row[15]) if row[15] is not None else None
+        rec["meta"] = json.loads(row[16])
+        del rec["_rowid"]                   # internal (commit order); the public id is the hash
+        rec["id"] = rec["sha256"]
         rec["materials"] = [
             {"index": r[0], "name": r[1], "part": r[2], "score": r[3], "iou": r[4], "view": r[5],
              "decision": r[6], "pixels": r[7], "props": json.loads(r[8])}
@@ -221,3 +242,135 @@ def mesh_records(conn: sqlite3.Connection, where: str = "", args: tuple = ()) ->
                                   "ORDER BY kind", (mid,))}
         out.append(rec)
     return out
+
+
+# ----------------------------------------------------------------------------- shared read paths
+# Used by both the writer (``Catalog``) and the reader (``CatalogReader``): none takes the lock.
+
+TMP_PREFIX = ".tmp-"
+
+
+def printable(text: str) -> str:
+    """``text`` as valid UTF-8 for SQLite and JSON: the bytes of a non-UTF-8 file name (Python's
+    surrogate escapes) become ``\\xNN``, other lone surrogates ``\\udNNN``; valid text unchanged."""
+    text = text if isinstance(text, str) else str(text)
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def catalog_status(conn: sqlite3.Connection, root: Path) -> dict:
+    """Counts by state and by rejection reason, accepted meshes flagged by reason
+    (``uncertain_orientation``), object totals, and the last run (one snapshot)."""
+    conn.execute("BEGIN")
+    try:
+        by_state = {"accepted": 0, "rejected": 0}
+        by_state.update(dict(conn.execute("SELECT state, count(*) FROM meshes GROUP BY state")))
+        by_reason = dict(conn.execute("SELECT reason, count(*) FROM meshes WHERE "
+                                      "state='rejected' GROUP BY reason ORDER BY reason"))
+        # accepted meshes with a note: an orientation estimate under the confidence threshold
+        # (the record is canonical JSON, so the key and value are written without spaces)
+        flagged = {"uncertain_orientation": conn.execute(
+            "SELECT count(*) FROM meshes WHERE state='accepted' AND orientation IS NOT NULL "
+            "AND instr(orientation, '\"uncertain\":true') > 0").fetchone()[0]}
+        n_obj, n_bytes = conn.execute("SELECT count(*), coalesce(sum(bytes), 0) FROM "
+                                      "(SELECT DISTINCT sha256, bytes FROM artifacts)").fetchone()
+        last = conn.execute("SELECT id, started, finished, engine, options_hash, counts, "
+                            "meshes_per_s FROM runs ORDER BY id DESC LIMIT 1").fetchone()
+        n_runs = conn.execute("SELECT count(*) FROM runs").fetchone()[0]
+    finally:
+        conn.execute("COMMIT")
+    last_run = None if last is None else {
+        "id": last[0], "started": last[1], "finished": last[2], "engine": last[3],
+        "options_hash": last[4], "counts": json.loads(last[5]) if last[5] else None,
+        "meshes_per_s": last[6]}
+    return {"root": str(root), "schema_version": SCHEMA_VERSION,
+            "meshes": sum(by_state.values()), "by_state": by_state,
+            "by_reason": by_reason, "flagged": flagged, "objects": n_obj,
+            "object_bytes": n_bytes, "runs": n_runs, "last_run": last_run}
+
+
+def remove_stale_exports(out: Path) -> None:
+    """Delete ``.tmp-<name>.<pid>.*`` files next to ``out`` whose exporting process is gone
+    (``ucad_catalog.export`` names its temporary files so)."""
+    import os
+
+    prefix = f"{TMP_PREFIX}{out.name}."
+    try:
+        siblings = list(out.parent.iterdir())
+    except OSError:
+        return
+    for p in siblings:
+        if not p.name.startswith(prefix):
+            continue
+        pid = p.name[len(prefix):].split(".", 1)[0]
+        if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+            p.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    import os
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def verify_catalog(conn: sqlite3.Connection, root: Path, rehash: bool = True) -> dict:
+    """Read-only consistency check. Returns ``{"problems": [...], "unreferenced": [(name,
+    bytes)], "tmp_files": [(name, bytes)], "objects": n, "bytes": n}``.
+
+    Problems (the catalogue is damaged): ``PRAGMA integrity_check`` and ``foreign_key_check``
+    findings, referenced objects that are missing, or whose size or sha256 (with ``rehash``)
+    does not match their name. Not problems (``gc`` reclaims them): objects nothing references
+    (a killed build's last objects, superseded artifacts) and ``.tmp-*`` files; while a build
+    runs, the objects it is about to commit also show as unreferenced.
+    """
+    import hashlib
+
+    problems: list[str] = []
+    conn.execute("BEGIN")
+    try:
+        for (line,) in conn.execute("PRAGMA integrity_check"):
+            if line != "ok":
+                problems.append(f"integrity: {line}")
+        for row in conn.execute("PRAGMA foreign_key_check"):
+            problems.append(f"foreign key: table {row[0]} rowid {row[1]} -> {row[2]}")
+        refs = conn.execute("SELECT DISTINCT sha256, bytes FROM artifacts ORDER BY sha256"
+                            ).fetchall()
+    finally:
+        conn.execute("COMMIT")
+    live = set()
+    total = 0
+    for sha, n in refs:
+        live.add(sha)
+        p = object_path(root, sha)
+        if not p.is_file():
+            problems.append(f"missing object {sha}")
+            continue
+        size = p.stat().st_size
+        total += size
+        if size != n:
+            problems.append(f"corrupt object {sha}: {size} bytes, expected {n}")
+        elif rehash:
+            h = hashlib.sha256()
+            with open(p, "rb") as f:
+                while chunk := f.read(1 << 20):
+                    h.update(chunk)
+            if h.hexdigest() != sha:
+                problems.append(f"corrupt object {sha}: content does not match its name")
+    unreferenced, tmp_files = [], []
+    objects = root / OBJECTS_DIR
+    shards = sorted(p for p in objects.iterdir() if p.is_dir()) if objects.is_dir() else []
+    for shard in shards:
+        for f in sorted(shard.iterdir()):
+            if f.name.startswith(TMP_PREFIX):
+                tmp_files.append((f"{shard.name}/{f.name}", f.stat().st_size))
+            elif f.name not in live:
+                unreferenced.append((f"{shard.name}/{f.name}", f.stat().st_size))
+    return {"problems": problems, "unreferenced": unreferenced, "tmp_files": tmp_files,
+            "objects": len(live), "bytes": total}

@@ -1,9 +1,9 @@
 """``CatalogEntry``: everything the catalogue stores about one mesh, as plain data.
 
 The build driver fills one entry per mesh and hands it to ``Catalog.commit_mesh``. Artifacts are
-``{kind: bytes | Path}``; a ``Path`` is copied into the object store. Usual kinds:
-``'views.exr'`` (view stack, ``ucad_catalog.exr``), ``'features.npy'`` ((V, D) float32),
-``'edges.png-sheet'``. Angles in degrees, K / w2c as in ``ucad_cl.artifacts`` (OpenCV camera,
+``{kind: bytes | Path}``; a ``Path`` is copied into the object store. The kinds the build
+writes are ``ucad_catalog._db.ARTIFACT_KINDS`` (``views.exr``, ``edges.npy.gz``,
+``features.npy``, ``parts.png``; SCHEMA.md). Angles in degrees, K / w2c as in ``ucad_cl.artifacts`` (OpenCV camera,
 canonical frame). ``CatalogEntry.from_results`` builds an entry from the pipeline dataclasses
 (duck-typed: this module does not import ``ucad_cl``).
 """
@@ -67,7 +67,9 @@ class CatalogEntry:
     artifacts: dict[str, bytes | Path] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     options_hash: str | None = None
-    orientation: dict = field(default_factory=dict)   # ``Orientation.as_dict()``; {} = none
+    library_root: str = ""                        # absolute library folder; path is relative to it
+    orientation: dict | None = None               # the orientation stage's record (JSON), if any
+    meta: dict = field(default_factory=dict)      # free per-mesh metadata (JSON, namespaced keys)
 
     @classmethod
     def from_results(cls, *, sha256: str, path: str, size: int, mtime: float, verdict: Any,
@@ -75,14 +77,16 @@ class CatalogEntry:
                      artifacts: dict | None = None, timings: dict | None = None,
                      view_stats: list[dict] | None = None) -> "CatalogEntry":
         """Entry from ``Verdict``, ``Mesh``, ``PartTable`` and ``CameraRing`` (any may be None
-        except the verdict). Material props record the ``Material`` fields of the mesh; the
-        mesh's orientation record (``mesh.orientation.as_dict()``) is kept as is."""
+        except the verdict). Material props record the ``Material`` fields of the mesh."""
         mats: list[MaterialRow] = []
         if table is not None:
             by_index = {m: mesh.materials[m] for m in range(len(mesh.materials))} if mesh else {}
             for r in table.rows:
                 mat = by_index.get(int(r.material))
                 props = {k: v for k, v in vars(mat).items() if k != "name"} if mat else {}
+                for k in ("prob", "split"):            # the labeller's, when it labelled
+                    if getattr(r, k, None) is not None:
+                        props[k] = getattr(r, k)
                 mats.append(MaterialRow(int(r.material), r.name, r.part, float(r.score),
                                         float(r.iou), int(r.view), r.decision, int(r.pixels),
                                         props))
@@ -93,6 +97,7 @@ class CatalogEntry:
                                      np.asarray(ring.K, np.float64),
                                      np.asarray(ring.w2c[v], np.float64),
                                      dict(view_stats[v]) if view_stats else {}))
+        orientation = getattr(mesh, "orientation", None) if mesh is not None else None
         return cls(sha256=sha256, path=str(path), size=int(size), mtime=float(mtime),
                    state="accepted" if verdict.accepted else "rejected",
                    reason=verdict.reason, detail=verdict.detail,
@@ -102,7 +107,8 @@ class CatalogEntry:
                                  else np.eye(4)),
                    materials=mats, views=views, artifacts=dict(artifacts or {}),
                    timings=dict(timings or {}),
-                   orientation=_orientation_record(getattr(mesh, "orientation", None)))
+                   orientation=None if orientation is None else _plain(
+                       orientation.as_dict() if hasattr(orientation, "as_dict") else orientation))
 
     def validate(self) -> None:
         """Raise CatalogError naming the first problem (the entry's path is in the message)."""
@@ -118,13 +124,15 @@ class CatalogEntry:
             raise CatalogError(f"{where}: a rejected entry needs a reason code")
         if int(self.size) < 0 or not math.isfinite(float(self.mtime)):
             raise CatalogError(f"{where}: size must be >= 0 and mtime finite")
+        if not isinstance(self.library_root, str):
+            raise CatalogError(f"{where}: library_root must be a string")
+        if self.orientation is not None and not isinstance(self.orientation, dict):
+            raise CatalogError(f"{where}: orientation must be a dict or None")
+        if not isinstance(self.meta, dict):
+            raise CatalogError(f"{where}: meta must be a dict")
         if self.options_hash is not None and not is_sha256(self.options_hash):
             raise CatalogError(f"{where}: options_hash must be a sha256 hex digest")
         _check_matrix(self.file_to_norm, (4, 4), f"{where}: file_to_norm")
-        if not isinstance(self.orientation, dict):
-            raise CatalogError(f"{where}: orientation must be a dict (Orientation.as_dict())")
-        if "rotation" in self.orientation:
-            _check_matrix(self.orientation["rotation"], (3, 3), f"{where}: orientation rotation")
         seen: set[int] = set()
         for m in self.materials:
             if m.index in seen:
@@ -152,9 +160,19 @@ class CatalogEntry:
                                    f"{type(data).__name__}")
 
 
-def _orientation_record(orientation: Any) -> dict:
-    """The plain record of an orientation object (anything with ``as_dict``), {} for None."""
-    return dict(orientation.as_dict()) if orientation is not None else {}
+def _plain(obj: Any) -> Any:
+    """A dataclass / object record as plain JSON-able data (NumPy arrays as lists)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if hasattr(obj, "__dict__"):
+        return _plain(vars(obj))
+    return obj
 
 
 def _check_matrix(a: Any, shape: tuple[int, int], what: str) -> None:

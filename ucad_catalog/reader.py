@@ -1,34 +1,59 @@
 """``CatalogReader``: the light, read-only view of a catalogue for consumers without OpenCL.
 
-Opens ``ROOT/catalog.sqlite`` with a read-only URI (``mode=ro``); safe while the build's writer
-runs (WAL). Each call reads its own snapshot; wrap several calls in ``with reader.snapshot():``
-to see one consistent state. Conventions (camera, ids, degrees) are those of ``ucad_cl.artifacts``.
+    import ucad_catalog
+    cat = ucad_catalog.open("sample-catalog/catalog")
+    m = cat.meshes()[0]                       # MeshInfo; m.id is the content sha256
+    cat.parts(m.id)                           # material -> part table with properties
+    v = cat.view(m.id, azimuth=90, elevation=15)   # the nearest view: maps, cameras, part masks
+    cat.edges(m.id, v.view)                   # (H, W) bool Canny edges of that view
+    e = cat.entry(m.id[:8])                   # parts, cameras, artifacts, provenance at once
 
-View stacks come from the ``'views.exr'`` artifact (``ucad_catalog.exr``) or, when a mesh has
-none, a ``'views.npz'`` artifact with arrays ``tri_id``, ``mat_id``, ``depth`` of shape (V, H, W).
-Part masks are derived: mask[part] = mat_id in {index + 1 of the materials labelled ``part``}.
+**Mesh ids.** A mesh is named by its id, the sha256 of its source content, or any prefix of at
+least ``MIN_ID_PREFIX`` (8) hex digits; ``mesh(key)`` also takes the source path in any spelling
+(absolute, relative to the working folder or to the library root, with ``./`` or ``..``) or the
+bare file name. A key matching several meshes is a ``CatalogError`` listing them.
+
+**Order.** Listings are ordered by (library root, path, sha256): independent of how a build
+scheduled its workers. Ties between equal feature distances go to the lower (sha256, view).
+
+**Reads.** Opens ``ROOT/catalog.sqlite`` read-only (``mode=ro``); safe while a build writes
+(WAL). Each call reads its own snapshot; ``with reader.snapshot():`` makes several calls see
+one state. A view read decodes only that view's part of the EXR view stack (``exr.ViewStackFile``);
+headers of the last few stacks are kept per reader. Part masks are derived: mask[part] =
+mat_id in {index + 1 of the materials labelled ``part``}. Edges come from the ``edges.npy.gz``
+artifact (packed bits of (V, H, W), ``np.packbits`` along W). Conventions (cameras, ids,
+degrees): docs/CONVENTIONS.md and ``ucad_catalog.views``.
 """
 from __future__ import annotations
 
 import contextlib
+import gzip
+import io
 import json
+import math
+import os
 import sqlite3
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, NamedTuple
 
 import numpy as np
 
-from ._db import (CatalogError, check_catalog_db, locate_db, mesh_records, object_path,
-                  orientation_column)
+from ._db import (MESH_ORDER, CatalogError, catalog_status, check_catalog_db, locate_db,
+                  mesh_records, object_path, verify_catalog)
+
+MIN_ID_PREFIX = 8          # hex digits of a sha256 prefix accepted as a mesh id
+_OPEN_STACKS = 8           # view-stack headers kept per reader
 
 
 @dataclass
 class MeshInfo:
-    """One catalogued mesh. ``id`` is the mesh rowid (commit order, used to break ties)."""
+    """One catalogued mesh. ``id`` is its public id, the sha256 of the source content.
+    ``path`` is relative to ``library_root`` (absolute when the file was outside it)."""
 
-    id: int
     sha256: str
+    library_root: str
     path: str
     size: int
     mtime: float
@@ -41,11 +66,26 @@ class MeshInfo:
     options_hash: str
     run_id: int
     timings: dict
-    orientation: dict = field(default_factory=dict)   # see ucad_cl.artifacts.Orientation
+    orientation: dict | None = None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def id(self) -> str:
+        return self.sha256
+
+    @property
+    def name(self) -> str:
+        return Path(self.path).name
+
+    @property
+    def source(self) -> Path:
+        """Where the source file was when it was catalogued."""
+        return Path(self.library_root) / self.path if self.library_root else Path(self.path)
 
 
 class PartRow(NamedTuple):
-    """Material -> part decision, unpacks as (name, part, score, iou, view, decision, ...)."""
+    """Material -> part decision, unpacks as (name, part, score, iou, view, decision, ...).
+    ``props``: the material's recorded properties (base_color, metallic, roughness, ...)."""
 
     name: str
     part: str
@@ -56,6 +96,18 @@ class PartRow(NamedTuple):
     pixels: int
     index: int
     props: dict
+
+
+@dataclass
+class ViewInfo:
+    """One camera: index, azimuth / elevation (degrees), K (3, 3) and w2c (4, 4) float64."""
+
+    index: int
+    azimuth: float
+    elevation: float
+    K: np.ndarray
+    w2c: np.ndarray
+    stats: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -76,11 +128,36 @@ class ViewRecord:
     stats: dict = field(default_factory=dict)
 
 
+@dataclass
+class MeshEntry:
+    """Everything about one mesh in one object: ``info`` (MeshInfo: id, paths, state,
+    orientation, meta), ``parts`` (material -> part with properties), ``views`` (cameras),
+    ``artifacts`` {kind: object path} and ``provenance``: where the source was (library root,
+    path, size, mtime) and what made the row (options hash, the run's options including the code
+    version, engine, run start time)."""
+
+    info: MeshInfo
+    parts: list[PartRow]
+    views: list[ViewInfo]
+    artifacts: dict[str, Path]
+    provenance: dict
+
+    @property
+    def id(self) -> str:
+        return self.info.sha256
+
+    @property
+    def orientation(self) -> dict | None:
+        return self.info.orientation
+
+
 _STATES = ("accepted", "rejected", None)
+_MESH_COLUMNS = ("sha256, library_root, path, size, mtime, state, reason, detail, n_triangles, "
+                 "n_materials, file_to_norm, options_hash, run_id, timings, orientation, meta")
 
 
 class CatalogReader:
-    """Read-only access to the catalogue directory ``path``."""
+    """Read-only access to the catalogue directory ``path`` (see the module docstring)."""
 
     def __init__(self, path: str | Path):
         self.root, db = locate_db(path)
@@ -94,8 +171,10 @@ class CatalogReader:
         except CatalogError:
             self._conn.close()
             raise
-        self._stack: tuple[str, dict] | None = None       # last view stack read (sha, arrays)
-        self._feats: dict[str, np.ndarray] = {}            # features by artifact sha
+        self._stacks: OrderedDict[str, object] = OrderedDict()   # artifact sha -> ViewStackFile
+        self._npz: tuple[str, dict] | None = None                 # last views.npz read
+        self._edges: tuple[str, np.ndarray] | None = None         # last edge stack read
+        self._feats: dict[str, np.ndarray] = {}                   # features by artifact sha
 
     def close(self) -> None:
         self._conn.close()
@@ -108,95 +187,248 @@ class CatalogReader:
 
     @contextlib.contextmanager
     def snapshot(self) -> Iterator["CatalogReader"]:
-        """All reads inside the block see the same committed state."""
+        """All reads inside the block see the same committed state (blocks may nest)."""
+        if self._conn.in_transaction:
+            yield self
+            return
         self._conn.execute("BEGIN")
         try:
             yield self
         finally:
             self._conn.execute("COMMIT")
 
+    # ------------------------------------------------------------------ whole catalogue
+    def status(self) -> dict:
+        """Counts by state and reason, object totals, last run (as ``Catalog.status``)."""
+        return catalog_status(self._conn, self.root)
+
+    def verify(self, rehash: bool = True) -> dict:
+        """Consistency report (``_db.verify_catalog``): problems, unreferenced objects."""
+        return verify_catalog(self._conn, self.root, rehash)
+
+    def runs(self, n: int = 5) -> list[dict]:
+        """The last ``n`` runs, newest first: id, started, finished, engine, counts, meshes/s."""
+        rows = self._conn.execute("SELECT id, started, finished, engine, counts, meshes_per_s "
+                                  "FROM runs ORDER BY id DESC LIMIT ?", (int(n),)).fetchall()
+        return [{"id": r[0], "started": r[1], "finished": r[2], "engine": r[3],
+                 "counts": json.loads(r[4]) if r[4] else {}, "meshes_per_s": r[5]}
+                for r in rows]
+
     # ------------------------------------------------------------------ index
     def meshes(self, state: str | None = "accepted") -> list[MeshInfo]:
-        """Meshes in commit order; ``state`` 'accepted', 'rejected' or None for all."""
+        """Meshes ordered by (library root, path, sha256); ``state`` 'accepted', 'rejected' or
+        None for all."""
         if state not in _STATES:
             raise CatalogError(f"state must be 'accepted', 'rejected' or None, got {state!r}")
         return self._query_meshes("WHERE state=?" if state else "", (state,) if state else ())
 
-    def mesh(self, sha: str) -> MeshInfo:
-        """One mesh by content sha256 (any state)."""
-        found = self._query_meshes("WHERE sha256=?", (sha,))
-        if not found:
-            raise CatalogError(f"{self.root}: no mesh with sha256 {sha!r}")
-        return found[0]
+    def mesh(self, key: str) -> MeshInfo:
+        """The one mesh ``key`` names (id, id prefix, path in any spelling, file name)."""
+        hits = self.find(key)
+        if not hits:
+            raise CatalogError(f"{self.root}: no mesh matches {key!r} (give its id, an id prefix "
+                               f"of >= {MIN_ID_PREFIX} hex digits, its path or its file name)")
+        if len(hits) > 1:
+            listing = ", ".join(f"{m.sha256[:12]} {m.path}" for m in hits[:6])
+            raise CatalogError(f"{self.root}: {len(hits)} meshes match {key!r}: {listing}"
+                               f"{' ...' if len(hits) > 6 else ''}; give more of the id")
+        return hits[0]
 
-    def parts(self, sha: str) -> list[PartRow]:
-        """Material decisions of mesh ``sha`` ordered by material index."""
-        mid = self._mesh_id(sha)
+    def find(self, key: str) -> list[MeshInfo]:
+        """Every mesh ``key`` names; the first rule with a match wins: full id, id prefix
+        (>= MIN_ID_PREFIX hex digits), source path (any spelling), file name."""
+        key = str(key).strip()
+        k = key.lower()
+        if _is_hex(k) and len(k) >= MIN_ID_PREFIX:
+            hits = self._query_meshes("WHERE sha256 >= ? AND sha256 < ?", (k, k + "g"))
+            if hits:
+                return hits
+        every = self.meshes(state=None)
+        wanted = _spellings(key)
+        hits = [m for m in every if _spellings(str(m.source)) & wanted
+                or (not os.path.isabs(key) and _norm(key) == _norm(m.path))]
+        if hits:
+            return hits
+        return [m for m in every if m.name == key or m.name.lower() == k]
+
+    def parts(self, key: str) -> list[PartRow]:
+        """Material decisions of a mesh, ordered by material index, with material properties."""
+        mid = self._mesh_id(key)
         return [PartRow(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], json.loads(r[8]))
                 for r in self._conn.execute(
                     "SELECT name, part, score, iou, view, decision, pixels, idx, props "
                     "FROM materials WHERE mesh_id=? ORDER BY idx", (mid,))]
 
-    def record(self, sha: str) -> dict:
-        """The full plain record of one mesh (the jsonl export format)."""
-        return mesh_records(self._conn, "WHERE id=?", (self._mesh_id(sha),))[0]
+    def entry(self, key: str) -> MeshEntry:
+        """The mesh ``key`` names with its part table, cameras, artifacts and provenance, read in
+        one snapshot."""
+        with self.snapshot():
+            info = self.mesh(key)
+            mid = self._mesh_id(info.sha256)
+            arts = {k: object_path(self.root, s) for k, s in self._conn.execute(
+                "SELECT kind, sha256 FROM artifacts WHERE mesh_id=? ORDER BY kind", (mid,))}
+            run = self._conn.execute("SELECT options, engine, started FROM runs WHERE id=?",
+                                     (info.run_id,)).fetchone()
+            provenance = {"library_root": info.library_root, "path": info.path,
+                          "size": info.size, "mtime": info.mtime,
+                          "options_hash": info.options_hash, "run_id": info.run_id,
+                          "options": json.loads(run[0]) if run else None,
+                          "engine": run[1] if run else None,
+                          "run_started": run[2] if run else None}
+            return MeshEntry(info, self.parts(info.sha256), self.views(info.sha256), arts,
+                             provenance)
 
-    def artifact_path(self, sha: str, kind: str) -> Path:
-        """Path of the object holding artifact ``kind`` of mesh ``sha`` (checked to exist)."""
-        mid = self._mesh_id(sha)
+    def record(self, key: str) -> dict:
+        """The full plain record of one mesh (materials, views, artifacts as plain JSON)."""
+        return mesh_records(self._conn, "WHERE id=?", (self._mesh_id(key),))[0]
+
+    def records(self, state: str | None = None) -> list[dict]:
+        """Full records of every mesh (or of one ``state``), in listing order, one snapshot."""
+        if state not in _STATES:
+            raise CatalogError(f"state must be 'accepted', 'rejected' or None, got {state!r}")
+        return mesh_records(self._conn, "WHERE state=?" if state else "",
+                            (state,) if state else ())
+
+    def export(self, out: str | Path, format: str | None = None) -> int:
+        """Export the catalogue (meshes table + materials table, ``ucad_catalog.export``)."""
+        from .export import format_for, write_export
+
+        format_for(out, format)
+        with self.snapshot():
+            records = self.records()
+        return write_export(records, out, format)
+
+    def artifact_path(self, key: str, kind: str) -> Path:
+        """Path of the object holding artifact ``kind`` of a mesh (checked to exist)."""
+        mid = self._mesh_id(key)
         row = self._conn.execute("SELECT sha256 FROM artifacts WHERE mesh_id=? AND kind=?",
                                  (mid, kind)).fetchone()
         if row is None:
             kinds = [r[0] for r in self._conn.execute(
                 "SELECT kind FROM artifacts WHERE mesh_id=? ORDER BY kind", (mid,))]
-            raise CatalogError(f"mesh {sha[:12]} has no artifact {kind!r} (has {kinds})")
+            raise CatalogError(f"mesh {str(key)[:12]} has no artifact {kind!r} (has {kinds})")
         p = object_path(self.root, row[0])
         if not p.is_file():
-            raise CatalogError(f"{self.root}: object {row[0]} ({kind!r} of mesh {sha[:12]}) "
-                               "is missing from the object store")
+            raise CatalogError(f"{self.root}: object {row[0]} ({kind!r} of mesh "
+                               f"{str(key)[:12]}) is missing from the object store")
         return p
 
+    # ------------------------------------------------------------------ cameras
+    def views(self, key: str) -> list[ViewInfo]:
+        """Every view of a mesh: index, azimuth, elevation (degrees), K, w2c."""
+        mid = self._mesh_id(key)
+        return [ViewInfo(r[0], r[1], r[2], np.array(json.loads(r[3]), np.float64),
+                         np.array(json.loads(r[4]), np.float64), json.loads(r[5]))
+                for r in self._conn.execute(
+                    "SELECT view, azimuth, elevation, K, w2c, stats FROM views WHERE mesh_id=? "
+                    "ORDER BY view", (mid,))]
+
+    def nearest_view(self, key: str, azimuth: float | None = None,
+                     elevation: float | None = None) -> int:
+        """Index of the view closest to (azimuth, elevation) in degrees: the smallest angle
+        between viewing directions; with one angle only, the smallest difference in that angle
+        (azimuths compared modulo 360). Ties: the lower view index."""
+        if azimuth is None and elevation is None:
+            raise CatalogError("give an azimuth, an elevation or both (degrees)")
+        for name, value in (("azimuth", azimuth), ("elevation", elevation)):
+            if value is not None and not math.isfinite(float(value)):
+                raise CatalogError(f"{name} must be a finite number of degrees, got {value}")
+        rows = self._conn.execute("SELECT view, azimuth, elevation FROM views WHERE mesh_id=? "
+                                  "ORDER BY view", (self._mesh_id(key),)).fetchall()
+        if not rows:
+            raise CatalogError(f"mesh {str(key)[:12]} has no views")
+        idx = np.array([r[0] for r in rows])
+        az, el = (np.radians([r[1] for r in rows]), np.radians([r[2] for r in rows]))
+        if azimuth is not None and elevation is not None:
+            a, e = math.radians(float(azimuth)), math.radians(float(elevation))
+            cos = np.sin(el) * math.sin(e) + np.cos(el) * math.cos(e) * np.cos(az - a)
+            dist = np.arccos(np.clip(cos, -1.0, 1.0))
+        elif azimuth is not None:
+            d = np.abs((np.degrees(az) - float(azimuth)) % 360.0)
+            dist = np.minimum(d, 360.0 - d)
+        else:
+            dist = np.abs(np.degrees(el) - float(elevation))
+        best = np.flatnonzero(dist <= dist.min() + 1e-9)
+        return int(idx[best].min())
+
     # ------------------------------------------------------------------ arrays
-    def view(self, sha: str, index: int) -> ViewRecord:
-        """Cameras, maps and part masks of view ``index`` of mesh ``sha``."""
-        mid = self._mesh_id(sha)
+    def view(self, key: str, index: int | None = None, *, azimuth: float | None = None,
+             elevation: float | None = None) -> ViewRecord:
+        """Cameras, maps and part masks of one view: by ``index``, or the view nearest to
+        ``azimuth`` / ``elevation`` (degrees, ``nearest_view``). Decodes only that view."""
+        sha = self._sha(key)
+        if index is None:
+            index = self.nearest_view(sha, azimuth, elevation)
+        elif azimuth is not None or elevation is not None:
+            raise CatalogError("give a view index or angles, not both")
         row = self._conn.execute("SELECT azimuth, elevation, K, w2c, stats FROM views "
-                                 "WHERE mesh_id=? AND view=?", (mid, int(index))).fetchone()
+                                 "WHERE mesh_id=? AND view=?",
+                                 (self._mesh_id(sha), int(index))).fetchone()
         if row is None:
             n = self._conn.execute("SELECT count(*) FROM views WHERE mesh_id=?",
-                                   (mid,)).fetchone()[0]
+                                   (self._mesh_id(sha),)).fetchone()[0]
             raise CatalogError(f"mesh {sha[:12]} has no view {index} ({n} views)")
-        stack = self._view_stack(sha)
-        if not 0 <= index < stack["mat_id"].shape[0]:
-            raise CatalogError(f"mesh {sha[:12]}: view {index} is outside its view stack "
-                               f"({stack['mat_id'].shape[0]} views)")
-        mat_id = stack["mat_id"][index]
-        masks: dict[str, list[int]] = {}
-        for p in self.parts(sha):
-            masks.setdefault(p.part, []).append(p.index + 1)
+        maps = self._read_view(sha, int(index))
         return ViewRecord(sha, int(index), np.array(json.loads(row[2]), np.float64),
                           np.array(json.loads(row[3]), np.float64), row[0], row[1],
-                          mat_id, stack["tri_id"][index], stack["depth"][index],
-                          {part: np.isin(mat_id, ids) for part, ids in sorted(masks.items())},
-                          json.loads(row[4]))
+                          maps["mat"], maps["tri"], maps["Z"],
+                          self._masks(sha, maps["mat"]), json.loads(row[4]))
 
-    def features(self, sha: str) -> np.ndarray:
-        """(V, D) pose features of mesh ``sha`` (the ``'features.npy'`` artifact)."""
+    def material_map(self, key: str, index: int) -> np.ndarray:
+        """(H, W) uint16 material ids of one view (material index + 1; 0 background)."""
+        return self._read_view(self._sha(key), int(index), ("mat",))["mat"]
+
+    def depth(self, key: str, index: int) -> np.ndarray:
+        """(H, W) float32 linear camera depth of one view (+inf background)."""
+        return self._read_view(self._sha(key), int(index), ("Z",))["Z"]
+
+    def triangle_map(self, key: str, index: int) -> np.ndarray:
+        """(H, W) uint32 face indices of one view (0xFFFFFFFF background)."""
+        return self._read_view(self._sha(key), int(index), ("tri",))["tri"]
+
+    def part_masks(self, key: str, index: int) -> dict[str, np.ndarray]:
+        """{part: (H, W) bool} of one view, for every part in the mesh's table."""
+        sha = self._sha(key)
+        return self._masks(sha, self.material_map(sha, index))
+
+    def edges(self, key: str, index: int | None = None) -> np.ndarray:
+        """Canny edges of the material maps: (H, W) bool for view ``index``, (V, H, W) when
+        ``index`` is None (the ``edges.npy.gz`` artifact)."""
+        sha = self._sha(key)
+        path = self.artifact_path(sha, "edges.npy.gz")
+        if self._edges is None or self._edges[0] != path.name:
+            try:
+                packed = np.load(io.BytesIO(gzip.decompress(path.read_bytes())),
+                                 allow_pickle=False)
+            except (OSError, ValueError, EOFError) as exc:
+                raise CatalogError(f"mesh {sha[:12]}: unreadable edges.npy.gz ({exc})") from None
+            self._edges = (path.name, packed)
+        packed = self._edges[1]
+        width = self._image_width(sha)
+        if index is None:
+            return np.unpackbits(packed, axis=-1, count=width).astype(bool)
+        if not 0 <= int(index) < packed.shape[0]:
+            raise CatalogError(f"mesh {sha[:12]} has no edge map {index} "
+                               f"({packed.shape[0]} views)")
+        return np.unpackbits(packed[int(index)], axis=-1, count=width).astype(bool)
+
+    def features(self, key: str) -> np.ndarray:
+        """(V, D) pose features of a mesh (the ``'features.npy'`` artifact)."""
+        sha = self._sha(key)
         path = self.artifact_path(sha, "features.npy")
-        key = path.name
-        if key not in self._feats:
+        if path.name not in self._feats:
             arr = np.load(path, allow_pickle=False)
             if arr.ndim != 2:
                 raise CatalogError(f"mesh {sha[:12]}: features.npy has shape {arr.shape}, "
                                    "expected (V, D)")
-            self._feats[key] = arr
-        return self._feats[key]
+            self._feats[path.name] = arr
+        return self._feats[path.name]
 
     def nearest_views(self, feature: np.ndarray, k: int,
                       sha: str | None = None) -> list[tuple[str, int, float]]:
         """The ``k`` views closest to ``feature`` (D,) by exact squared L2 distance (float64,
         sum of squared differences) over accepted meshes with features, or mesh ``sha`` only.
-        Ties: lower (mesh rowid, view) first. Returns [(sha, view, sq_dist)]."""
+        Ties: lower (sha256, view) first. Returns [(sha, view, sq_dist)]."""
         q = np.asarray(feature)
         if q.ndim != 1 or not np.issubdtype(q.dtype, np.number) or not np.all(np.isfinite(q)):
             raise CatalogError(f"feature must be a finite numeric (D,) vector, got shape "
@@ -204,61 +436,116 @@ class CatalogReader:
         if int(k) < 1:
             raise CatalogError(f"k must be >= 1, got {k}")
         if sha is not None:
-            owners = [(self._mesh_id(sha), sha)]
+            owners = [self._sha(sha)]
         else:
-            owners = self._conn.execute(
-                "SELECT m.id, m.sha256 FROM meshes m JOIN artifacts a ON a.mesh_id=m.id "
-                "WHERE m.state='accepted' AND a.kind='features.npy' ORDER BY m.id").fetchall()
+            owners = [r[0] for r in self._conn.execute(
+                "SELECT m.sha256 FROM meshes m JOIN artifacts a ON a.mesh_id=m.id "
+                "WHERE m.state='accepted' AND a.kind='features.npy' ORDER BY m.sha256")]
         if not owners:
             return []
-        blocks, mesh_ids, views, shas = [], [], [], []
-        for mid, s in owners:
+        blocks, ranks, views = [], [], []
+        for rank, s in enumerate(owners):
             f = self.features(s)
             if f.shape[1] != q.shape[0]:
                 raise CatalogError(f"feature has D={q.shape[0]} but mesh {s[:12]} has "
                                    f"D={f.shape[1]}")
             blocks.append(f)
-            mesh_ids.append(np.full(f.shape[0], mid, np.int64))
+            ranks.append(np.full(f.shape[0], rank, np.int64))
             views.append(np.arange(f.shape[0], dtype=np.int64))
-            shas.extend([s] * f.shape[0])
         diff = np.concatenate(blocks).astype(np.float64) - q.astype(np.float64)
         d = np.einsum("ij,ij->i", diff, diff)
-        mesh_id, view = np.concatenate(mesh_ids), np.concatenate(views)
-        order = np.lexsort((view, mesh_id, d))[: int(k)]
-        return [(shas[i], int(view[i]), float(d[i])) for i in order]
+        rank, view = np.concatenate(ranks), np.concatenate(views)
+        order = np.lexsort((view, rank, d))[: int(k)]
+        return [(owners[rank[i]], int(view[i]), float(d[i])) for i in order]
 
     # ------------------------------------------------------------------ internals
-    def _mesh_id(self, sha: str) -> int:
+    def _sha(self, key: str) -> str:
+        return self.mesh(key).sha256 if not _is_full_sha(key) else key
+
+    def _mesh_id(self, key: str) -> int:
+        sha = self._sha(key)
         row = self._conn.execute("SELECT id FROM meshes WHERE sha256=?", (sha,)).fetchone()
         if row is None:
             raise CatalogError(f"{self.root}: no mesh with sha256 {sha!r}")
         return int(row[0])
 
     def _query_meshes(self, where: str, args: tuple) -> list[MeshInfo]:
-        rows = self._conn.execute(
-            "SELECT id, sha256, path, size, mtime, state, reason, detail, n_triangles, "
-            f"n_materials, file_to_norm, options_hash, run_id, timings, "
-            f"{orientation_column(self._conn)} FROM meshes {where} ORDER BY id", args).fetchall()
+        rows = self._conn.execute(f"SELECT {_MESH_COLUMNS} FROM meshes {where} "
+                                  f"ORDER BY {MESH_ORDER}", args).fetchall()
         return [MeshInfo(*r[:10], np.array(json.loads(r[10]), np.float64), r[11], r[12],
-                         json.loads(r[13]), json.loads(r[14])) for r in rows]
+                         json.loads(r[13]), None if r[14] is None else json.loads(r[14]),
+                         json.loads(r[15])) for r in rows]
 
-    def _view_stack(self, sha: str) -> dict[str, np.ndarray]:
-        if self._stack is not None and self._stack[0] == sha:
-            return self._stack[1]
+    def _masks(self, sha: str, mat_id: np.ndarray) -> dict[str, np.ndarray]:
+        """{part: mat_id in the ids of that part's materials}: one table lookup per pixel
+        (material id -> part number), then one comparison per part."""
+        rows = self._conn.execute("SELECT idx, part FROM materials WHERE mesh_id=? ORDER BY idx",
+                                  (self._mesh_id(sha),)).fetchall()
+        names = sorted({part for _, part in rows})
+        top = max(int(mat_id.max()) if mat_id.size else 0, max((i for i, _ in rows), default=-1) + 1)
+        lut = np.zeros(top + 1, np.uint8)                # 0: background / unknown id
+        for idx, part in rows:
+            lut[idx + 1] = names.index(part) + 1
+        code = lut[mat_id]
+        return {part: code == k + 1 for k, part in enumerate(names)}
+
+    def _image_width(self, sha: str) -> int:
+        """Width of the views in pixels, from the view stack (its display window or shape)."""
+        return int(self._read_view(sha, 0, ("mat",))["mat"].shape[1])
+
+    def _read_view(self, sha: str, index: int,
+                   channels=("tri", "mat", "Z")) -> dict[str, np.ndarray]:
         kinds = {r[0] for r in self._conn.execute(
             "SELECT kind FROM artifacts WHERE mesh_id=?", (self._mesh_id(sha),))}
         if "views.exr" in kinds:
-            from . import exr                   # the EXR view-stack format (imports no OpenCL)
+            from .exr import ViewStackFile
+
+            path = self.artifact_path(sha, "views.exr")
+            stack = self._stacks.pop(path.name, None)
             try:
-                vs, _meta = exr.read_viewset_exr(self.artifact_path(sha, "views.exr"))
+                if stack is None:
+                    stack = ViewStackFile(path)
+                self._stacks[path.name] = stack
+                while len(self._stacks) > _OPEN_STACKS:
+                    self._stacks.popitem(last=False)
+                if not 0 <= index < stack.n_views:
+                    raise CatalogError(f"mesh {sha[:12]}: view {index} is outside its view "
+                                       f"stack ({stack.n_views} views)")
+                return stack.read(index, channels)
             except ValueError as exc:
                 raise CatalogError(f"mesh {sha[:12]}: unreadable views.exr: {exc}") from None
-            stack = {"tri_id": vs.tri_id, "mat_id": vs.mat_id, "depth": vs.depth}
-        elif "views.npz" in kinds:
-            with np.load(self.artifact_path(sha, "views.npz"), allow_pickle=False) as z:
-                stack = {k: z[k] for k in ("tri_id", "mat_id", "depth")}
-        else:
-            raise CatalogError(f"mesh {sha[:12]} has no view stack artifact "
-                               f"('views.exr' or 'views.npz'; has {sorted(kinds)})")
-        self._stack = (sha, stack)
-        return stack
+        if "views.npz" in kinds:
+            path = self.artifact_path(sha, "views.npz")
+            if self._npz is None or self._npz[0] != path.name:
+                with np.load(path, allow_pickle=False) as z:
+                    self._npz = (path.name, {"tri": z["tri_id"], "mat": z["mat_id"],
+                                             "Z": z["depth"]})
+            stack = self._npz[1]
+            if not 0 <= index < stack["mat"].shape[0]:
+                raise CatalogError(f"mesh {sha[:12]}: view {index} is outside its view stack "
+                                   f"({stack['mat'].shape[0]} views)")
+            return {c: stack[c][index] for c in channels}
+        raise CatalogError(f"mesh {sha[:12]} has no view stack artifact "
+                           f"('views.exr' or 'views.npz'; has {sorted(kinds)})")
+
+
+def _is_hex(text: str) -> bool:
+    return bool(text) and all(c in "0123456789abcdef" for c in text)
+
+
+def _is_full_sha(text) -> bool:
+    return isinstance(text, str) and len(text) == 64 and _is_hex(text)
+
+
+def _norm(path: str) -> str:
+    return os.path.normpath(path).replace(os.sep, "/")
+
+
+def _spellings(path: str) -> set[str]:
+    """Absolute forms of ``path``, lexical and with symlinks resolved (relative to the working
+    folder when relative)."""
+    p = os.path.normpath(os.path.join(os.getcwd(), os.path.expanduser(path)))
+    out = {p}
+    with contextlib.suppress(OSError, RuntimeError):
+        out.add(str(Path(p).resolve()))
+    return out

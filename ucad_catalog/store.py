@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import errno
 import hashlib
-import json
 import os
 import sqlite3
 import time
@@ -34,8 +33,8 @@ from typing import Any
 import numpy as np
 
 from ._db import (DB_NAME, FORMAT_NAME, LOCK_NAME, OBJECTS_DIR, SCHEMA_SQL, SCHEMA_VERSION,
-                  CatalogError, canonical_json, check_catalog_db, is_sha256, mesh_records,
-                  migrate, object_path, options_hash)
+                  TMP_PREFIX, CatalogError, canonical_json, catalog_status, check_catalog_db,
+                  is_sha256, mesh_records, object_path, options_hash, printable, verify_catalog)
 from .entry import CatalogEntry
 
 try:                                   # POSIX advisory lock for the single-writer rule
@@ -44,7 +43,7 @@ except ImportError:                    # pragma: no cover - non-POSIX: lock not 
     fcntl = None
 
 _CHUNK = 1 << 20
-_TMP_PREFIX = ".tmp-"
+_TMP_PREFIX = TMP_PREFIX
 
 
 class Catalog:
@@ -58,6 +57,7 @@ class Catalog:
         self._lock_fd = lock_fd
         self._run_id: int | None = None
         self._run_hash: str | None = None
+        self.superseded_bytes = 0    # objects that lost their last reference in this session
 
     # ------------------------------------------------------------------ open / close
     @classmethod
@@ -96,8 +96,7 @@ class Catalog:
                     conn.close()
                     raise CatalogError(f"not a ucad catalogue: {db} is empty")
                 _init_schema(conn)
-            check_catalog_db(conn, db)
-            migrate(conn)
+            check_catalog_db(conn, db, upgrade=True)
             conn.execute("PRAGMA journal_mode=WAL")
             conn.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
             conn.execute("PRAGMA foreign_keys=ON")
@@ -167,11 +166,20 @@ class Catalog:
                                (sha,)).fetchone()
         return row is None or row[0] != options_hash
 
-    def file_record(self, path: str | Path) -> tuple[str, int, float] | None:
-        """(sha256, size, mtime) last committed for ``path``, to skip re-hashing unchanged files."""
-        row = self._db.execute("SELECT sha256, size, mtime FROM meshes WHERE path=? "
-                               "ORDER BY id DESC LIMIT 1", (str(path),)).fetchone()
+    def file_record(self, path: str | Path,
+                    library_root: str = "") -> tuple[str, int, float] | None:
+        """(sha256, size, mtime) last committed for ``path`` (relative to ``library_root``), to
+        skip re-hashing unchanged files."""
+        row = self._db.execute("SELECT sha256, size, mtime FROM meshes WHERE library_root=? "
+                               "AND path=? ORDER BY id DESC LIMIT 1",
+                               (printable(str(library_root)), printable(str(path)))).fetchone()
         return None if row is None else (row[0], int(row[1]), float(row[2]))
+
+    def mesh_verdict(self, sha: str) -> tuple[str, str, str] | None:
+        """(state, reason, options_hash) of content ``sha``, or None when it is not catalogued."""
+        row = self._db.execute("SELECT state, reason, options_hash FROM meshes WHERE sha256=?",
+                               (sha,)).fetchone()
+        return None if row is None else (row[0], row[1], row[2])
 
     def commit_mesh(self, entry: CatalogEntry, *, move_files: bool = False) -> int:
         """Store the artifacts, then all rows of ``entry`` in one transaction; returns mesh id.
@@ -186,122 +194,85 @@ class Catalog:
         stored = {kind: self._put_object(data, kind, entry.path, move=move_files)
                   for kind, data in sorted(entry.artifacts.items())}
         conn = self._db
+        path = printable(entry.path)                        # text columns are valid UTF-8
         conn.execute("BEGIN IMMEDIATE")
         try:
-            conn.execute("DELETE FROM meshes WHERE path=? AND sha256<>?",
-                         (entry.path, entry.sha256))          # the file changed: old content out
-            values = (entry.path, int(entry.size), float(entry.mtime), entry.state,
-                      entry.reason, entry.detail, int(entry.n_triangles),
+            root = printable(entry.library_root)
+            old = conn.execute("SELECT DISTINCT a.sha256, a.bytes FROM artifacts a JOIN meshes m "
+                               "ON a.mesh_id=m.id WHERE (m.library_root=? AND m.path=? AND "
+                               "m.sha256<>?) OR m.sha256=?",
+                               (root, path, entry.sha256, entry.sha256)).fetchall()
+            conn.execute("DELETE FROM meshes WHERE library_root=? AND path=? AND sha256<>?",
+                         (root, path, entry.sha256))          # changed file: old out
+            values = (path, int(entry.size), float(entry.mtime), entry.state,
+                      printable(entry.reason), printable(entry.detail), int(entry.n_triangles),
                       int(entry.n_materials), canonical_json(_floats(entry.file_to_norm)),
-                      opt_hash, self._run_id, canonical_json(entry.timings),
-                      canonical_json(entry.orientation))
+                      opt_hash, self._run_id, printable(canonical_json(entry.timings)), root,
+                      None if entry.orientation is None
+                      else printable(canonical_json(entry.orientation)),
+                      printable(canonical_json(entry.meta)))
             row = conn.execute("SELECT id FROM meshes WHERE sha256=?",
                                (entry.sha256,)).fetchone()
             if row is None:
                 mid = conn.execute(
                     "INSERT INTO meshes (path, size, mtime, state, reason, detail, n_triangles, "
-                    "n_materials, file_to_norm, options_hash, run_id, timings, orientation, "
-                    "sha256) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                    "n_materials, file_to_norm, options_hash, run_id, timings, library_root, "
+                    "orientation, meta, sha256) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                     values + (entry.sha256,)).lastrowid
             else:                                              # re-processed: keep the id
                 mid = row[0]
                 conn.execute(
                     "UPDATE meshes SET path=?, size=?, mtime=?, state=?, reason=?, detail=?, "
                     "n_triangles=?, n_materials=?, file_to_norm=?, options_hash=?, run_id=?, "
-                    "timings=?, orientation=? WHERE id=?", values + (mid,))
+                    "timings=?, library_root=?, orientation=?, meta=? WHERE id=?",
+                    values + (mid,))
                 for table in ("materials", "views", "artifacts"):
                     conn.execute(f"DELETE FROM {table} WHERE mesh_id=?", (mid,))
             conn.executemany(
                 "INSERT INTO materials (mesh_id, idx, name, part, score, iou, view, decision, "
                 "pixels, props) VALUES (?,?,?,?,?,?,?,?,?,?)",
-                [(mid, int(m.index), str(m.name), str(m.part), float(m.score), float(m.iou),
-                  int(m.view), str(m.decision), int(m.pixels), canonical_json(m.props))
+                [(mid, int(m.index), printable(m.name), printable(m.part), float(m.score),
+                  float(m.iou), int(m.view), printable(m.decision), int(m.pixels),
+                  printable(canonical_json(m.props)))
                  for m in sorted(entry.materials, key=lambda m: m.index)])
             conn.executemany(
                 "INSERT INTO views (mesh_id, view, azimuth, elevation, K, w2c, stats) "
                 "VALUES (?,?,?,?,?,?,?)",
                 [(mid, int(v.index), float(v.azimuth), float(v.elevation),
                   canonical_json(_floats(v.K)), canonical_json(_floats(v.w2c)),
-                  canonical_json(v.stats))
+                  printable(canonical_json(v.stats)))
                  for v in sorted(entry.views, key=lambda v: v.index)])
             conn.executemany(
                 "INSERT INTO artifacts (mesh_id, kind, sha256, bytes) VALUES (?,?,?,?)",
                 [(mid, kind, sha, n) for kind, (sha, n) in stored.items()])
+            gone = [(sha, n) for sha, n in old if conn.execute(
+                "SELECT 1 FROM artifacts WHERE sha256=? LIMIT 1", (sha,)).fetchone() is None]
             conn.execute("COMMIT")
         except BaseException:
             if conn.in_transaction:
                 conn.execute("ROLLBACK")
             raise
+        self.superseded_bytes += sum(n for _, n in gone)   # left for gc(): readers may hold them
         return int(mid)
 
     # ------------------------------------------------------------------ maintenance
     def status(self) -> dict:
-        """Counts by state and by rejection reason, accepted meshes flagged by reason
-        (``uncertain_orientation``: an orientation estimate under the confidence threshold),
-        object totals, and the last run."""
-        db = self._db
-        by_state = {"accepted": 0, "rejected": 0}
-        by_state.update(dict(db.execute("SELECT state, count(*) FROM meshes GROUP BY state")))
-        by_reason = dict(db.execute("SELECT reason, count(*) FROM meshes WHERE "
-                                    "state='rejected' GROUP BY reason ORDER BY reason"))
-        flagged = {"uncertain_orientation": db.execute(     # canonical JSON: no spaces
-            "SELECT count(*) FROM meshes WHERE state='accepted' AND "
-            "instr(orientation, '\"uncertain\":true') > 0").fetchone()[0]}
-        n_obj, n_bytes = db.execute("SELECT count(*), coalesce(sum(bytes), 0) FROM "
-                                    "(SELECT DISTINCT sha256, bytes FROM artifacts)").fetchone()
-        last = db.execute("SELECT id, started, finished, engine, options_hash, counts, "
-                          "meshes_per_s FROM runs ORDER BY id DESC LIMIT 1").fetchone()
-        last_run = None if last is None else {
-            "id": last[0], "started": last[1], "finished": last[2], "engine": last[3],
-            "options_hash": last[4], "counts": json.loads(last[5]) if last[5] else None,
-            "meshes_per_s": last[6]}
-        return {"root": str(self.root), "schema_version": SCHEMA_VERSION,
-                "meshes": sum(by_state.values()), "by_state": by_state,
-                "by_reason": by_reason, "flagged": flagged, "objects": n_obj,
-                "object_bytes": n_bytes,
-                "runs": db.execute("SELECT count(*) FROM runs").fetchone()[0],
-                "last_run": last_run}
+        """Counts by state and by rejection reason, object totals, and the last run."""
+        return catalog_status(self._db, self.root)
 
-    def export(self, path: str | Path, format: str = "jsonl") -> int:
-        """Write one record per mesh (ordered by id) to ``path``; returns the record count.
+    def export(self, path: str | Path, format: str | None = None) -> int:
+        """Write the meshes table to ``path`` and the materials table beside it; returns the
+        mesh count. Format from ``format`` or the suffix (.parquet / .jsonl); see
+        ``ucad_catalog.export``."""
+        from .export import format_for, write_export
 
-        jsonl: one canonical JSON object per line (see SCHEMA.md). parquet: the same records,
-        with the free-form dicts (timings, orientation, props, stats) as JSON strings; needs
-        pyarrow.
-        """
-        if format not in ("jsonl", "parquet"):
-            raise CatalogError(f"export format must be 'jsonl' or 'parquet', got {format!r}")
-        if format == "parquet":
-            try:
-                import pyarrow as pa
-                import pyarrow.parquet as pq
-            except ImportError:
-                raise CatalogError("export(format='parquet') needs pyarrow, which is not "
-                                   "installed (pip install pyarrow), or use format='jsonl'"
-                                   ) from None
+        format_for(path, format)                    # a bad format fails before any reading
         self._db.execute("BEGIN")                   # one consistent snapshot
         try:
             records = mesh_records(self._db)
         finally:
             self._db.execute("COMMIT")
-        out = Path(path)
-        tmp = out.with_name(f"{_TMP_PREFIX}{out.name}.{uuid.uuid4().hex}")
-        if format == "jsonl":
-            with open(tmp, "w", encoding="utf-8") as f:
-                for rec in records:
-                    f.write(canonical_json(rec) + "\n")
-        else:
-            for rec in records:
-                rec["timings"] = canonical_json(rec["timings"])
-                rec["orientation"] = canonical_json(rec["orientation"])
-                rec["artifacts"] = [{"kind": k, **v} for k, v in rec["artifacts"].items()]
-                for m in rec["materials"]:
-                    m["props"] = canonical_json(m["props"])
-                for v in rec["views"]:
-                    v["stats"] = canonical_json(v["stats"])
-            pq.write_table(pa.Table.from_pylist(records), str(tmp))
-        os.replace(tmp, out)
-        return len(records)
+        return write_export(records, path, format)
 
     def gc(self) -> dict:
         """Delete objects no artifact row references and leftover temporary files."""
@@ -322,17 +293,15 @@ class Catalog:
                 shard.rmdir()
         return {"objects_removed": removed, "tmp_removed": tmp_removed, "bytes_freed": freed}
 
+    def verify_report(self, rehash: bool = True) -> dict:
+        """The full consistency report (``_db.verify_catalog``), unreferenced objects included."""
+        return verify_catalog(self._db, self.root, rehash)
+
     def verify(self) -> list[str]:
-        """Problems found re-hashing every referenced object (empty list = consistent)."""
-        problems = []
-        for sha, n in self._db.execute("SELECT DISTINCT sha256, bytes FROM artifacts "
-                                       "ORDER BY sha256"):
-            p = object_path(self.root, sha)
-            if not p.is_file():
-                problems.append(f"missing object {sha}")
-            elif p.stat().st_size != n or _hash_file(p)[0] != sha:
-                problems.append(f"corrupt object {sha}")
-        return problems
+        """Problems found (empty list = consistent): integrity and foreign-key checks, missing
+        or corrupt referenced objects (re-hashed). See ``_db.verify_catalog`` for the full
+        report, unreferenced objects included."""
+        return verify_catalog(self._db, self.root)["problems"]
 
     # ------------------------------------------------------------------ internals
     @property

@@ -1,35 +1,68 @@
 """``ucad-index build``: a library of meshes -> the part-labelled catalogue.
 
 ``build(library, catalog, options)`` discovers meshes, skips those already catalogued with the
-same content hash and options hash, runs the per-mesh pipeline (ingest -> filter -> render ->
+same content key and options hash, runs the per-mesh pipeline (ingest -> filter -> render ->
 filter by views -> edges -> segment -> classify -> features) in worker processes, and commits
 each mesh atomically from the driver, the catalogue's single writer.
 
-Engines
-* ``local`` (default): ``workers`` processes, each with its own OpenCL context and
-  ``cores // workers`` PoCL threads (no oversubscription). Inside a worker a loader thread
-  prefetches (ingests) the next mesh while the current one is on the OpenCL device. A worker that
-  dies (a native loader segfaults) or exceeds ``timeout`` seconds on one mesh is killed and
-  replaced; that mesh is recorded as rejected (``loader_crashed`` / ``timeout``) and the build
-  goes on. Workers are replaced after ``recycle_after`` meshes so memory stays flat.
-* ``ray``: the same per-mesh function as Ray tasks on an existing cluster (``ucad_cl.engines``).
+Untrusted libraries (decisions; reason codes in ``ucad_cl/reasons.py``)
+* The driver never opens a mesh file: discovery and the "unchanged" test use ``stat`` only
+  (path, size, mtime against the last commit of that path). Reading, hashing (the content key,
+  ``ingest.mesh_identity``: format + bytes) and parsing happen in a worker, under its timeout and
+  memory limit. A worker skips a new or changed path whose content is already catalogued with
+  these options (a read-only look at the catalogue, no lock).
+* Per-worker memory limit (``memory_limit_mb``, default half the machine's memory divided by the
+  workers, at least 1 GiB): the worker runs under ``RLIMIT_DATA`` = limit + 1 GiB (an allocation
+  past it raises ``MemoryError`` or kills the worker at once) and the driver polls each worker's
+  resident memory every 0.1 s and kills a worker above the limit. Measured in
+  ``bench/hostile.py``: after OpenCL is set up a worker's data segment is ~350-500 MB larger than
+  its resident set, hence the headroom.
+* Failures of a worker (it crashed, went over its memory limit, timed out, or was killed from
+  outside) are attributed before anything is recorded; meshes it had not started yet simply go
+  back in the queue. Memory: a worker that held one mesh records ``too_large``; with two, each
+  is retried alone ("solo"). Crash: the meshes it was working on are retried alone and without
+  the RLIMIT_DATA soft limit (a failed allocation can kill native code with SIGSEGV/SIGABRT,
+  which must not be mistaken for a crash); a second crash records ``loader_crashed``. Timeout
+  (no progress for ``timeout`` s): retried once alone with twice the time, then recorded
+  (``timeout``): a file that hangs the loader twice would otherwise stop every build forever,
+  while a pause of the machine or a stopped worker costs one retry. A worker killed from
+  outside (SIGKILL, SIGTERM: the OOM killer, a user) is an environment fault: its meshes are
+  retried, and a mesh held by three killed workers stops the build (``worker_killed``),
+  recording nothing. Failures before a worker started any mesh (it cannot start, or is over
+  its memory limit at idle) are nobody's verdict; three in a row stop the build
+  (``worker_start_failed``).
+* Environment faults (``disk_full``, ``io_error`` on the catalogue or staging side,
+  ``worker_killed``) raise ``BuildStopped``: workers are stopped, nothing is recorded for the
+  meshes in flight, and the message says what to free or fix; the next run continues.
+* ``retry_failed``: reason codes whose recorded rejections are re-processed even though the file
+  and options are unchanged (default for the CLI flag without codes: ``reasons.default_retry()``).
+
+Engines (``ucad_cl.engines``): ``local`` (default) runs ``workers`` processes, each with its own
+OpenCL context and ``cores // workers`` PoCL threads, prefetching the next mesh while the current
+one is on the device, replaced after ``recycle_after`` meshes so memory stays flat; ``ray`` runs
+the same per-mesh functions as Ray tasks on a cluster.
 
 Resumability: a mesh is either fully committed (rows + artifacts) or absent, so a build killed at
 any moment (even SIGKILL) and run again continues where it stopped, with nothing duplicated.
-A changed file (new content hash) is re-processed and replaces the old entry; a change of any
+A changed file (new content key) is re-processed and replaces the old entry; a change of any
 option that affects results changes the options hash, and every mesh with another options hash
 is re-processed (its entry replaced in one transaction).
+
+Memory figures: ``BuildSummary.peak_rss_mb`` is the whole process tree (driver + workers,
+resident memory summed, sampled every 0.1 s while workers run); ``peak_driver_mb`` the driver's
+own peak and ``peak_worker_mb`` the largest worker peak (``VmHWM``; ``ru_maxrss`` of a spawned
+process starts at its parent's size).
 """
 from __future__ import annotations
 
+import errno
 import gzip
 import hashlib
 import io
 import json
 import os
-import queue
 import shutil
-import threading
+import sqlite3
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -37,9 +70,10 @@ from typing import Iterable
 
 import numpy as np
 
-from .ingest import SUPPORTED_SUFFIXES
+from . import reasons
+from .ingest import SUPPORTED_SUFFIXES, Budgets
 
-CODE_VERSION = "3"        # bump when a change alters results: it enters the options hash
+CODE_VERSION = "5"        # bump when a change alters results: it enters the options hash
 
 
 @dataclass(frozen=True)
@@ -50,7 +84,7 @@ class BuildOptions:
     elevations: tuple[float, ...] = (15.0,)
     fov_deg: float = 40.0
     size: int = 256
-    segmenter: str = "prior"            # 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG'
+    segmenter: str = "labeller"         # 'labeller[:MODEL]' | 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG'
     threshold: float = 0.5              # part score threshold (UrbanCAD: 0.5)
     min_materials: int = 2
     max_triangles: int = 2_000_000      # reject above this (after decimation, if any)
@@ -59,6 +93,7 @@ class BuildOptions:
     min_visible_materials: int = 2
     features: bool = True
     edges: bool = True
+    max_input_triangles: int = Budgets.max_triangles   # ingest budget, before allocation
     orientation: str = "auto"           # 'auto' | 'file' | 'UP,FRONT' (ucad_cl.orient)
     orientation_overrides: tuple = ()   # ((path or sha256, 'UP,FRONT' | 'auto' | 'file'), ...)
     reject_uncertain_orientation: bool = False   # reject instead of flag (uncertain_orientation)
@@ -80,10 +115,16 @@ class BuildOptions:
         blob = json.dumps({"code": CODE_VERSION, **self.to_dict()}, sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()
 
+    def budgets(self) -> Budgets:
+        """Ingest budgets: triangles as given, vertices three per triangle (at least the
+        default vertex budget: files often carry unreferenced vertices)."""
+        return Budgets(max_triangles=self.max_input_triangles,
+                       max_vertices=max(Budgets.max_vertices, 3 * self.max_input_triangles))
+
 
 @dataclass
 class MeshRef:
-    """A library file: path, size in bytes, mtime (s)."""
+    """A library file: path, size in bytes, mtime (s); size -1 when it cannot be stat-ed."""
 
     path: str
     size: int
@@ -97,11 +138,19 @@ class BuildSummary:
     skipped: int = 0
     accepted: int = 0
     rejected: int = 0
-    failed: int = 0
+    failed: int = 0                     # rejections with an internal-error code (pipeline_error)
+    retried: int = 0                    # attempts repeated after a worker failure
     seconds: float = 0.0
     reasons: dict = field(default_factory=dict)
     stage_seconds: dict = field(default_factory=dict)
-    peak_rss_mb: float = 0.0
+    peak_rss_mb: float = 0.0            # process tree (driver + workers)
+    peak_driver_mb: float = 0.0
+    peak_worker_mb: float = 0.0
+    memory_limit_mb: float = 0.0
+    superseded_mb: float = 0.0          # objects replaced in this run, reclaimed by gc
+    examples: dict = field(default_factory=dict)      # reason -> first few rejected paths
+    log_path: str = ""                                # this run's log (every commit, reasons)
+    library_root: str = ""
 
     @property
     def processed(self) -> int:
@@ -112,30 +161,80 @@ class BuildSummary:
         return self.processed / self.seconds if self.seconds > 0 else 0.0
 
 
+class BuildStopped(RuntimeError):
+    """An environment fault stopped the build (nothing recorded for the meshes in flight).
+    ``code`` is an environment reason code, ``str`` says what to free or fix; ``summary`` holds
+    what the run did before it stopped."""
+
+    def __init__(self, code: str, message: str, summary: BuildSummary | None = None):
+        self.code = reasons.check(code, reasons.ENVIRONMENT)
+        self.summary = summary
+        super().__init__(message)
+
+
+def environment_code(exc: BaseException) -> str | None:
+    """The environment reason code of an error raised while writing the catalogue or staging
+    files (``disk_full``, ``io_error``), or None when it is not an environment fault."""
+    if isinstance(exc, OSError):
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return "disk_full"
+        if exc.errno in (errno.EIO, errno.EROFS, errno.ENXIO, errno.ENODEV, errno.ESTALE):
+            return "io_error"
+        return None
+    if isinstance(exc, sqlite3.Error):
+        code = getattr(exc, "sqlite_errorcode", None)
+        text = str(exc).lower()
+        if code == 13 or "disk is full" in text:                 # SQLITE_FULL
+            return "disk_full"
+        if (code is not None and code & 0xFF in (8, 10, 14)) or "disk i/o error" in text:
+            return "io_error"                                   # READONLY, IOERR, CANTOPEN
+    return None
+
+
+def printable(text: str) -> str:
+    """``text`` as valid UTF-8 for logs and terminals: bytes of a non-UTF-8 file name (Python's
+    surrogate escapes) are written ``\\xNN``."""
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
+def default_memory_limit_mb(workers: int) -> float:
+    """Half the machine's memory divided among the workers, at least 1 GiB each."""
+    try:
+        import psutil
+        total = psutil.virtual_memory().total
+    except ImportError:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    return max(1024.0, total / 2**20 / 2 / max(1, workers))
+
+
 # ----------------------------------------------------------------------------- discovery
 
-def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None) -> list[MeshRef]:
+def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None,
+             log=None) -> list[MeshRef]:
     """Mesh files of a library, sorted by path.
 
-    ``library`` is a folder tree (every file with a supported suffix; an Objaverse layout
-    ``glbs/<shard>/<uid>.glb`` is such a tree), or a manifest file (.txt: one path per line;
-    .json: a list of paths or ``{"paths": [...]}``), paths relative to the manifest's folder.
-    ``uids`` keeps only files whose stem is in it (e.g. Objaverse uids of vehicle categories).
+    ``library`` is a folder tree (every entry with a supported suffix that is not a directory:
+    FIFOs, devices, dangling symlinks and symlink loops included, so each is recorded with its
+    reason; hidden names are skipped; symlinked folders are not followed; an Objaverse layout
+    ``glbs/<shard>/<uid>.glb`` is such a tree), a single mesh file, or a manifest file (.txt:
+    one path per line; .json: a list of paths or ``{"paths": [...]}``), paths relative to the
+    manifest's folder. ``uids`` keeps only files whose stem is in it (e.g. Objaverse uids of
+    vehicle categories). Only ``stat`` is used on mesh files: nothing is opened. ValueError
+    naming the file for a manifest that is not a regular text / JSON file; ``log`` gets a line
+    for each folder that cannot be listed.
     """
     root = Path(library)
     if not root.exists():
         raise FileNotFoundError(f"library {root} does not exist")
     if root.is_dir():
-        paths = [p for p in root.rglob("*") if p.suffix.lower() in SUPPORTED_SUFFIXES
-                 and p.is_file() and not p.name.startswith(".")]
+        paths = _tree_paths(root, log)
+    elif root.suffix.lower() in SUPPORTED_SUFFIXES:
+        paths = [root]                                 # one mesh: a library of one
     else:
-        text = root.read_text(encoding="utf-8")
-        if root.suffix.lower() == ".json":
-            data = json.loads(text)
-            items = data.get("paths", []) if isinstance(data, dict) else data
-        else:
-            items = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
-        paths = [(root.parent / p) if not Path(p).is_absolute() else Path(p) for p in items]
+        paths = _manifest_paths(root)
     if uids is not None:
         keep = set(uids)
         paths = [p for p in paths if p.stem in keep]
@@ -143,23 +242,129 @@ def discover(library: str | os.PathLike, *, uids: Iterable[str] | None = None) -
     for p in sorted(set(paths)):
         try:
             st = p.stat()
-            refs.append(MeshRef(str(p), st.st_size, st.st_mtime))
-        except OSError:
-            refs.append(MeshRef(str(p), -1, 0.0))      # recorded as unreadable later
+        except OSError:                                 # a symlink loop / dangling link: the
+            try:                                        # link's own stat, so it stays "unchanged"
+                st = p.lstat()
+            except OSError:
+                refs.append(MeshRef(str(p), -1, 0.0))   # recorded with its reason by a worker
+                continue
+        refs.append(MeshRef(str(p), st.st_size, st.st_mtime))
     return refs
 
 
+def _tree_paths(root: Path, log=None) -> list[Path]:
+    """Every non-directory entry with a supported suffix below ``root``, hidden names skipped,
+    symlinked folders not followed; iterative, so any depth the file system allows is fine."""
+    paths, stack = [], [root]
+    while stack:
+        folder = stack.pop()
+        try:
+            with os.scandir(folder) as it:
+                entries = list(it)
+        except OSError as e:
+            if log is not None:
+                log(f"warning: cannot list {printable(str(folder))}: {e.strerror}")
+            continue
+        for e in entries:
+            if e.name.startswith("."):
+                continue
+            try:
+                is_dir = e.is_dir(follow_symlinks=False)
+            except OSError:
+                is_dir = False
+            if is_dir:
+                stack.append(Path(e.path))
+            elif Path(e.name).suffix.lower() in SUPPORTED_SUFFIXES:
+                paths.append(Path(e.path))
+    return paths
+
+
+MAX_MANIFEST_BYTES = 256 << 20
+
+
+def _manifest_paths(manifest: Path) -> list[Path]:
+    """Paths listed by a .txt / .json manifest (ValueError naming the manifest and the problem).
+    The manifest must be a regular file of at most MAX_MANIFEST_BYTES (a library given as
+    /dev/zero or a FIFO is refused, not read)."""
+    import stat as stat_
+
+    shown = printable(str(manifest))
+    st = manifest.stat()
+    if not stat_.S_ISREG(st.st_mode):
+        raise ValueError(f"{shown}: not a mesh folder, a mesh file "
+                         f"({', '.join(SUPPORTED_SUFFIXES)}) or a manifest (.txt one path "
+                         "per line, .json list of paths): not a regular file")
+    if st.st_size > MAX_MANIFEST_BYTES:
+        raise ValueError(f"manifest {shown} has {st.st_size} bytes, more than "
+                         f"{MAX_MANIFEST_BYTES}")
+    try:
+        text = manifest.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{shown}: not a mesh folder, a mesh file "
+                         f"({', '.join(SUPPORTED_SUFFIXES)}) or a manifest (.txt one path "
+                         f"per line, .json list of paths): not UTF-8 text ({e.reason} at "
+                         f"byte {e.start})") from None
+    if manifest.suffix.lower() == ".json":
+        try:
+            data = json.loads(text)
+        except (json.JSONDecodeError, RecursionError) as e:
+            raise ValueError(f"{shown}: not a mesh folder, a mesh file "
+                             f"({', '.join(SUPPORTED_SUFFIXES)}) or a manifest (.txt one path "
+                             f"per line, .json list of paths): {e}") from None
+        items = data.get("paths", []) if isinstance(data, dict) else data
+        if not isinstance(items, list):
+            raise ValueError(f"manifest {printable(str(manifest))}: expected a list of paths or "
+                             '{"paths": [...]}')
+    else:
+        items = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.startswith("#")]
+    for k, p in enumerate(items):
+        if not isinstance(p, str) or not p or "\0" in p:
+            raise ValueError(f"manifest {printable(str(manifest))}: entry {k} ({str(p)[:60]!r}) "
+                             "is not a path")
+    return [(manifest.parent / p) if not Path(p).is_absolute() else Path(p) for p in items]
+
+
+def library_root(library: str | os.PathLike) -> str:
+    """The absolute folder a library's paths are recorded relative to: the folder itself, or
+    the folder holding the manifest / the single mesh file."""
+    p = os.path.abspath(library)
+    return p if os.path.isdir(p) else os.path.dirname(p)
+
+
+def relative_path(path: str | os.PathLike, root: str) -> str:
+    """``path`` relative to ``root`` with '/' separators; absolute when it lies outside."""
+    p = os.path.abspath(path)
+    if p == root or not p.startswith(root.rstrip(os.sep) + os.sep):
+        return Path(p).as_posix()
+    return Path(os.path.relpath(p, root)).as_posix()
+
+
+UID_COLUMNS = ("uid", "uids", "id", "file_identifier", "fileIdentifier")
+
+
 def read_uid_list(path: str | os.PathLike, categories: Iterable[str] | None = None) -> list[str]:
-    """Uids from a text file (one per line) or an Objaverse-style annotations JSON
-    (``{uid: {"name", "categories": [{"name": ...}], "tags": [{"name": ...}], ...}}``: its keys).
-    ``categories`` keeps only annotated uids with a category or tag of one of these names
-    (case-insensitive), e.g. ``("car", "vehicle", "truck")``."""
+    """Uids from a text file (one per line), a Parquet table (column ``uid``, or the first of
+    ``UID_COLUMNS``; needs pyarrow) or an Objaverse-style annotations JSON (``{uid: {"name",
+    "categories": [{"name": ...}], "tags": [{"name": ...}], ...}}``: its keys). ``categories``
+    keeps only annotated uids with a category or tag of one of these names (case-insensitive),
+    e.g. ``("car", "vehicle", "truck")``. ValueError naming the file when it is none of these."""
     p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"uid list {p} does not exist")
+    if p.suffix.lower() in (".parquet", ".pq"):
+        if categories:
+            raise ValueError(f"{p}: --categories needs an annotations JSON, not a Parquet table")
+        return _parquet_uids(p)
+    try:
+        text = p.read_text(encoding="utf-8")
+        data = json.loads(text) if p.suffix.lower() == ".json" else None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{p}: not a uid list (text, one uid per line), a Parquet table "
+                         f"(.parquet, column 'uid') or an annotations JSON: {exc}") from None
     if p.suffix.lower() != ".json":
         if categories:
             raise ValueError(f"{p}: --categories needs an annotations JSON, not a uid list")
-        return [ln.strip() for ln in p.read_text(encoding="utf-8").splitlines() if ln.strip()]
-    data = json.loads(p.read_text(encoding="utf-8"))
+        return [ln.strip() for ln in text.splitlines() if ln.strip()]
     if not isinstance(data, dict):
         if categories:
             raise ValueError(f"{p}: --categories needs annotations ({{uid: {{...}}}}), got a list")
@@ -176,27 +381,54 @@ def read_uid_list(path: str | os.PathLike, categories: Iterable[str] | None = No
             and want & set(names(ann.get("categories"))) | want & set(names(ann.get("tags")))]
 
 
+def _parquet_uids(p: Path) -> list[str]:
+    try:
+        import pyarrow.parquet as pq
+    except ImportError:
+        raise ValueError(f"{p}: reading a Parquet uid table needs pyarrow (pip install pyarrow); "
+                         "or give a text file with one uid per line") from None
+    try:
+        schema = pq.read_schema(p)
+    except Exception as exc:                # pyarrow raises ArrowInvalid and OSError subclasses
+        raise ValueError(f"{p}: not a readable Parquet file ({exc})") from None
+    column = next((c for c in UID_COLUMNS if c in schema.names), None)
+    if column is None:
+        raise ValueError(f"{p}: no uid column (looked for {', '.join(UID_COLUMNS)}; the table has "
+                         f"{', '.join(schema.names[:12])})")
+    values = pq.read_table(p, columns=[column]).column(column).to_pylist()
+    # Objaverse file identifiers are URLs ending in <uid>.glb: keep the stem
+    return [Path(str(v)).stem if "/" in str(v) else str(v) for v in values if v is not None]
+
+
 def content_sha256(path: str | os.PathLike) -> str:
-    """The mesh key: sha256 of the file (plus external buffers / MTL files), as ingest does."""
-    from .ingest import IngestError, file_sha256
+    """The mesh key (``ingest.mesh_identity``: format tag + the bytes of the file and of the
+    files it references); for a file that cannot be read, ``ingest.unreadable_identity``."""
+    from .ingest import IngestError, mesh_identity, unreadable_identity
 
     try:
-        return file_sha256(path)
-    except IngestError:           # unreadable references: key on the file bytes alone
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+        return mesh_identity(path)
+    except IngestError:
+        return unreadable_identity(path)
 
 
 # ----------------------------------------------------------------------------- per mesh
+
+@dataclass
+class Skipped:
+    """A worker's answer for a path whose content is already catalogued with these options."""
+
+    sha256: str
+
 
 class Pipeline:
     """The per-mesh stages with their state (segmenter, feature extractor) built once."""
 
     def __init__(self, options: BuildOptions):
         from .cameras import make_ring
-
         from .orient import OrientationOverrides
 
         self.options = options
+        self.budgets = options.budgets()
         self.overrides = OrientationOverrides(dict(options.orientation_overrides))
         self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
                               fov_deg=options.fov_deg, size=options.size)
@@ -206,18 +438,45 @@ class Pipeline:
             from .features import HogExtractor
             self.extractor = HogExtractor()
 
+    def identify(self, ref: MeshRef) -> tuple[str, object]:
+        """(content key, None), or (key, rejected CatalogEntry) when the file cannot be read."""
+        from .ingest import IngestError, mesh_identity, unreadable_identity
+
+        try:
+            return mesh_identity(ref.path, self.budgets), None
+        except IngestError as exc:
+            sha = unreadable_identity(ref.path)
+            return sha, rejected_entry(ref, sha, exc.reason, str(exc))
+
     def load(self, ref: MeshRef):
-        """Ingest, then orient (may raise IngestError). Returns (mesh, {stage: seconds})."""
+        """Ingest, then orient (may raise IngestError or MemoryError). Returns (mesh,
+        {stage: seconds})."""
         from .ingest import load_mesh
         from .orient import orient_mesh
 
         t0 = time.perf_counter()
         _inject_fault(ref.path)
-        mesh = load_mesh(ref.path, orientation=None)
+        mesh = load_mesh(ref.path, budgets=self.budgets, orientation=None)
         t1 = time.perf_counter()
         mode = self.overrides.mode_for(ref.path, mesh.sha256, self.options.orientation)
         mesh = orient_mesh(mesh, mode)
         return mesh, {"ingest": t1 - t0, "orient": time.perf_counter() - t1}
+
+    def load_entry(self, ref: MeshRef, sha: str):
+        """``load`` with every input fault turned into a rejected entry: (mesh, secs, None) or
+        (None, 0, entry). MemoryError passes through (the caller attributes it)."""
+        from .ingest import IngestError, describe_exception
+
+        try:
+            mesh, secs = self.load(ref)
+            return mesh, secs, None
+        except IngestError as exc:
+            return None, 0.0, rejected_entry(ref, sha, exc.reason, str(exc))
+        except MemoryError:
+            raise
+        except Exception as exc:             # a reader quirk on a strange file: an input fault
+            return None, 0.0, rejected_entry(ref, sha, "unreadable",
+                                             f"{ref.path}: {describe_exception(exc)}")
 
     def process(self, ref: MeshRef, mesh, load_seconds: float | dict, staging: Path):
         """Everything after ingest; returns a CatalogEntry (accepted or rejected).
@@ -232,6 +491,7 @@ class Pipeline:
         timings = (dict(load_seconds) if isinstance(load_seconds, dict)
                    else {"ingest": load_seconds})
         t = time.perf_counter()
+        notes = "; ".join(mesh.report.notes)
 
         def lap(name):
             nonlocal t
@@ -240,6 +500,8 @@ class Pipeline:
             t = now
 
         def rejected(verdict):
+            if notes:
+                verdict = Verdict(False, verdict.reason, f"{verdict.detail} ({notes})")
             return CatalogEntry.from_results(sha256=mesh.sha256, path=ref.path, size=ref.size,
                                              mtime=ref.mtime, verdict=verdict, mesh=mesh,
                                              timings=timings)
@@ -285,9 +547,10 @@ class Pipeline:
         table = classify_parts(mesh, views, masks, threshold=o.threshold, priors=name_priors(mesh))
         lap("classify")
         if self.extractor is not None:
+            from .features import view_features
             from .shade import shade_views
             images = shade_views(mesh, views, background=(128, 128, 128))
-            feats = self.extractor.extract(images, np.isfinite(views.depth)).feats
+            feats = view_features(self.extractor, images, views).feats
             artifacts["features.npy"] = npy_bytes(feats.astype(np.float32))
             lap("features")
         artifacts["parts.png"] = parts_sheet_png(views, table)
@@ -299,8 +562,48 @@ class Pipeline:
                       for v in range(views.n_views)]
         return CatalogEntry.from_results(
             sha256=mesh.sha256, path=ref.path, size=ref.size, mtime=ref.mtime,
-            verdict=Verdict(True), mesh=mesh, table=table, ring=self.ring, artifacts=artifacts,
-            timings=timings, view_stats=view_stats)
+            verdict=Verdict(True, "", notes), mesh=mesh, table=table, ring=self.ring,
+            artifacts=artifacts, timings=timings, view_stats=view_stats)
+
+    def process_entry(self, ref: MeshRef, mesh, load_seconds: float, staging: Path):
+        """``process`` with an unexpected error recorded as ``pipeline_error``. Environment
+        faults (``environment_code``) and MemoryError pass through."""
+        from .ingest import describe_exception
+
+        try:
+            return self.process(ref, mesh, load_seconds, staging)
+        except MemoryError:
+            raise
+        except Exception as exc:
+            if environment_code(exc):
+                raise
+            return rejected_entry(ref, mesh.sha256, "pipeline_error",
+                                  f"{ref.path}: {describe_exception(exc)}")
+
+
+class KnownContent:
+    """Read-only question to the catalogue, asked by workers: is content ``sha`` already
+    catalogued with options hash ``ohash`` (and not with a reason being retried)? No lock; any
+    error answers "no" (the mesh is then simply processed)."""
+
+    def __init__(self, catalog: str | os.PathLike | None, ohash: str | None,
+                 retry: Iterable[str] = ()):
+        self._db = Path(catalog) / "catalog.sqlite" if catalog else None
+        self._ohash, self._retry = ohash, set(retry)
+        self._conn = None
+
+    def __call__(self, sha: str) -> bool:
+        if self._db is None or not self._ohash:
+            return False
+        try:
+            if self._conn is None:
+                self._conn = sqlite3.connect(f"{self._db.resolve().as_uri()}?mode=ro", uri=True,
+                                             timeout=5.0, check_same_thread=False)
+            row = self._conn.execute("SELECT state, reason FROM meshes WHERE sha256=? AND "
+                                     "options_hash=?", (sha, self._ohash)).fetchone()
+        except sqlite3.Error:
+            return False
+        return row is not None and not (row[0] == "rejected" and row[1] in self._retry)
 
 
 def _inject_fault(path: str) -> None:
@@ -310,18 +613,19 @@ def _inject_fault(path: str) -> None:
     spec = os.environ.get("UCAD_FAULT_INJECT")
     if not spec:
         return
-    import signal
     for item in spec.split(","):
         kind, _, needle = item.partition(":")
         if needle and needle in path:
-            if kind == "crash":
-                os.kill(os.getpid(), signal.SIGSEGV)
+            if kind == "crash":               # a real fault: LLVM (PoCL) catches kill(SIGSEGV)
+                import ctypes
+                ctypes.string_at(0)
             elif kind == "hang":
                 time.sleep(3600)
 
 
 def make_segmenter(spec: str):
-    """'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG.json' -> a Segmenter (``segment.make_segmenter``)."""
+    """'labeller[:MODEL.onnx]' | 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG.json' -> a Segmenter
+    (``segment.make_segmenter``)."""
     from .segment import make_segmenter as factory
 
     kind, _, arg = spec.partition(":")
@@ -333,6 +637,7 @@ def rejected_entry(ref: MeshRef, sha: str, reason: str, detail: str):
     from ucad_catalog.entry import CatalogEntry
     from .artifacts import Verdict
 
+    reasons.check(reason, reasons.REJECTION)
     return CatalogEntry.from_results(sha256=sha, path=ref.path, size=max(ref.size, 0),
                                      mtime=ref.mtime, verdict=Verdict(False, reason, detail))
 
@@ -360,192 +665,241 @@ def parts_sheet_png(views, table) -> bytes:
     return png.tobytes()
 
 
-# ----------------------------------------------------------------------------- local engine
-
-def _worker_main(task_q, result_q, state, options_dict: dict, threads: int, staging: str) -> None:
-    """Worker process: prefetching loader thread + OpenCL stages. Messages to the driver:
-    ('loading' | 'loaded' | 'processing', i), ('done', i, entry), ('error', i, reason, detail).
-    ``state`` (shared memory, written before each step, so it survives a crash of this process):
-    [index being loaded, index being processed], -1 for none."""
-    os.environ["POCL_MAX_PTHREAD_COUNT"] = str(threads)
-    os.environ["POCL_CPU_MAX_CU_NUM"] = str(threads)
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    opts = BuildOptions(**{**options_dict, "elevations": tuple(options_dict["elevations"])})
-    pipe = Pipeline(opts)
-    loaded: queue.Queue = queue.Queue(maxsize=1)
-    parent = os.getppid()
-
-    def get(q):
-        """Blocking get that ends the worker when the driver is gone (e.g. killed with -9)."""
-        while True:
-            try:
-                return q.get(timeout=1.0)
-            except queue.Empty:
-                if os.getppid() != parent:
-                    os._exit(0)
-
-    def loader():
-        from .ingest import IngestError
-        while True:
-            item = get(task_q)
-            if item is None:
-                loaded.put(None)
-                return
-            i, ref = item
-            state[0] = i
-            result_q.put(("loading", i))
-            try:
-                mesh, secs = pipe.load(ref)
-                out = (i, ref, mesh, secs, None)
-            except IngestError as exc:
-                out = (i, ref, None, 0.0, (exc.reason, str(exc)))
-            except Exception as exc:            # a loader bug must not stop the build
-                out = (i, ref, None, 0.0, ("unreadable", f"{ref.path}: {exc!r}"))
-            state[0] = -1
-            result_q.put(("loaded", i))
-            loaded.put(out)
-
-    threading.Thread(target=loader, daemon=True).start()
-    stage_dir = Path(staging) / f"w{os.getpid()}"
-    while True:
-        item = get(loaded)
-        if item is None:
-            return
-        i, ref, mesh, secs, err = item
-        state[1] = i
-        result_q.put(("processing", i))
-        if err is not None:
-            msg = ("error", i, err[0], err[1])
-        else:
-            try:
-                msg = ("done", i, pipe.process(ref, mesh, secs, stage_dir))
-            except Exception as exc:
-                msg = ("error", i, "pipeline_error", f"{ref.path}: {type(exc).__name__}: {exc}")
-        state[1] = -1
-        result_q.put(msg)
-
-
-class _Worker:
-    def __init__(self, ctx, result_q, options, threads, staging):
-        self.task_q = ctx.Queue()
-        self.state = ctx.Array("q", [-1, -1], lock=False)
-        self.proc = ctx.Process(target=_worker_main, daemon=True,
-                                args=(self.task_q, result_q, self.state, options.to_dict(),
-                                      threads, staging))
-        self.proc.start()
-        self.assigned: list[int] = []          # task indices sent, in order
-        self.since = time.monotonic()
-        self.done = 0
-
-    def send(self, i, ref):
-        self.assigned.append(i)
-        self.task_q.put((i, ref))
-
-
-
-    def stop(self, kill=False):
-        if kill:
-            self.proc.kill()
-        else:
-            self.task_q.put(None)
-        self.proc.join(timeout=10)
-        if self.proc.is_alive():
-            self.proc.kill()
-            self.proc.join()
-
+# ----------------------------------------------------------------------------- driver
 
 def build(library: str | os.PathLike, catalog: str | os.PathLike,
           options: BuildOptions = BuildOptions(), *, workers: int = 1, engine: str = "local",
           timeout: float = 600.0, recycle_after: int = 200, progress: bool = True,
           uids: Iterable[str] | None = None, limit: int | None = None,
-          ray_address: str | None = None, log=print) -> BuildSummary:
-    """Build or update the catalogue at ``catalog`` from ``library``. See the module docstring."""
+          ray_address: str | None = None, log=print, retry_failed: Iterable[str] | None = None,
+          memory_limit_mb: float | None = None) -> BuildSummary:
+    """Build or update the catalogue at ``catalog`` from ``library``. See the module docstring.
+
+    Raises ``BuildStopped`` on an environment fault (the summary of what was done is attached),
+    ``ucad_catalog.CatalogError`` when the catalogue cannot be opened (another writer holds it,
+    not a catalogue), ValueError / FileNotFoundError for bad arguments or a missing library.
+    """
     import resource
 
     from ucad_catalog.store import Catalog
 
     t_start = time.perf_counter()
     make_segmenter(options.segmenter)     # a bad --segmenter fails here, not in every worker
-    refs = discover(library, uids=uids)
+    if engine not in ("local", "ray"):
+        raise ValueError(f"unknown engine {engine!r}: use local or ray")
+    retry = tuple(reasons.check(r, reasons.REJECTION) for r in (retry_failed or ()))
+    if memory_limit_mb is None:
+        memory_limit_mb = default_memory_limit_mb(workers)
+    if not memory_limit_mb > 0:
+        raise ValueError(f"memory_limit_mb must be > 0, got {memory_limit_mb}")
+    refs = discover(library, uids=uids, log=log)
     if limit:
         refs = refs[:limit]
-    cat = Catalog.open(catalog, create=True)
+    root = library_root(library)          # paths are recorded relative to it (absolute root)
+    summary = BuildSummary(run_id=0, discovered=len(refs), memory_limit_mb=memory_limit_mb,
+                           library_root=root)
+    staging = Path(catalog) / "staging"
+    cat = sink = None
     try:
-        run_id = cat.begin_run({**options.to_dict(), "code": CODE_VERSION}, engine)
-        ohash = cat.run_options_hash
-        summary = BuildSummary(run_id=run_id, discovered=len(refs))
-        todo: list[tuple[MeshRef, str]] = []
-        for ref in refs:
-            rec = cat.file_record(ref.path)
-            if rec and rec[1] == ref.size and rec[2] == ref.mtime:
-                sha = rec[0]                               # unchanged file: no need to re-hash
+        try:
+            cat = Catalog.open(catalog, create=True)
+            summary.run_id = cat.begin_run({**options.to_dict(), "code": CODE_VERSION}, engine)
+            todo = _plan(cat, refs, root, retry, summary)
+            log(f"{len(refs)} meshes found, {summary.skipped} unchanged (skipped), "
+                f"{len(todo)} to process with the {engine} engine")
+            sink = _Sink(cat, summary, Path(catalog) / "logs" / f"run-{summary.run_id:05d}.log",
+                         len(todo), root)
+            sink.log.write(f"run {summary.run_id} engine={engine} workers={workers} "
+                           f"found={len(refs)} skipped={summary.skipped} todo={len(todo)} "
+                           f"memory_limit_mb={memory_limit_mb:.0f} retry={list(retry)} "
+                           f"options={options.to_dict()}")
+            shutil.rmtree(staging, ignore_errors=True)   # a killed run's leftovers (we hold the lock)
+            known = (str(catalog), cat.run_options_hash, retry)
+            if engine == "local":
+                from .engines import run_local
+                run_local(todo, options, sink.commit, sink.skip, workers=workers,
+                          timeout=timeout, recycle_after=recycle_after, progress=progress,
+                          staging=staging, log=log, known=known,
+                          memory_limit_mb=memory_limit_mb, summary=summary, runlog=sink.log)
             else:
-                try:
-                    sha = content_sha256(ref.path)
-                except OSError:
-                    sha = hashlib.sha256(f"unreadable:{ref.path}".encode()).hexdigest()
-            if cat.needs_processing(ref.path, sha, ohash):
-                todo.append((ref, sha))
-            else:
-                summary.skipped += 1
-        log(f"{len(refs)} meshes found, {summary.skipped} unchanged (skipped), "
-            f"{len(todo)} to process with the {engine} engine")
-        runlog = RunLog(Path(catalog) / "logs" / f"run-{run_id:05d}.log")
-        runlog.write(f"run {run_id} engine={engine} workers={workers} found={len(refs)} "
-                     f"skipped={summary.skipped} todo={len(todo)} options={options.to_dict()}")
-
-        def commit(entry):
-            cat.commit_mesh(entry, move_files=True)
-            n = summary.processed + 1
-            runlog.write(f"{n}/{len(todo)} {entry.state} {entry.path}"
-                         + (f" reason={entry.reason}: {entry.detail}" if entry.reason else "")
-                         + f" s={sum((entry.timings or {}).values()):.2f}"
-                         + (f" rss_mb={_tree_rss_mb():.0f}" if n % 50 == 0 else ""))
-            if entry.state == "accepted":
-                summary.accepted += 1
-            else:
-                summary.rejected += 1
-                summary.reasons[entry.reason] = summary.reasons.get(entry.reason, 0) + 1
-            for k, v in (entry.timings or {}).items():
-                summary.stage_seconds[k] = summary.stage_seconds.get(k, 0.0) + v
-
-        staging = Path(catalog) / "staging"
-        if engine == "local":
-            _run_local(todo, options, commit, workers=workers, timeout=timeout,
-                       recycle_after=recycle_after, progress=progress, staging=staging, log=log)
-        elif engine == "ray":
-            from .engines import run_ray
-            run_ray(todo, options, commit, address=ray_address, progress=progress,
-                    staging=staging, log=log, timeout=timeout,
-                    num_cpus=None if ray_address else workers)
-        else:
-            raise ValueError(f"unknown engine {engine!r}: use local or ray")
+                from .engines import run_ray
+                run_ray(todo, options, sink.commit, address=ray_address, progress=progress,
+                        staging=staging, log=log, timeout=timeout,
+                        num_cpus=None if ray_address else workers, on_skip=sink.skip,
+                        known=known, summary=summary)
+            shutil.rmtree(staging, ignore_errors=True)
+            _finish_summary(summary, t_start, resource)
+            summary.superseded_mb = cat.superseded_bytes / 2**20
+            cat.finish_run(summary.run_id, {
+                "skipped": summary.skipped, "failed": summary.failed, "retried": summary.retried,
+                "meshes_per_s": summary.meshes_per_s, "stage_seconds": summary.stage_seconds,
+                "peak_rss_mb": summary.peak_rss_mb})
+            sink.log.write(f"finished: {summary.accepted} accepted, {summary.rejected} rejected "
+                           f"{summary.reasons}, {summary.skipped} skipped, {summary.retried} "
+                           f"retried, {summary.meshes_per_s:.2f} meshes/s, peak memory "
+                           f"{summary.peak_rss_mb:.0f} MB (process tree), driver "
+                           f"{summary.peak_driver_mb:.0f} MB, largest worker "
+                           f"{summary.peak_worker_mb:.0f} MB")
+        except (OSError, sqlite3.Error) as exc:          # the catalogue side failed
+            code = environment_code(exc)
+            if code is None:
+                raise
+            raise BuildStopped(code, f"catalogue {printable(str(catalog))}: "
+                                     f"{type(exc).__name__}: {exc}") from None
+    except BuildStopped as stop:
         shutil.rmtree(staging, ignore_errors=True)
-        summary.seconds = time.perf_counter() - t_start
-        summary.peak_rss_mb = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss,
-                                  resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024
-        cat.finish_run(run_id, {"skipped": summary.skipped, "failed": summary.failed,
-                                "meshes_per_s": summary.meshes_per_s,
-                                "stage_seconds": summary.stage_seconds})
-        runlog.write(f"finished: {summary.accepted} accepted, {summary.rejected} rejected "
-                     f"{summary.reasons}, {summary.meshes_per_s:.2f} meshes/s, "
-                     f"peak RSS {summary.peak_rss_mb:.0f} MB")
+        _finish_summary(summary, t_start, resource)
+        left = sink.todo - summary.processed - sink.worker_skips if sink else len(refs)
+        message = _stop_message(stop.code, str(stop), catalog, summary, max(left, 0))
+        if sink is not None:
+            sink.log.write(f"stopped [{stop.code}]: {message}")
+        if cat is not None and summary.run_id:
+            try:                                    # best effort: the disk may still be full
+                cat.finish_run(summary.run_id, {"skipped": summary.skipped,
+                                                "stopped": stop.code})
+            except (OSError, sqlite3.Error):
+                pass
+        raise BuildStopped(stop.code, message, summary) from None
     finally:
-        cat.close()
+        if sink is not None:
+            sink.log.close()
+        if cat is not None:
+            cat.close()
     return summary
+
+
+def _plan(cat, refs: list[MeshRef], root: str, retry: tuple, summary: BuildSummary) -> list:
+    """(MeshRef, force) for every file to hand to a worker; unchanged ones are counted skipped.
+
+    Unchanged = same (size, mtime) as the last commit of the path (relative to the library
+    ``root``), content recorded with this run's options hash, and not a rejection whose reason
+    is being retried (``force``)."""
+    ohash = cat.run_options_hash
+    todo = []
+    for ref in refs:
+        rec = cat.file_record(relative_path(ref.path, root), root)
+        if not (rec and rec[1] == ref.size and rec[2] == ref.mtime):
+            todo.append((ref, False))               # new or changed: a worker decides
+            continue
+        verdict = cat.mesh_verdict(rec[0])          # unchanged file: no need to re-hash
+        if verdict is None or verdict[2] != ohash:
+            todo.append((ref, False))
+        elif verdict[0] == "rejected" and verdict[1] in retry:
+            todo.append((ref, True))
+        else:
+            summary.skipped += 1
+    return todo
+
+
+class _Sink:
+    """Where the engines' results go: commits to the catalogue (an environment fault becomes
+    ``BuildStopped`` naming the mesh), the summary's counts, and the run log."""
+
+    def __init__(self, cat, summary: BuildSummary, log_path: Path, todo: int, root: str):
+        self.cat, self.summary, self.todo, self.root = cat, summary, todo, root
+        self.log = RunLog(log_path)
+        summary.log_path = str(log_path)
+        self.worker_skips = 0                      # paths whose content was already catalogued
+
+    def commit(self, entry) -> None:
+        s = self.summary
+        entry.library_root, entry.path = self.root, relative_path(entry.path, self.root)
+        try:
+            self.cat.commit_mesh(entry, move_files=True)
+        except (OSError, sqlite3.Error) as exc:
+            code = environment_code(exc)
+            if code is None:
+                raise
+            raise BuildStopped(code, f"storing {printable(entry.path)}: "
+                                     f"{type(exc).__name__}: {exc}") from None
+        n = s.processed + 1
+        self.log.write(f"{n}/{self.todo} {entry.state} {printable(entry.path)}"
+                       + (f" reason={entry.reason}: {printable(entry.detail)}"
+                          if entry.reason else "")
+                       + f" s={sum((entry.timings or {}).values()):.2f}"
+                       + (f" rss_mb={_tree_rss_mb():.0f}" if n % 50 == 0 else ""))
+        if entry.state == "accepted":
+            s.accepted += 1
+        else:
+            s.rejected += 1
+            s.reasons[entry.reason] = s.reasons.get(entry.reason, 0) + 1
+            s.failed += entry.reason == "pipeline_error"
+            examples = s.examples.setdefault(entry.reason, [])
+            if len(examples) < 3:
+                examples.append(printable(entry.path))
+        for k, v in (entry.timings or {}).items():
+            s.stage_seconds[k] = s.stage_seconds.get(k, 0.0) + v
+
+    def skip(self, ref: MeshRef, sha: str) -> None:
+        self.summary.skipped += 1
+        self.worker_skips += 1
+        self.log.write(f"skipped {printable(ref.path)}: content {sha[:12]} already catalogued")
+
+
+def _finish_summary(summary: BuildSummary, t_start: float, resource) -> None:
+    summary.seconds = time.perf_counter() - t_start
+    summary.peak_driver_mb = (process_memory_mb(os.getpid())[1]
+                              or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    summary.peak_rss_mb = max(summary.peak_rss_mb, summary.peak_driver_mb)
+
+
+def _stop_message(code: str, detail: str, catalog, summary: BuildSummary, left: int) -> str:
+    """What stopped the build and what to do about it (one paragraph for the terminal)."""
+    cat = printable(str(catalog))
+    done = (f"{summary.processed} meshes were committed in this run and {left} remain; nothing "
+            "was recorded for the meshes in flight. Run the same command again to continue.")
+    if code == "disk_full":
+        try:
+            free = f"{shutil.disk_usage(catalog).free / 2**20:.1f} MiB free"
+        except OSError:
+            free = "free space unknown"
+        return (f"build stopped: no space left on the file system of the catalogue {cat} "
+                f"({free}) - {detail}. Free space there (`ucad-index gc --catalog {cat}` "
+                f"deletes unreferenced objects). {done}")
+    if code == "io_error":
+        return (f"build stopped: I/O error on the file system of the catalogue {cat} - "
+                f"{detail}. Check the disk (dmesg), then `ucad-index verify --catalog {cat}`. "
+                f"{done}")
+    if code == "worker_killed":
+        return (f"build stopped: {detail}. Something kills ucad workers - most often the "
+                "kernel's OOM killer (check `dmesg | grep -i oom`): lower --workers or "
+                f"--memory-limit-mb. {done}")
+    if code == "worker_start_failed":
+        return (f"build stopped: {detail}. Check `ucad-index info` (OpenCL) and that "
+                f"--memory-limit-mb leaves room for a worker to start. {done}")
+    return f"build stopped [{code}]: {detail}. {done}"
 
 
 class RunLog:
     """Append-only, line-buffered log of one run (``CATALOG/logs/run-NNNNN.log``): every commit
-    with its reason and seconds, process-tree memory every 50 meshes, worker deaths. Flushed per
-    line, so a killed run still says how far it got and why."""
+    with its reason and seconds, process-tree memory every 50 meshes, worker failures and
+    retries. Flushed per line, so a killed run still says how far it got and why. A full disk
+    silences it (the build reports that itself)."""
 
     def __init__(self, path: Path):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(path, "a", buffering=1, encoding="utf-8")
+        self.path = path
+        self._f = None
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._f = open(path, "a", buffering=1, encoding="utf-8", errors="backslashreplace")
+        except OSError:
+            pass
 
     def write(self, line: str) -> None:
-        self._f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {line}\n")
+        if self._f is None:
+            return
+        try:
+            self._f.write(f"{time.strftime('%Y-%m-%d %H:%M:%S')} {line}\n")
+        except OSError:
+            self._f = None
+
+    def close(self) -> None:
+        if self._f is not None:
+            try:
+                self._f.close()
+            except OSError:
+                pass
+            self._f = None
 
 
 def _tree_rss_mb() -> float:
@@ -567,89 +921,21 @@ def _tree_rss_mb() -> float:
     return total / 2**20
 
 
-def _run_local(todo, options, commit, *, workers, timeout, recycle_after, progress, staging, log):
-    import multiprocessing as mp
-
-    from tqdm import tqdm
-
-    if not todo:
-        return
-    ctx = mp.get_context("spawn")
-    workers = max(1, min(workers, len(todo)))
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    result_q = ctx.Queue()
-    staging.mkdir(parents=True, exist_ok=True)
-    pool = [_Worker(ctx, result_q, options, threads, str(staging)) for _ in range(workers)]
-    pending = list(range(len(todo)))[::-1]          # stack: pop() gives the next index
-    finished: set[int] = set()
-    bar = tqdm(total=len(todo), unit="mesh", desc="build", disable=not progress, smoothing=0.05)
-
-    def outstanding(w):
-        return [i for i in w.assigned if i not in finished]
-
-    def feed(w):
-        # at most two tasks per worker: one on the device, one being prefetched; a worker takes
-        # no more than recycle_after tasks in its life
-        while pending and len(outstanding(w)) < 2 and len(w.assigned) < recycle_after:
-            i = pending.pop()
-            w.send(i, todo[i][0])
-
-    def finish(i, entry):
-        finished.add(i)
-        commit(entry)
-        bar.update(1)
-
-    def replace(w, reason, detail, kill=True):
-        """Worker died or hung: reject its current mesh, requeue the rest, start a new one."""
-        w.stop(kill=kill)
-        loading, processing = w.state[0], w.state[1]
-        culprit = loading if loading >= 0 and loading not in finished else processing
-        for i in reversed(outstanding(w)):
-            if i == culprit:
-                ref, sha = todo[i]
-                log(f"rejected {ref.path}: {detail}")
-                finish(i, rejected_entry(ref, sha, reason, f"{ref.path}: {detail}"))
-            else:
-                pending.append(i)
-        nw = _Worker(ctx, result_q, options, threads, str(staging))
-        pool[pool.index(w)] = nw
-        feed(nw)
-
-    for w in pool:
-        feed(w)
+def process_memory_mb(pid: int) -> tuple[float, float, float]:
+    """(VmRSS, VmHWM, VmData) of a process in MB from /proc; zeros where unavailable. VmHWM is
+    the peak of the process' own memory (unlike ``ru_maxrss``, which after fork + exec starts at
+    the parent's size)."""
+    out = {"VmRSS": 0.0, "VmHWM": 0.0, "VmData": 0.0}
     try:
-        while len(finished) < len(todo):
-            try:
-                msg = result_q.get(timeout=0.5)
-            except queue.Empty:
-                msg = None
-            if msg is not None:
-                kind, i = msg[0], msg[1]
-                w = next((w for w in pool if i in w.assigned), None)
-                if w is None or i in finished:
-                    continue
-                if kind in ("loading", "loaded", "processing"):
-                    w.since = time.monotonic()
-                else:
-                    ref, sha = todo[i]
-                    entry = msg[2] if kind == "done" else rejected_entry(ref, sha, msg[2], msg[3])
-                    w.done += 1
-                    finish(i, entry)
-                    if len(w.assigned) >= recycle_after and not outstanding(w):
-                        w.stop()                      # recycle: memory stays flat
-                        nw = _Worker(ctx, result_q, options, threads, str(staging))
-                        pool[pool.index(w)] = nw
-                        w = nw
-                    feed(w)
-            for w in list(pool):
-                busy = outstanding(w)
-                if busy and not w.proc.is_alive():
-                    code = w.proc.exitcode
-                    replace(w, "loader_crashed", f"worker process died (exit code {code}) "
-                            "while loading or processing this mesh", kill=False)
-                elif busy and time.monotonic() - w.since > timeout:
-                    replace(w, "timeout", f"no progress for {timeout:.0f} s on this mesh")
-    finally:
-        bar.close()
-        for w in pool:
-            w.stop(kill=len(finished) < len(todo))
+        with open(f"/proc/{pid}/status", "rb") as f:
+            for line in f:
+                key, _, value = line.partition(b":")
+                k = key.decode()
+                if k in out:
+                    out[k] = int(value.split()[0]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return out["VmRSS"], out["VmHWM"], out["VmData"]
+
+
+# ----------------------------------------------------------------------------- local engine

@@ -30,6 +30,11 @@ visible in view v:
   Materials seen in fewer than ``min_pixels`` pixels (all views together) are ``'unseen'``.
 * Mirror pairs (left/right across the plane of symmetry, see ``symmetric_pairs``) get one label,
   the more confident decision of the two; the one that changed gets ``'symmetric'``.
+* Masks from a per-material labeller (``masks.labels``, see ``ucad_cl.labeller``): a material
+  with fewer than ``min_pixels`` pixels in the views but at least that many in the layer behind
+  glass takes the labeller's part (``'behind-glass'``, pixels = that layer's); every row reports
+  the labeller's probability of its final part (``prob``) and a shared material's split into
+  component groups (``split``).
 
 Tie rules: best-view: equal scores -> the part earlier in ``PART_NAMES``, equal view confidences ->
 the lower view index; vote: as above; pairs: equal confidence -> the lower material index keeps
@@ -75,13 +80,30 @@ def classify_parts(mesh: Mesh, views: ViewSet, masks: PartMasks, *, threshold: f
     order = _part_order(parts)              # column order that realises the PART_NAMES tie rule
     rows = [_decide(m, mesh.materials[m].name, hist[:, m + 1], core_hist[:, m + 1], view_conf,
                     part_area, parts, order, threshold, min_pixels) for m in range(n_mat)]
+    labels = getattr(masks, "labels", None)
+    if labels is not None:
+        _behind_glass(rows, labels, min_pixels)
     total = max(int(hist[:, 1:, 0].sum()), 1)
     _merge_leftovers(rows, views.mat_id, merge_max_fraction * total, priors or {})
     if symmetry:
         for a, b in symmetric_pairs(mesh):
             _unify_pair(rows, a, b)
+    if labels is not None:
+        for r in rows:
+            if r.part in PART_NAMES:
+                r.prob = float(labels.prob[r.material, PART_NAMES.index(r.part)])
+            r.split = labels.splits.get(r.material)
     return PartTable(rows=[MaterialPart(r.material, r.name, r.part, r.score, r.iou, r.view,
-                                        r.decision, r.pixels) for r in rows])
+                                        r.decision, r.pixels, r.prob, r.split) for r in rows])
+
+
+def _behind_glass(rows, labels, min_pixels) -> None:
+    """Unseen materials seen through glass take the labeller's part (decision 'behind-glass')."""
+    for r in rows:
+        behind = int(labels.behind_pixels[r.material])
+        if r.decision == "unseen" and behind >= max(min_pixels, 1):
+            r.part = PART_NAMES[int(labels.part[r.material])]
+            r.decision, r.pixels = "behind-glass", behind
 
 
 def part_histogram(mat_id: np.ndarray | Sequence[np.ndarray], masks: np.ndarray | None = None,

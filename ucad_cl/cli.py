@@ -17,7 +17,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "render 360-degree material-index views with OpenCL, Canny edges, part "
                     "segmentation, material->part classification, pose features and search.",
         epilog="OpenCL device: --device P:D or a name substring (env UCAD_CL_DEVICE); "
-               "default is the PoCL CPU device. `ucad-index info` lists devices.")
+               "default: the best PoCL CPU device that compiles (a named-CPU target, then the "
+               "newer PoCL and LLVM). `ucad-index info` lists devices and says which and why.")
     parser.add_argument("--device", default=None,
                         help="OpenCL device: 'P:D' indices or a platform/device name substring")
     parser.add_argument("--version", action="store_true",

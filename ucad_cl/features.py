@@ -52,8 +52,17 @@ class FeatureExtractor(Protocol):
 
 
 def view_features(extractor: FeatureExtractor, images: np.ndarray, views: ViewSet) -> Features:
-    """Features of shaded renders ``images`` (V, H, W, 3) of ``views``: mask = finite depth."""
-    return extractor.extract(images, np.isfinite(views.depth))
+    """Features of shaded renders ``images`` (V, H, W, 3) of ``views``: mask = finite depth.
+    A view that sees nothing (a flat or thin mesh seen edge-on) gets an all-zero row."""
+    masks = np.isfinite(views.depth)
+    seen = masks.any(axis=(1, 2))
+    if seen.all():
+        return extractor.extract(images, masks)
+    probe = seen if seen.any() else np.arange(len(seen)) == 0     # D from one view at least
+    got = extractor.extract(images[probe], masks[probe] | ~seen[probe, None, None])
+    feats = np.zeros((len(seen), got.feats.shape[1]), got.feats.dtype)
+    feats[seen] = got.feats[seen[probe]]
+    return Features(feats=feats, kind=got.kind)
 
 
 # ----------------------------------------------------------------------------- cropping

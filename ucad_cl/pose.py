@@ -291,6 +291,9 @@ def _elevation_step(elevations: Sequence[float]) -> float:
 
 
 def _box_side(mask: np.ndarray) -> float:
+    """Side of the mask's bounding box in pixels (the longer one); 0 for an empty mask."""
     rows = np.flatnonzero(mask.any(axis=1))
     cols = np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return 0.0
     return float(max(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1))

@@ -3,7 +3,13 @@
 Device choice, first match wins:
   1. ``get_runtime(device=...)`` / the CLI's ``--device``;
   2. the environment variable ``UCAD_CL_DEVICE``;
-  3. the PoCL CPU device (installed from PyPI with ``pyopencl[pocl]``), else the first device.
+  3. the best PoCL CPU device that really compiles a probe kernel, else the first other device
+     that does. "Best" (``device_rank``): kernels compiled for a named CPU before a PoCL that
+     compiles for the generic x86-64 target; then the newer PoCL, then the newer LLVM. Measured
+     on this project's machine (AMD EPYC Zen 3, AVX2, 2 cores), Debian's PoCL 3.1 (LLVM 15)
+     ran the exact search kernel 8.2x and Canny 3.3-3.9x faster than the PoCL 3.0-rc2 (LLVM 14) that
+     pyopencl's PyPI wheels bundle (``SLOW_POCL_COST``); ``slow_reason`` flags such a device
+     and ``ucad-index info`` / the build say so, with the fix (``INSTALL_FAST``).
 
 A device spec is ``"P:D"`` (platform and device index, e.g. ``"0:0"``) or a case-insensitive
 substring of the platform or device name (e.g. ``"pocl"``, ``"nvidia"``).
@@ -35,6 +41,76 @@ INSTALL_HINT = (
 )
 
 
+INSTALL_FAST = ("install Debian/Ubuntu's PoCL, built for this CPU family: "
+                "`apt-get install pocl-opencl-icd` (scripts/setup.sh does it); it is then "
+                "picked by default")
+# what a slow PoCL cost when measured (bench/search.py, bench/edges.py; README, "OpenCL runtime")
+SLOW_POCL_COST = ("measured on an AMD EPYC Zen 3 (AVX2): the exact search kernel 8.2x and Canny "
+                  "3.3-3.9x slower than Debian's PoCL 3.1; on an Intel AVX-512 machine 4.2x and "
+                  "2.5x")
+MIN_FAST_POCL = (3, 1)       # PoCL releases older than this measured slow (see SLOW_POCL_COST)
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """What the OpenCL API tells about one device, parsed: ``spec`` "P:D", names, and for PoCL
+    its version, LLVM version and the CPU its kernels are compiled for (the device version's
+    ``HSTR: <driver>-<triple>-<cpu>``; "generic" or absent = the generic x86-64 target)."""
+
+    spec: str
+    platform: str
+    device: str
+    is_pocl: bool
+    pocl_version: tuple[int, ...] | None
+    llvm_version: tuple[int, ...] | None
+    target_cpu: str | None
+
+    @property
+    def generic_target(self) -> bool:
+        return self.is_pocl and self.target_cpu in (None, "", "generic", "x86-64")
+
+    def slow_reason(self) -> str | None:
+        """Why this device is known to run our kernels slowly, or None."""
+        if not self.is_pocl:
+            return None
+        if self.generic_target:
+            return "this PoCL compiles kernels for the generic x86-64 CPU"
+        if self.pocl_version is not None and self.pocl_version < MIN_FAST_POCL:
+            v = ".".join(map(str, self.pocl_version))
+            llvm = ".".join(map(str, self.llvm_version or ()))
+            return (f"PoCL {v} (LLVM {llvm or '?'}, the one pyopencl's PyPI wheels bundle) runs "
+                    "our kernels several times slower than PoCL >= 3.1")
+        return None
+
+    def summary(self) -> str:
+        if not self.is_pocl:
+            return f"{self.platform} | {self.device}"
+        v = ".".join(map(str, self.pocl_version or ())) or "?"
+        llvm = ".".join(map(str, self.llvm_version or ())) or "?"
+        return (f"{self.platform} | {self.device} | PoCL {v}, LLVM {llvm}, kernels for "
+                f"{self.target_cpu or 'generic'!r}")
+
+
+def device_info(spec: str, platform, device) -> DeviceInfo:
+    """Parse the platform / device strings of a pyopencl platform and device."""
+    pocl = "portable computing language" in platform.name.lower()
+    pv = re.search(r"PoCL (\d+)\.(\d+)", platform.version)
+    lv = re.search(r"LLVM (\d+)\.(\d+)(?:\.(\d+))?", platform.version)
+    hstr = re.search(r"HSTR:\s*(\S+)", device.version or "")
+    cpu = hstr.group(1).rsplit("-", 1)[-1] if hstr else None
+    return DeviceInfo(spec, platform.name.strip(), device.name.strip(), pocl,
+                      tuple(int(x) for x in pv.groups()) if pv else None,
+                      tuple(int(x) for x in lv.groups() if x is not None) if lv else None,
+                      cpu if pocl else None)
+
+
+def device_rank(info: DeviceInfo) -> tuple:
+    """Sort key of the default choice, best first (see the module docstring)."""
+    return (not info.is_pocl, info.generic_target, tuple(-x for x in info.pocl_version or ()),
+            tuple(-x for x in info.llvm_version or ()),
+            tuple(int(x) for x in info.spec.split(":")))
+
+
 class OpenCLUnavailable(RuntimeError):
     """Raised when no usable OpenCL platform/device exists."""
 
@@ -55,6 +131,8 @@ class Runtime:
     ctx: object
     queue: object
     device: object
+    info: DeviceInfo | None = None
+    why: str = ""                                   # how the device was chosen, one sentence
     compile_seconds: dict = field(default_factory=dict)
     _programs: dict = field(default_factory=dict)
     _kernels: dict = field(default_factory=dict)
@@ -117,6 +195,7 @@ _RUNTIME_LOCK = threading.Lock()
 
 
 def _pick_device(spec: str | None):
+    """(device, DeviceInfo, why): the device to use and one sentence on why."""
     import pyopencl as cl
 
     try:
@@ -125,30 +204,62 @@ def _pick_device(spec: str | None):
         raise OpenCLUnavailable(f"{INSTALL_HINT}\n(pyopencl said: {exc})") from exc
     devices = [(pi, di, p, d) for pi, p in enumerate(platforms)
                for di, d in enumerate(p.get_devices())]
+    infos = {(pi, di): device_info(f"{pi}:{di}", p, d) for pi, di, p, d in devices}
     if not devices:
         raise OpenCLUnavailable(INSTALL_HINT)
     if spec:
         m = re.fullmatch(r"(\d+):(\d+)", spec.strip())
         for pi, di, p, d in devices:
-            if m and (pi, di) == (int(m.group(1)), int(m.group(2))):
-                return d
-            if not m and (spec.lower() in p.name.lower() or spec.lower() in d.name.lower()):
-                return d
+            if (m and (pi, di) == (int(m.group(1)), int(m.group(2)))) or (
+                    not m and (spec.lower() in p.name.lower() or spec.lower() in d.name.lower())):
+                return d, infos[pi, di], f"selected with --device / UCAD_CL_DEVICE={spec!r}"
         listing = "\n".join(f"  {pi}:{di}  {p.name} | {d.name.strip()}" for pi, di, p, d in devices)
         raise OpenCLUnavailable(f"No OpenCL device matches {spec!r}. Available:\n{listing}")
-    # Default: the first PoCL CPU device that really compiles and runs a kernel, then any other.
+    # Default: the best-ranked device that really compiles and runs a kernel (device_rank).
     # (The PoCL 3.0-rc2 bundled with pyopencl's PyPI wheels uses LLVM 14, which cannot name newer
-    # CPUs such as AMD Zen 5 and fails every build with "unknown target CPU 'generic'"; Debian's
-    # pocl-opencl-icd is then used. See README, "OpenCL runtime".)
-    ordered = sorted(devices, key=lambda t: "portable computing language" not in t[2].name.lower())
+    # CPUs such as AMD Zen 5 and fails every build with "unknown target CPU 'generic'"; it is
+    # then skipped. See README, "OpenCL runtime".)
+    ordered = sorted(devices, key=lambda t: device_rank(infos[t[0], t[1]]))
     errors = []
     for pi, di, p, d in ordered:
         ok, why = _probe(d)
         if ok:
-            return d
+            others = [infos[t[0], t[1]] for t in ordered if t[:2] != (pi, di)]
+            return d, infos[pi, di], _why(infos[pi, di], others, errors)
         errors.append(f"  {pi}:{di}  {p.name} {p.version.strip()} | {d.name.strip()}: {why}")
     raise OpenCLUnavailable("No OpenCL device could compile a kernel:\n" + "\n".join(errors)
                             + "\n" + INSTALL_HINT)
+
+
+def _why(chosen: DeviceInfo, others: list[DeviceInfo], failed: list[str]) -> str:
+    """One sentence: why the default choice is ``chosen`` (the decisive rule per other device)."""
+    if not others:
+        return "the only OpenCL device"
+    parts = []
+    for o in others:
+        if device_rank(o) < device_rank(chosen):
+            continue                                   # better ranked: it failed the probe
+        if o.is_pocl != chosen.is_pocl:
+            rule = "not PoCL on the CPU"
+        elif o.generic_target != chosen.generic_target:
+            rule = "compiles for the generic x86-64 CPU"
+        elif o.pocl_version != chosen.pocl_version:
+            rule = f"older PoCL {'.'.join(map(str, o.pocl_version or ())) or '?'}"
+        elif o.llvm_version != chosen.llvm_version:
+            rule = f"older LLVM {'.'.join(map(str, o.llvm_version or ())) or '?'}"
+        else:
+            rule = "listed later"
+        parts.append(f"preferred over {o.spec} {o.device} ({rule})")
+    if failed:
+        parts.append(f"{len(failed)} better-ranked device(s) could not compile a probe kernel")
+    return "; ".join(parts) or "the first device that compiles"
+
+
+def pick_device_info(spec: str | None = None) -> tuple[DeviceInfo, str]:
+    """(DeviceInfo, why) of the device ``get_runtime`` would pick, without keeping a context
+    (the build driver uses it to report the device its workers will use)."""
+    _dev, info, why = _pick_device(spec or os.environ.get("UCAD_CL_DEVICE"))
+    return info, why
 
 
 def _probe(dev) -> tuple[bool, str]:
@@ -178,20 +289,34 @@ def get_runtime(device: str | None = None) -> Runtime:
         if _RUNTIME is None:
             import pyopencl as cl
 
-            dev = _pick_device(device or os.environ.get("UCAD_CL_DEVICE"))
+            dev, info, why = _pick_device(device or os.environ.get("UCAD_CL_DEVICE"))
             ctx = cl.Context([dev])
             queue = cl.CommandQueue(ctx)
-            _RUNTIME = Runtime(ctx=ctx, queue=queue, device=dev)
+            _RUNTIME = Runtime(ctx=ctx, queue=queue, device=dev, info=info, why=why)
         return _RUNTIME
 
 
 def list_devices() -> list[str]:
-    """Human-readable list of every OpenCL device, ``"P:D  platform | device"``."""
+    """Human-readable list of every OpenCL device: ``"P:D  platform | device | PoCL ..."``."""
+    return [f"{i.spec}  {i.summary()}" for i in device_infos()]
+
+
+def device_infos() -> list[DeviceInfo]:
+    """``DeviceInfo`` of every OpenCL device, in platform / device order (no context made)."""
     import pyopencl as cl
 
     try:
         platforms = cl.get_platforms()
     except Exception as exc:
         raise OpenCLUnavailable(f"{INSTALL_HINT}\n(pyopencl said: {exc})") from exc
-    return [f"{pi}:{di}  {p.name} | {d.name.strip()}"
+    return [device_info(f"{pi}:{di}", p, d)
             for pi, p in enumerate(platforms) for di, d in enumerate(p.get_devices())]
+
+
+def slow_device_warning(info: DeviceInfo | None) -> str | None:
+    """The warning to print when ``info`` is a device known to be slow, else None."""
+    reason = info.slow_reason() if info is not None else None
+    if reason is None:
+        return None
+    return (f"warning: OpenCL device {info.spec} ({info.device}): {reason}; {SLOW_POCL_COST}. "
+            f"Fix: {INSTALL_FAST}.")

@@ -3,7 +3,14 @@
 Every segmenter has one method, ``segment(mesh, views) -> PartMasks`` with masks (V, P, H, W)
 bool or packed (V, H, W) uint16 bits (see ``PartMasks``) and confidence (V, P) float32 in [0, 1];
 ``classify.classify_parts`` turns those into material -> part labels. Part names are
-``ucad_cl.artifacts.PART_NAMES``. Three implementations:
+``ucad_cl.artifacts.PART_NAMES``. Four implementations:
+
+* ``LabellerSegmenter(model=None, use_names=True)``: the offline default. The learned labeller
+  (``ucad_cl.labeller``: per-material features -> ONNX gradient-boosted trees) gives every
+  material part probabilities; each material's pixels are painted with its most probable part,
+  and a part's confidence in a view is that probability averaged over the part's pixels. The
+  masks carry the labeller's answer (``PartMasks.labels``), so ``classify_parts`` reports its
+  probability, labels materials seen only through glass and reports shared-material splits.
 
 * ``MasksSegmenter(root)``: masks made elsewhere (e.g. ControlNet + Grounded SAM on a GPU box),
   read from the folder layout written by ``write_masks``::
@@ -21,7 +28,7 @@ bool or packed (V, H, W) uint16 bits (see ``PartMasks``) and confidence (V, P) f
   confidence = mean max-probability inside the mask). Outputs are resized back with nearest
   neighbour. ``config = {"classes": {"<index>": "<part or anything else>"}, "input_size": [H, W],
   "batch": 8}``; classes whose name is not a part (e.g. "background") are ignored.
-* ``PriorSegmenter()``: the offline default without any model. It guesses a part per material from
+* ``PriorSegmenter()``: the former offline default, without any model. It guesses a part per material from
   its name (many languages), its properties (transparency, emission, metal, colour) and its
   geometry in the canonical frame (+Y up; the longer horizontal axis is the length), and paints
   each material's pixels with its most probable part. Confidence of a part in a view = that
@@ -152,8 +159,11 @@ def material_image(mat_id: np.ndarray) -> np.ndarray:
 
 
 def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict | None = None):
-    """The one factory behind every CLI spelling: ``prior``, ``masks`` with a folder ``arg``, or
-    ``onnx`` with a model ``arg`` and a ``config`` (JSON path or dict). ValueError otherwise."""
+    """The one factory behind every CLI spelling: ``labeller`` (optionally with a model ``arg``),
+    ``prior``, ``masks`` with a folder ``arg``, or ``onnx`` with a model ``arg`` and a
+    ``config`` (JSON path or dict). ValueError otherwise."""
+    if kind == "labeller":
+        return LabellerSegmenter(arg or None)
     if kind == "prior" and not arg:
         return PriorSegmenter()
     if kind == "masks" and arg:
@@ -162,8 +172,8 @@ def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict 
         if config is None:
             raise ValueError("the onnx segmenter needs a config JSON (classes, input_size)")
         return OnnxSegmenter(arg, config)
-    raise ValueError(f"unknown segmenter {kind!r}{' ' + arg if arg else ''}: expected prior, "
-                     "masks DIR or onnx MODEL with a config")
+    raise ValueError(f"unknown segmenter {kind!r}{':' + arg if arg else ''}: expected "
+                     "labeller[:MODEL.onnx], prior, masks:DIR or onnx:MODEL:CONFIG.json")
 
 
 class OnnxSegmenter:
@@ -459,21 +469,49 @@ class PriorSegmenter:
         return z / z.sum(axis=1, keepdims=True)
 
     def segment(self, mesh: Mesh, views: ViewSet) -> PartMasks:
-        M, P = len(mesh.materials), len(PART_NAMES)
-        cnt = views.material_counts(M + 1)                         # (V, M + 1) pixels per id
-        prob = self.guess(mesh, views)
-        part_of = np.argmax(prob, axis=1)                          # ties -> PART_NAMES order
-        # packed masks: one gather of each material id's part bit (id 0 = background: none)
-        lut = np.zeros(M + 1, np.uint16)
-        lut[1:] = np.left_shift(1, part_of).astype(np.uint16)
-        bits = lut.take(views.mat_id)
-        # confidence of (view, part) = the part's probability averaged over its pixels, from the
-        # per-view pixel counts of the material ids: (V, M + 1) @ (M + 1, P) matrices
-        member = np.zeros((M + 1, P), np.int64)
-        member[np.arange(1, M + 1), part_of] = 1
-        weight = np.zeros((M + 1, P))
-        weight[np.arange(1, M + 1), part_of] = prob[np.arange(M), part_of]
-        n = cnt @ member                                           # (V, P) pixels per part
-        sums = cnt.astype(np.float64) @ weight
-        conf = np.where(n > 0, sums / np.maximum(n, 1), 0.0).astype(np.float32)
-        return PartMasks.from_bits(list(PART_NAMES), bits, conf, source="prior")
+        return paint_materials(views, self.guess(mesh, views), source="prior")
+
+
+def paint_materials(views: ViewSet, prob: np.ndarray, *, source: str) -> PartMasks:
+    """Packed part masks painting each material's pixels with its most probable part (argmax of
+    ``prob`` (M, P) over ``PART_NAMES``; ties -> PART_NAMES order). Confidence of (view, part) =
+    the chosen parts' probabilities averaged over the part's pixels in the view."""
+    M, P = prob.shape[0], len(PART_NAMES)
+    cnt = views.material_counts(M + 1)                         # (V, M + 1) pixels per id
+    part_of = np.argmax(prob, axis=1)                          # ties -> PART_NAMES order
+    # packed masks: one gather of each material id's part bit (id 0 = background: none)
+    lut = np.zeros(M + 1, np.uint16)
+    lut[1:] = np.left_shift(1, part_of).astype(np.uint16)
+    bits = lut.take(views.mat_id)
+    # confidence of (view, part) = the part's probability averaged over its pixels, from the
+    # per-view pixel counts of the material ids: (V, M + 1) @ (M + 1, P) matrices
+    member = np.zeros((M + 1, P), np.int64)
+    member[np.arange(1, M + 1), part_of] = 1
+    weight = np.zeros((M + 1, P))
+    weight[np.arange(1, M + 1), part_of] = prob[np.arange(M), part_of]
+    n = cnt @ member                                           # (V, P) pixels per part
+    sums = cnt.astype(np.float64) @ weight
+    conf = np.where(n > 0, sums / np.maximum(n, 1), 0.0).astype(np.float32)
+    return PartMasks.from_bits(list(PART_NAMES), bits, conf, source=source)
+
+
+class LabellerSegmenter:
+    """The learned per-material labeller (``ucad_cl.labeller``) painted into part masks.
+
+    ``model``: an ONNX model path (default: the shipped ``ucad_cl/models/labeller.onnx``);
+    ``use_names=False`` ignores material and node names (the names-hidden evaluation)."""
+
+    def __init__(self, model: str | Path | None = None, use_names: bool = True):
+        from .labeller import MODEL_PATH, LabellerModel
+
+        self.model = LabellerModel(model or MODEL_PATH)   # a missing or stale model fails here
+        self.use_names = use_names
+
+    def segment(self, mesh: Mesh, views: ViewSet) -> PartMasks:
+        from .labeller import label_materials
+
+        labels = label_materials(mesh, views, use_names=self.use_names, model=self.model)
+        masks = paint_materials(views, labels.prob.astype(np.float64),
+                                source=f"labeller:{self.model.path.name}")
+        masks.labels = labels
+        return masks

@@ -53,9 +53,31 @@ def contact_sheet(images: np.ndarray, labels: Sequence[str] | None = None, cols:
         y0 = r * (th + label_h)
         sheet[y0:y0 + th, c * tw:(c + 1) * tw] = tile
         if labels is not None:
-            cv2.putText(sheet, str(labels[v]), (c * tw + 2, y0 + th + 11), cv2.FONT_HERSHEY_SIMPLEX,
-                        0.35, (230, 230, 230), 1, cv2.LINE_AA)
+            put_label(sheet, str(labels[v]), (c * tw + 2, y0 + th + 11))
     return sheet
+
+
+DEGREE = "\N{DEGREE SIGN}"
+
+
+def put_label(img: np.ndarray, text: str, org: tuple[int, int], scale: float = 0.35,
+              color=(230, 230, 230)) -> None:
+    """Draw ``text`` at ``org`` (bottom-left, pixels) with OpenCV's Hershey font; each degree
+    sign, which that font lacks (it would draw '?'), is drawn as a small ring raised to the
+    top of the digits."""
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    x, y = org
+    (_, digit_h), _ = cv2.getTextSize("0", font, scale, 1)
+    r = max(1, int(round(digit_h * 0.22)))
+    for k, piece in enumerate(text.split(DEGREE)):
+        if k:
+            cv2.circle(img, (x + r + 1, y - digit_h + r), r, color, 1, cv2.LINE_AA)
+            x += 2 * r + 3
+        if piece:
+            cv2.putText(img, piece, (x, y), font, scale, color, 1, cv2.LINE_AA)
+            x += cv2.getTextSize(piece, font, scale, 1)[0][0]
 
 
 def legend(names: Sequence[str], colors: np.ndarray, width: int = 260) -> np.ndarray:
@@ -91,8 +113,9 @@ PART_COLORS = {
 
 
 def view_labels(cameras) -> list[str]:
-    """'az A el E' under each view of a CameraRing."""
-    return [f"az {a:.0f} el {e:.0f}" for a, e in zip(cameras.azimuth, cameras.elevation)]
+    """'az A° el E°' under each view of a CameraRing (degrees)."""
+    return [f"az {a:.0f}{DEGREE} el {e:.0f}{DEGREE}"
+            for a, e in zip(cameras.azimuth, cameras.elevation)]
 
 
 def with_legend(sheet: np.ndarray, leg: np.ndarray) -> np.ndarray:

@@ -68,17 +68,25 @@ BODIES: tuple[str, ...] = ("trailer", "symmetric_ends", "two_vehicles")
 OFFSET = 1.0e5              # size of the 'offset' trait's translation, in file units
 MANY_MATERIALS = 2000       # about how many materials the 'many_materials' trait makes
 HUGE_TRIANGLES = 2_000_000  # default triangle count of the 'huge' trait
+#: material-realism traits (``apply_realism``), applied in this order
+REALISM_TRAITS: tuple[str, ...] = (
+    "brake_discs", "lens_lamps", "rich_interior", "no_rims", "chassis_only", "one_paint",
+    "paint_rims", "shared_black", "dark_trim", "textured_body", "varied_looks", "mtl_like",
+    "opaque_glass",
+    "plain_lights", "meaningless_names", "misleading_names")
 
 
 def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
                  target_triangles: int | None = None, messy: Sequence[str] = (),
-                 name: str | None = None, pose: str | None = None,
-                 body: str | None = None) -> "SynthVehicle":
+                 name: str | None = None, realism: Sequence[str] = (),
+                 pose: str | None = None, body: str | None = None) -> "SynthVehicle":
     """Build one vehicle. kind: one of KINDS (random from the seed when None).
 
     detail: resolution factor (triangles grow ~detail**2; 1 gives ~20-35k triangles).
     target_triangles: overrides detail, tessellates to about this many triangles (within ~10 %).
     messy: traits from MESSY_TRAITS to apply to the file (see module docstring).
+    realism: traits from REALISM_TRAITS (how real libraries assign materials; see
+    ``apply_realism``), recorded in ``truth["realism"]``.
     pose: one of POSES, the file's rotation (drawn from the seed), after the messy pose traits.
     body: one of BODIES, a body variant. ``truth["orientation"]`` gives the file-frame up and
     front directions in every case.
@@ -97,6 +105,9 @@ def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
     bad = [t for t in messy if t not in MESSY_TRAITS]
     if bad:
         raise ValueError(f"unknown messy trait(s) {bad}; expected some of {MESSY_TRAITS}")
+    bad = [t for t in realism if t not in REALISM_TRAITS]
+    if bad:
+        raise ValueError(f"unknown realism trait(s) {bad}; expected some of {REALISM_TRAITS}")
     if target_triangles is not None and int(target_triangles) < 1000:
         raise ValueError(f"target_triangles must be >= 1000, got {target_triangles}")
     messy = tuple(dict.fromkeys(messy))          # unique, order kept
@@ -117,11 +128,14 @@ def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
                 break
             res *= math.sqrt(target_triangles / n)
             parts = build(res)
+    realism = tuple(t for t in REALISM_TRAITS if t in realism)     # fixed application order
+    parts = apply_realism(parts, realism, np.random.default_rng([seed, 3]))
     if body is not None:
-        parts = _body_variant(parts, body, np.random.default_rng([seed, 3]))
-    return _finish(seed, kind, name or f"{kind}_{seed:08d}", parts, messy,
-                   np.random.default_rng([seed, 2]), pose, np.random.default_rng([seed, 4]),
-                   body)
+        parts = _body_variant(parts, body, np.random.default_rng([seed, 5]))
+    v = _finish(seed, kind, name or f"{kind}_{seed:08d}", parts, messy,
+                np.random.default_rng([seed, 2]), pose, np.random.default_rng([seed, 4]), body)
+    v.truth["realism"] = list(realism)
+    return v
 
 
 def write_library(out_dir: str | Path, count: int, seed: int, *, messy_fraction: float = 0.3,
@@ -619,7 +633,7 @@ def _build_parts(kind: str, r: np.random.Generator, res: float) -> list[_Part]:
         return "grille" if (i == 1 and j == 1) else "paint_nose"
     fparts = _patch([xf, clear, hw], [xf, clear, -hw], [xf, belt, hw], [xf, belt, -hw],
                     zb, yb, cell, 0.0, front_label)
-    add("grille", "other", "plastic", *fparts["grille"])
+    add("grille", "chrome", "plastic", *fparts["grille"])   # policy: grilles and trim = chrome
     add("paint_nose", "body", "paint", *fparts["paint_nose"])
     # rear face (x = xr): tail panel, or tailgate for pickups
     rname = "paint_tailgate" if p.get("bed") else "paint_tail_panel"
@@ -1007,3 +1021,214 @@ def _quat_matrix(q: np.ndarray) -> np.ndarray:
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+# --------------------------------------------------------------------------------------------
+# material realism: how real libraries assign materials (traits for training and tests)
+
+def apply_realism(parts: list[_Part], traits: Sequence[str], r: np.random.Generator
+                  ) -> list[_Part]:
+    """The vehicle's parts with the realism ``traits`` applied, in ``REALISM_TRAITS`` order.
+
+    Geometry traits: ``brake_discs`` (rims become rings with a grey disc and a red calliper
+    behind them: part other), ``lens_lamps`` (every lamp enclosed in a clear lens box, part
+    light: the lamp is seen only through the lens), ``rich_interior`` (steering wheel, door
+    panels, seats in two leathers), ``no_rims`` (the rim faces take the tyre's material: wheels
+    without separate rims), ``chassis_only`` (no wheels and no interior).
+    Material traits: ``one_paint`` (every paint panel shares one paint material),
+    ``paint_rims`` (the rims share the body paint), ``shared_black`` (tyres, grille, underbody
+    and plastic bumpers share one black), ``dark_trim`` (grille, bumpers, mirror housings and
+    side trim in one dark plastic: part chrome, the trim policy), ``textured_body`` (body, lamps,
+    plates, trim and grille are one textured material; glass, wheels, interior stay separate),
+    ``varied_looks`` (every material's colour pulled up to 60 % toward a random colour, metallic
+    and roughness moved by up to 0.35), ``mtl_like`` (OBJ/MTL materials: metallic 0, roughness 1,
+    no emission, no transmission),
+    ``opaque_glass`` (glass is opaque light blue), ``plain_lights`` (lamps without emission).
+    Name traits: ``meaningless_names`` (materials become ``Material.001``..., nodes
+    ``Object_1``...), ``misleading_names`` (some materials named after another part).
+    The truth of a shared material is its majority part (``majority_part``)."""
+    parts = list(parts)
+    mats: dict[tuple[str, str], Material] = {}
+    t = ""
+
+    def shared(name: str, like: Material, **kw) -> Material:
+        """One material object per (trait, name): parts given it share it."""
+        if (t, name) not in mats:
+            mats[(t, name)] = Material(**{**like.__dict__, "name": name, **kw})
+        return mats[(t, name)]
+
+    def is_(q, *prefixes):
+        return q.node.startswith(prefixes)
+
+    for t in traits:
+        if t == "brake_discs":
+            parts = _brake_discs(parts)
+        elif t == "lens_lamps":
+            parts = _lens_lamps(parts)
+        elif t == "rich_interior":
+            parts = _rich_interior(parts, r)
+        elif t == "no_rims":
+            tyres = {q.node[len("tyre_"):]: q for q in parts if is_(q, "tyre_")}
+            for q in parts:
+                if is_(q, "rim_") and q.node[len("rim_"):] in tyres:
+                    q.material = tyres[q.node[len("rim_"):]].material
+                    q.part = "wheel"
+        elif t == "chassis_only":
+            parts = [q for q in parts if q.part not in ("wheel", "rim", "interior")
+                     and not is_(q, "brake_", "calliper_")]
+        elif t == "one_paint":
+            paint = next((q.material for q in parts if q.material.name.startswith("paint_")),
+                         None)
+            for q in parts:
+                if paint is not None and q.material.name.startswith("paint_"):
+                    q.material = shared("paint", paint)
+        elif t == "paint_rims":
+            paint = next((q.material for q in parts if q.part == "body"
+                          and q.material.name.startswith("paint")), None)
+            for q in parts:
+                if paint is not None and is_(q, "rim_") and q.part == "rim":
+                    q.material = shared(paint.name if paint.name == "paint" else "paint_body",
+                                        paint)
+                elif paint is not None and paint.name != "paint" and q.material is paint:
+                    q.material = shared("paint_body", paint)
+        elif t == "shared_black":
+            black = _material("black", "plastic", (0, 0, 0))
+            for q in parts:
+                if (is_(q, "tyre_", "grille", "underbody")
+                        or (is_(q, "bumper_") and q.material.metallic < 0.5)):
+                    q.material = shared("black", black)
+        elif t == "dark_trim":
+            trim = Material("trim_dark", (0.04, 0.04, 0.045, 1.0), "OPAQUE", 0.0, 0.55)
+            for q in parts:
+                if is_(q, "grille", "bumper_", "paint_mirror_", "chrome_trim_"):
+                    q.material = shared("trim_dark", trim)
+                    q.part = "chrome"
+        elif t == "textured_body":
+            tex = Material("body_tex", (1.0, 1.0, 1.0, 1.0), "OPAQUE", 0.0, 0.5,
+                           has_texture=True)
+            for q in parts:
+                if q.part in ("body", "light", "plate", "chrome") or is_(q, "grille"):
+                    q.material = shared("body_tex", tex)
+        elif t == "varied_looks":
+            for q in parts:
+                m = q.material
+                if ("varied_looks", m.name) not in mats:
+                    k = float(r.uniform(0.0, 0.6))
+                    rgb = (1 - k) * np.asarray(m.base_color[:3]) + k * r.uniform(0, 1, 3)
+                    jm, jr = r.uniform(-0.35, 0.35, 2)
+                    shared(m.name, m, base_color=(*(float(x) for x in rgb), m.base_color[3]),
+                           metallic=float(np.clip(m.metallic + jm, 0, 1)),
+                           roughness=float(np.clip(m.roughness + jr, 0.02, 1)))
+                q.material = mats[("varied_looks", m.name)]
+        elif t == "mtl_like":
+            for q in parts:
+                m = q.material
+                q.material = shared(m.name, m, metallic=0.0, roughness=1.0,
+                                    emissive=(0.0, 0.0, 0.0), transmission=0.0)
+        elif t == "opaque_glass":
+            for q in parts:
+                if q.part == "window":
+                    q.material = shared(q.material.name, q.material,
+                                        base_color=(0.55, 0.7, 0.85, 1.0), alpha_mode="OPAQUE",
+                                        transmission=0.0)
+        elif t == "plain_lights":
+            for q in parts:
+                if q.part == "light" and max(q.material.emissive) > 0:
+                    q.material = shared(q.material.name, q.material, emissive=(0.0, 0.0, 0.0))
+        elif t == "meaningless_names":
+            renamed: dict[str, str] = {}
+            for k, q in enumerate(parts):
+                nm = renamed.setdefault(q.material.name, f"Material.{len(renamed) + 1:03d}")
+                q.material = shared(nm, q.material)
+                q.node = f"Object_{k + 1}"
+        elif t == "misleading_names":
+            words = {"window": "glass", "light": "lamp", "wheel": "tire", "rim": "rim",
+                     "chrome": "chrome", "body": "body", "interior": "interior",
+                     "plate": "plate", "other": "part"}
+            names = sorted({q.material.name for q in parts})
+            lie = set(np.asarray(names)[r.random(len(names)) < 0.25].tolist()) if names else set()
+            for q in parts:
+                nm = q.material.name
+                if nm in lie:
+                    wrong = [p for p in PART_NAMES if p != q.part]
+                    k = int(np.random.default_rng(list(nm.encode())).integers(len(wrong)))
+                    q.material = shared(f"{words[wrong[k]]}_{nm}", q.material)
+    return parts
+
+
+def _bbox(q: _Part) -> tuple[np.ndarray, np.ndarray]:
+    return q.vertices.min(axis=0), q.vertices.max(axis=0)
+
+
+def _brake_discs(parts: list[_Part]) -> list[_Part]:
+    """Rims become rings (their faces nearer than 55 % of the rim radius to the axle are
+    dropped); a grey disc and a red calliper sit behind each, part ``other``."""
+    out = []
+    disc_mat = Material("brake_disc", (0.35, 0.35, 0.36, 1.0), "OPAQUE", 1.0, 0.45)
+    cal_mat = Material("brake_calliper", (0.6, 0.05, 0.04, 1.0), "OPAQUE", 0.0, 0.4)
+    for q in parts:
+        if not (q.node.startswith("rim_") and q.part == "rim"):
+            out.append(q)
+            continue
+        lo, hi = _bbox(q)
+        cx, cy = 0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1])
+        R = 0.5 * (hi[1] - lo[1])
+        cen = q.vertices[q.faces].mean(axis=1)
+        keep = np.hypot(cen[:, 0] - cx, cen[:, 1] - cy) >= 0.55 * R
+        v, f = _compact(q.vertices, q.faces[keep])
+        out.append(_Part(q.node, q.part, q.material, v, f))
+        side = 1.0 if hi[2] > 0 else -1.0
+        z_in = lo[2] if side > 0 else hi[2]               # the rim's inner edge
+        za, zb = z_in + side * 0.01, z_in + side * 0.035
+        dv, df = _revolve(np.array([[0.0, 0.0], [0.8 * R, 0.0], [0.8 * R, 0.025], [0.0, 0.025]]),
+                          32, [cx, cy, min(za, zb)])
+        tag = q.node[len("rim_"):]
+        out.append(_Part(f"brake_disc_{tag}", "other", disc_mat, dv, df))
+        cv, cf = _box([cx - 0.12 * R, cy + 0.45 * R, min(za, zb) - 0.02],
+                      [cx + 0.12 * R, cy + 0.75 * R, max(za, zb) + 0.01], 0.05)
+        out.append(_Part(f"brake_calliper_{tag}", "other", cal_mat, cv, cf))
+    return out
+
+
+def _lens_lamps(parts: list[_Part]) -> list[_Part]:
+    """Every lamp gets a clear lens box around it (1 cm larger on every side), part light."""
+    out = []
+    lens = Material("lamp_lens", (0.9, 0.9, 0.9, 0.25), "BLEND", 0.0, 0.05, transmission=0.9)
+    for q in parts:
+        out.append(q)
+        if q.part == "light" and not q.node.startswith("lens_"):
+            lo, hi = _bbox(q)
+            v, f = _box(lo - 0.01, hi + 0.01, 0.05)
+            out.append(_Part(f"lens_{q.node}", "light", lens, v, f))
+    return out
+
+
+def _rich_interior(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
+    """Steering wheel (a torus facing forward), door panels and a second leather for seats."""
+    seats = [q for q in parts if q.node.startswith("interior_seat")]
+    dash = next((q for q in parts if q.node == "interior_dashboard"), None)
+    if dash is None:
+        return parts
+    leather = Material("leather_seats", tuple(float(x) for x in r.uniform(0.05, 0.5, 3))
+                       + (1.0,), "OPAQUE", 0.0, 0.7)
+    for q in seats:
+        q.material = leather
+    lo, hi = _bbox(dash)
+    ring_r, tube = 0.17, 0.02
+    th = np.linspace(0, 2 * np.pi, 13)[:-1]
+    prof = np.stack([ring_r + tube * np.cos(th), tube * np.sin(th)], 1)
+    v, f = _revolve(np.vstack([prof, prof[:1]]), 32, [0.0, 0.0, 0.0])
+    v = np.stack([v[:, 2], v[:, 1], v[:, 0]], 1)           # axis along x: faces the driver
+    f = f[:, ::-1]
+    zc = 0.5 * (lo[2] + hi[2]) + 0.3 * (hi[2] - lo[2])
+    v = v + [lo[0] - 0.05, hi[1] + 0.05, zc]
+    wheel = Material("steering_wheel", (0.05, 0.05, 0.05, 1.0), "OPAQUE", 0.0, 0.6)
+    out = list(parts) + [_Part("interior_steering_wheel", "interior", wheel, v, f)]
+    panel = Material("door_panel", (0.3, 0.28, 0.25, 1.0), "OPAQUE", 0.0, 0.8)
+    for side in (1.0, -1.0):
+        z = side * (hi[2] + 0.03)
+        pv, pf = _box([lo[0] - 1.2, lo[1] - 0.2, min(z, z + side * 0.03)],
+                      [lo[0] - 0.1, hi[1], max(z, z + side * 0.03)], 0.1)
+        out.append(_Part(f"interior_door_panel_{'R' if side > 0 else 'L'}", "interior", panel,
+                         pv, pf))
+    return out

@@ -16,18 +16,32 @@ def register(sub) -> None:
     p.set_defaults(func=run_status)
 
     p = sub.add_parser("show", help="one mesh: verdict, materials with parts and evidence",
-                       description="Show one catalogued mesh by id (the number in `status`/export), "
-                                   "sha256 (or a unique prefix) or path.")
-    p.add_argument("id", help="mesh id, sha256 prefix or path")
+                       description="Show one catalogued mesh. ID is its id (the sha256 of the "
+                                   "source content, as in exports) or a prefix of at least 8 "
+                                   "hex digits, or its source path in any spelling (absolute, "
+                                   "relative to here or to the library folder), or its file "
+                                   "name. Several matches are listed, not guessed between.")
+    p.add_argument("id", metavar="ID", help="mesh id or id prefix (>= 8 hex digits), path or "
+                                            "file name")
     p.add_argument("--catalog", required=True, type=Path, metavar="PATH")
     p.set_defaults(func=run_show)
 
-    p = sub.add_parser("export", help="export the catalogue as JSON lines or Parquet",
-                       description="One record per mesh with materials, parts, views and artifact "
-                                   "paths. Parquet needs pyarrow.")
+    p = sub.add_parser("export", help="export the catalogue as Parquet or JSON lines",
+                       description="Two tables with an explicit, versioned schema "
+                                   "(ucad_catalog/SCHEMA.md, 'Export'): FILE has one row per "
+                                   "mesh (id, paths, state, cameras, artifacts, orientation), "
+                                   "FILE with '.materials' before the suffix one row per material "
+                                   "(part, evidence, PBR properties). The format follows FILE's "
+                                   "suffix (.parquet / .jsonl) unless --format says otherwise. "
+                                   "Parquet files carry the export version and conventions in "
+                                   "their metadata (JSON lines: FILE.meta.json) and concatenate "
+                                   "across catalogues. Parquet needs pyarrow. Reads without "
+                                   "locking: safe while a build runs.")
     p.add_argument("--catalog", required=True, type=Path, metavar="PATH")
-    p.add_argument("--format", choices=["jsonl", "parquet"], default="jsonl")
-    p.add_argument("--out", required=True, type=Path, metavar="FILE")
+    p.add_argument("--format", choices=["jsonl", "parquet"], default=None,
+                   help="override the format the suffix of --out implies")
+    p.add_argument("--out", required=True, type=Path, metavar="FILE",
+                   help="e.g. cat.parquet or cat.jsonl (its folder must exist)")
     p.set_defaults(func=run_export)
 
 
@@ -42,37 +56,19 @@ def open_reader(path):
         return None
 
 
-def match_meshes(metas, key: str) -> list:
-    """Catalogued meshes that ``key`` names, first rule that matches wins: mesh id, path or file
-    name, then sha256 prefix (at least 6 hex digits)."""
-    k = key.lower()
-    for rule in (lambda m: str(m.id) == key,
-                 lambda m: m.path == key or Path(m.path).name.lower() == k,
-                 lambda m: len(k) >= 6 and m.sha256.startswith(k)):
-        hits = [m for m in metas if rule(m)]
-        if hits:
-            return hits
-    return []
-
-
-def _open(path):
-    from ucad_catalog._db import CatalogError
-    from ucad_catalog.store import Catalog
-    try:
-        return Catalog.open(path, create=False)
-    except CatalogError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return None
+def match_meshes(reader, key: str) -> list:
+    """Catalogued meshes that ``key`` names (``CatalogReader.find``: id, id prefix of >= 8 hex
+    digits, path in any spelling, file name)."""
+    return reader.find(key)
 
 
 def run_status(args) -> int:
-    cat = _open(args.catalog)
-    if cat is None:
+    r = open_reader(args.catalog)                   # read-only: works while a build runs
+    if r is None:
         return 2
-    with cat:
-        st = cat.status()
-        runs = cat._db.execute("SELECT id, started, finished, engine, counts, meshes_per_s FROM runs "
-                               "ORDER BY id DESC LIMIT 5").fetchall()
+    with r:
+        st = r.status()
+        runs = r.runs(5)
     if args.json:
         print(json.dumps(st, indent=1))
         return 0
@@ -87,12 +83,14 @@ def run_status(args) -> int:
     print(f"  objects: {st['objects']} ({st['object_bytes'] / 2**20:.1f} MiB)")
     print("  recent runs:")
     print(f"    {'run':>4} {'started':>19} {'engine':>6} {'processed':>9} {'skipped':>7} {'meshes/s':>8}")
-    for rid, started, finished, engine, counts, rate in runs:
-        c = json.loads(counts) if counts else {}
+    for run in runs:
+        c = run["counts"]
         n = c.get("accepted", 0) + c.get("rejected", 0)
-        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(started))
-        state = f"{rate:8.2f}" if finished else " running/killed"
-        print(f"    {rid:>4} {when:>19} {engine:>6} {n:>9} {c.get('skipped', 0):>7} {state}")
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(run["started"]))
+        state = (f" stopped: {c['stopped']}" if c.get("stopped") else
+                 f"{run['meshes_per_s']:8.2f}" if run["finished"] else " running/killed")
+        print(f"    {run['id']:>4} {when:>19} {run['engine']:>6} {n:>9} {c.get('skipped', 0):>7} "
+              f"{state}")
     return 0
 
 
@@ -103,20 +101,25 @@ def run_show(args) -> int:
     if r is None:
         return 2
     with r:
-        hits = match_meshes(r.meshes(state=None), args.id)
+        hits = match_meshes(r, args.id)
         if len(hits) != 1:
-            print(f"error: {len(hits)} meshes match {args.id!r}", file=sys.stderr)
+            print(f"error: {len(hits)} meshes match {args.id!r}"
+                  + "".join(f"\n  {m.sha256[:12]}  {m.state:<8}  {m.path}" for m in hits[:20])
+                  + ("" if hits else "; give an id (prefix of >= 8 hex digits), a path or a "
+                     "file name (ucad-index export lists them)"), file=sys.stderr)
             return 2
         m = hits[0]
-        print(f"mesh {m.id}  {m.path}\n  sha256 {m.sha256}\n  state {m.state}"
+        print(f"mesh {m.sha256[:12]}  {m.path}\n  id (sha256) {m.sha256}\n"
+              f"  library {m.library_root or '(not recorded)'}\n  state {m.state}"
               + (f" ({m.reason}: {m.detail})" if m.state == "rejected" else ""))
         print(f"  triangles {m.n_triangles}  materials {m.n_materials}  run {m.run_id}")
-        from .render import describe_orientation
-        print(f"  {describe_orientation(m.orientation)}")
-        cues = m.orientation.get("cues") if m.orientation else None
-        if cues:
-            print("    cues (+ agrees with the decision): " + ", ".join(
-                f"{k} {v:+.2f}" for k, v in sorted(cues.items(), key=lambda kv: -abs(kv[1]))))
+        if m.orientation:
+            from .render import describe_orientation
+            print(f"  {describe_orientation(m.orientation)}")
+            cues = m.orientation.get("cues")
+            if cues:
+                print("    cues (+ agrees with the decision): " + ", ".join(
+                    f"{k} {v:+.2f}" for k, v in sorted(cues.items(), key=lambda kv: -abs(kv[1]))))
         if m.timings:
             print("  seconds: " + ", ".join(f"{k} {v:.3f}" for k, v in m.timings.items()))
         parts = r.parts(m.sha256)
@@ -134,14 +137,16 @@ def run_show(args) -> int:
 def run_export(args) -> int:
     from ucad_catalog._db import CatalogError
 
-    cat = _open(args.catalog)
-    if cat is None:
+    r = open_reader(args.catalog)                   # read-only: works while a build runs
+    if r is None:
         return 2
-    with cat:
+    with r:
         try:
-            n = cat.export(args.out, format=args.format)
-        except CatalogError as exc:
+            n = r.export(args.out, format=args.format)
+        except (CatalogError, OSError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-    print(f"exported {n} meshes to {args.out}")
+    from ucad_catalog.export import materials_path
+    print(f"exported {n} meshes to {args.out} and their materials to "
+          f"{materials_path(args.out)}")
     return 0

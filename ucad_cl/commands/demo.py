@@ -51,7 +51,7 @@ def run(args) -> int:
     print(f"\nlook at: {sheets}/*.png (views by material and by part),")
     print(f"         ucad-index status --catalog {cat}")
     if accepted:
-        print(f"         ucad-index show {accepted[0].id} --catalog {cat}")
+        print(f"         ucad-index show {accepted[0].id[:12]} --catalog {cat}")
     for m in rejected:
         print(f"rejected {Path(m.path).name}: {m.reason}")
     return 0

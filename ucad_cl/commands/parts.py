@@ -1,7 +1,8 @@
 """``ucad-index parts MESH...``: material -> part table of meshes (segment + IoU classification).
 
-Per mesh: render the camera ring, segment the views (``--segmenter prior`` (default, offline),
-``masks DIR`` or ``onnx MODEL``), classify every material, print the table and write
+Per mesh: render the camera ring, segment the views (``--segmenter labeller`` (default, offline:
+the learned per-material labeller), ``prior``, ``masks:DIR`` or ``onnx:MODEL:CONFIG.json``, the
+same spelling as ``build``), classify every material, print the table and write
 ``OUT/NAME.parts.csv``, ``OUT/NAME.parts.json`` and ``OUT/NAME.parts.png`` (the views coloured by
 the decided part: a fixed colour per part, legend on the right).
 """
@@ -15,7 +16,8 @@ from pathlib import Path
 
 from .render import add_camera_args, add_orientation_args, orientation_from_args, ring_from_args
 
-COLUMNS = ("material", "name", "part", "score", "iou", "view", "decision", "pixels")
+COLUMNS = ("material", "name", "part", "score", "iou", "view", "decision", "pixels", "prob",
+           "split")
 
 
 def register(sub) -> None:
@@ -31,13 +33,14 @@ def register(sub) -> None:
                         "none = every accepted mesh)")
     p.add_argument("--catalog", type=Path, default=None, metavar="PATH",
                    help="print the stored material -> part tables of a catalogue instead")
-    p.add_argument("--segmenter", nargs="+", default=["prior"], metavar="KIND",
-                   help="'prior' (default: names, properties, geometry; no model), "
-                        "'masks DIR' (DIR/<sha256>/view_<vvv>/<part>.png + confidence.json), or "
-                        "'onnx MODEL' (see --onnx-config)")
-    p.add_argument("--onnx-config", type=Path, metavar="JSON",
-                   help="JSON for the onnx segmenter: {\"classes\": {\"0\": \"background\", "
-                        "\"1\": \"window\", ...}, \"input_size\": [H, W]}")
+    p.add_argument("--segmenter", default="labeller", metavar="SPEC",
+                   help="one word, as in `build`: 'labeller' (default: the learned "
+                        "per-material labeller shipped with the package; 'labeller:MODEL.onnx' "
+                        "another model; reports its probability per material), 'prior' "
+                        "(hand-written rules over names, properties, geometry), 'masks:DIR' "
+                        "(DIR/<sha256>/view_<vvv>/<part>.png + confidence.json), or "
+                        "'onnx:MODEL:CONFIG.json' (CONFIG: {\"classes\": {\"0\": \"background\", "
+                        "\"1\": \"window\", ...}, \"input_size\": [H, W]})")
     p.add_argument("--out", type=Path, default=Path("out/parts"), metavar="DIR",
                    help="output folder (default out/parts)")
     p.add_argument("--threshold", type=float, default=0.5, help="score threshold (default 0.5)")
@@ -46,14 +49,12 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def make_segmenter(spec: list[str], onnx_config: Path | None):
-    """Segmenter from the ``--segmenter`` words (raises ValueError with a usage message)."""
-    from ..segment import make_segmenter as factory
+def make_segmenter(spec: str):
+    """Segmenter from a ``--segmenter`` SPEC, the one spelling of every command
+    (``ucad_cl.build.make_segmenter``; ValueError with a usage message)."""
+    from ..build import make_segmenter as from_spec
 
-    if len(spec) > 2:
-        raise ValueError(f"--segmenter {' '.join(spec)!r}: expected 'prior', 'masks DIR' or "
-                         "'onnx MODEL' (with --onnx-config JSON)")
-    return factory(spec[0], spec[1] if len(spec) == 2 else None, onnx_config)
+    return from_spec(spec)
 
 
 def write_table(table, stem: Path) -> None:
@@ -62,7 +63,7 @@ def write_table(table, stem: Path) -> None:
     with open(f"{stem}.parts.csv", "w", newline="", encoding="utf-8") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
         w.writeheader()
-        w.writerows(rows)
+        w.writerows([{**r, "split": json.dumps(r["split"]) if r["split"] else ""} for r in rows])
     Path(f"{stem}.parts.json").write_text(json.dumps(rows, indent=1, ensure_ascii=False),
                                           encoding="utf-8")
 
@@ -73,13 +74,27 @@ def format_table(table) -> str:
 
 def format_rows(rows, indent: str = "") -> str:
     """Material -> part rows (anything with name, part, score, iou, view, decision, pixels:
-    a fresh ``MaterialPart`` or a catalogue ``PartRow``) as an aligned text table."""
-    lines = [f"{indent}{'material':32s} {'part':9s} {'score':>5s} {'iou':>5s} {'view':>4s} "
-             f"{'decision':15s} {'pixels':>8s}"]
+    a fresh ``MaterialPart`` or a catalogue ``PartRow``) as an aligned text table. ``prob`` is
+    the labeller's probability of the part (``-`` without a labeller: the score of self-painted
+    masks is 1.00 by construction and says nothing); ``split`` lists a shared material's parts
+    per component group with their area shares."""
+    lines = [f"{indent}{'material':32s} {'part':9s} {'prob':>5s} {'score':>5s} {'iou':>5s} "
+             f"{'view':>4s} {'decision':15s} {'pixels':>8s}  split"]
     for r in rows:
-        lines.append(f"{indent}{r.name[:32]:32s} {r.part:9s} {r.score:5.2f} {r.iou:5.2f} "
-                     f"{r.view:4d} {r.decision:15s} {r.pixels:8d}")
+        prob, split = _prob_split(r)
+        p = f"{prob:5.2f}" if prob is not None else f"{'-':>5s}"
+        sp = " ".join(f"{g['part']}:{g['area_share']:.2f}" for g in split or [])
+        lines.append(f"{indent}{r.name[:32]:32s} {r.part:9s} {p} {r.score:5.2f} {r.iou:5.2f} "
+                     f"{r.view:4d} {r.decision:15s} {r.pixels:8d}  {sp}".rstrip())
     return "\n".join(lines)
+
+
+def _prob_split(r):
+    """(prob, split) of a ``MaterialPart`` (fields) or a catalogue row (its ``props``)."""
+    if hasattr(r, "prob"):
+        return r.prob, r.split
+    props = getattr(r, "props", None) or {}
+    return props.get("prob"), props.get("split")
 
 
 def run_catalog(args) -> int:
@@ -92,7 +107,7 @@ def run_catalog(args) -> int:
     with reader as r:
         metas = r.meshes(state=None)
         if args.meshes:
-            hit_ids = {m.id for k in args.meshes for m in match_meshes(metas, k)}
+            hit_ids = {m.id for k in args.meshes for m in match_meshes(r, k)}
             metas = [m for m in metas if m.id in hit_ids]
             if not metas:
                 print(f"error: no catalogued mesh matches {args.meshes}", file=sys.stderr)
@@ -100,7 +115,7 @@ def run_catalog(args) -> int:
         else:
             metas = [m for m in metas if m.state == "accepted"]
         for m in metas:
-            print(f"== {m.id} {m.path} ({m.state}{': ' + m.reason if m.reason else ''})")
+            print(f"== {m.id[:12]} {m.path} ({m.state}{': ' + m.reason if m.reason else ''})")
             rows = r.parts(m.sha256)
             if rows:
                 print(format_rows(rows))
@@ -114,34 +129,48 @@ def run(args) -> int:
         print("error: give MESH files, or --catalog PATH", file=sys.stderr)
         return 2
     from ..classify import classify_parts
-    from ..ingest import IngestError, load_mesh
+    from ..build import printable
+    from ..ingest import IngestError, describe_exception, load_mesh
     from ..render import render_views
     from ..segment import name_priors
     from ..sheets import part_sheet, write_png
 
     try:
-        segmenter = make_segmenter(args.segmenter, args.onnx_config)
+        segmenter = make_segmenter(args.segmenter)
         mode, overrides = orientation_from_args(args)
     except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    from .render import output_stems
+
+    try:
+        stems = output_stems(args.meshes)
+    except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     ring = ring_from_args(args)
     args.out.mkdir(parents=True, exist_ok=True)
     failed = 0
-    for path in args.meshes:
-        stem = args.out / Path(path).name.rsplit(".", 1)[0]
+    for path, name in zip(args.meshes, stems):
+        stem = args.out / name
         try:
             mesh = load_mesh(path, orientation=mode, overrides=overrides)
             views = render_views(mesh, ring)
             masks = segmenter.segment(mesh, views)
             table = classify_parts(mesh, views, masks, threshold=args.threshold,
                                    priors=name_priors(mesh))
-            print(f"== {path} ({masks.source}, {views.n_views} views)")
+            print(f"== {printable(path)} ({masks.source}, {views.n_views} views)")
             print(format_table(table))
             write_table(table, stem)
             write_png(f"{stem}.parts.png", part_sheet(views, table))
-        except (IngestError, ValueError, OSError) as exc:
+        except IngestError as exc:                  # every file gets its line, none stops us
             failed += 1
-            print(f"FAIL  {path}: {exc}", file=sys.stderr)
+            print(f"FAIL  {printable(str(exc))}", file=sys.stderr)
+        except MemoryError:
+            failed += 1
+            print(f"FAIL  {printable(path)}: out of memory [too_large]", file=sys.stderr)
+        except Exception as exc:                    # noqa: BLE001 - reported per file
+            failed += 1
+            print(f"FAIL  {printable(path)}: {describe_exception(exc)}", file=sys.stderr)
     print(f"{len(args.meshes) - failed} labelled, {failed} failed; outputs in {args.out}")
     return 1 if failed else 0

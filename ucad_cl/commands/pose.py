@@ -148,11 +148,11 @@ def run_catalog(args, image, mask) -> int:
     for i, mt in enumerate(matches):
         d = dist[mt.row] * sides[mt.row] / q_side if q_side > 0 else float("nan")
         print(f"{i + 1:4d} {mt.azimuth:8.1f} {mt.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
-              f"{metas[mt.mesh].path} ({mt.view})")
+              f"{metas[mt.mesh].source} ({mt.view})")
     best = matches[0]
     try:                          # in the frame the catalogue stored (its cameras are in it)
         from ..orient import in_frame
-        mesh = in_frame(load_mesh(metas[best.mesh].path, orientation=None),
+        mesh = in_frame(load_mesh(metas[best.mesh].source, orientation=None),
                         metas[best.mesh].file_to_norm)
     except (IngestError, ValueError) as exc:
         print(f"(no side-by-side PNG: {exc})", file=sys.stderr)

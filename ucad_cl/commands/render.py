@@ -1,6 +1,7 @@
 """``ucad-index render MESH... --out DIR``: 360-degree material-index views of meshes."""
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -77,14 +78,33 @@ def ring_from_args(args):
                      fov_deg=args.fov, size=args.size)
 
 
+def output_stems(meshes) -> list[str]:
+    """The output name of each input mesh (its file name without the suffix); ValueError naming
+    the inputs when two would write the same outputs (one output folder holds one name once)."""
+    stems = [Path(m).name.rsplit(".", 1)[0] for m in meshes]
+    seen: dict[str, str] = {}
+    clashes = []
+    for m, s in zip(meshes, stems):
+        if s in seen and os.path.abspath(seen[s]) != os.path.abspath(m):
+            clashes.append(f"{seen[s]} and {m} -> {s}.*")
+        seen.setdefault(s, m)
+    if clashes:
+        raise ValueError("two inputs would write the same outputs (" + "; ".join(clashes[:5])
+                         + "); nothing was written: rename one, or run them with separate --out "
+                         "folders")
+    return stems
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "render", help="render material-index / triangle-id / depth views of meshes",
         description="Render 360-degree views of each MESH (GLB, glTF, OBJ+MTL, PLY, OFF, STL) with "
                     "the OpenCL rasterizer. Writes, per mesh, DIR/NAME.views.exr (multi-part OpenEXR: "
                     "UINT tri and mat ids, FLOAT depth, cameras in the headers; see docs/FORMATS.md) "
-                    "and DIR/NAME.sheet.png (contact sheet, a fixed colour per material). Exit status "
-                    "1 if any mesh failed, 0 otherwise.")
+                    "and DIR/NAME.sheet.png (contact sheet, a fixed colour per material). NAME is the "
+                    "file name without its suffix; two inputs with the same NAME are refused "
+                    "before anything is written. Exit status 1 if any mesh failed, 2 for a usage "
+                    "error, 0 otherwise.")
     p.add_argument("meshes", nargs="+", metavar="MESH", help="mesh files")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     add_camera_args(p)
@@ -102,10 +122,16 @@ def run(args) -> int:
 
     from ucad_catalog.exr import write_viewset_exr
 
-    from ..ingest import IngestError, load_mesh
+    from ..build import printable
+    from ..ingest import IngestError, describe_exception, load_mesh
     from ..render import render_views
     from ..sheets import material_sheet, write_png
 
+    try:
+        stems = dict(zip(args.meshes, output_stems(args.meshes)))
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     ring = ring_from_args(args)
     try:
         mode, overrides = orientation_from_args(args)
@@ -116,7 +142,7 @@ def run(args) -> int:
     failed = 0
     bar = tqdm(args.meshes, unit="mesh", desc="render", disable=None)
     for path in bar:
-        stem = Path(path).name.rsplit(".", 1)[0]
+        stem = stems[path]
         try:
             mesh = load_mesh(path, orientation=mode, overrides=overrides)
             views = render_views(mesh, ring)
@@ -127,11 +153,17 @@ def run(args) -> int:
             if not args.no_sheet:
                 write_png(args.out / f"{stem}.sheet.png",
                           material_sheet(views, [m.name for m in mesh.materials]))
-            bar.write(f"ok    {path}: {mesh.n_faces} triangles, {len(mesh.materials)} materials, "
+            bar.write(f"ok    {printable(path)}: {mesh.n_faces} triangles, {len(mesh.materials)} materials, "
                       f"{views.n_views} views -> {args.out / (stem + '.views.exr')}; "
                       f"{describe_orientation(mesh.orientation)}")
-        except (IngestError, ValueError, OSError) as exc:
+        except IngestError as exc:                  # every file gets its line, none stops us
             failed += 1
-            bar.write(f"FAIL  {path}: {exc}", file=sys.stderr)
+            bar.write(f"FAIL  {printable(str(exc))}", file=sys.stderr)
+        except MemoryError:
+            failed += 1
+            bar.write(f"FAIL  {printable(path)}: out of memory [too_large]", file=sys.stderr)
+        except Exception as exc:                    # noqa: BLE001 - reported per file
+            failed += 1
+            bar.write(f"FAIL  {printable(path)}: {describe_exception(exc)}", file=sys.stderr)
     print(f"{len(args.meshes) - failed} rendered, {failed} failed; outputs in {args.out}")
     return 1 if failed else 0

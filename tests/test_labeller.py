@@ -1,0 +1,396 @@
+"""The learned labeller: features on hand-made cases, the layer behind glass, the shipped ONNX
+model (loads and predicts with onnxruntime alone, in a fresh environment), the training script
+end to end, shared-material splits, and the labeller as the default segmenter."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import zipfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ucad_cl.artifacts import PART_NAMES, Material, Mesh
+from ucad_cl.cameras import make_ring
+from ucad_cl.labeller import FEATURE_NAMES, MODEL_PATH, material_table, see_through
+
+ROOT = Path(__file__).resolve().parents[1]
+COL = {n: i for i, n in enumerate(FEATURE_NAMES)}
+
+
+# ---------------------------------------------------------------------------------------------
+# hand-made meshes (file frame: metres, +Y up, length along X), canonicalised like ingest
+# ---------------------------------------------------------------------------------------------
+def box(lo, hi):
+    x0, y0, z0 = lo
+    x1, y1, z1 = hi
+    v = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (z0, z1)], float)
+    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return v, f
+
+
+def torus(centre, R, r, n=32, m=12):
+    """Ring around an axis parallel to Z (a tyre seen from the side is a circle)."""
+    a = 2 * np.pi * np.arange(n) / n
+    b = 2 * np.pi * np.arange(m) / m
+    A, B = np.meshgrid(a, b, indexing="ij")
+    v = np.stack([(R + r * np.cos(B)) * np.cos(A), (R + r * np.cos(B)) * np.sin(A),
+                  r * np.sin(B)], -1).reshape(-1, 3) + centre
+    i, j = np.meshgrid(np.arange(n), np.arange(m), indexing="ij")
+    q = lambda i, j: (i % n) * m + (j % m)  # noqa: E731
+    f = np.concatenate([np.stack([q(i, j), q(i + 1, j), q(i + 1, j + 1)], -1).reshape(-1, 3),
+                        np.stack([q(i, j), q(i + 1, j + 1), q(i, j + 1)], -1).reshape(-1, 3)])
+    return v, f
+
+
+def disc(centre, R, thick, n=32):
+    """Flat cylinder (a rim seen from the side is a disc), axis parallel to Z."""
+    a = 2 * np.pi * np.arange(n) / n
+    ring = np.stack([R * np.cos(a), R * np.sin(a), np.zeros(n)], 1)
+    v = np.concatenate([ring, ring + [0, 0, thick], [[0, 0, 0], [0, 0, thick]]]) + centre
+    k = np.arange(n)
+    f = np.concatenate([np.stack([k, (k + 1) % n, n + (k + 1) % n], 1),
+                        np.stack([k, n + (k + 1) % n, n + k], 1),
+                        np.stack([np.full(n, 2 * n), (k + 1) % n, k], 1),
+                        np.stack([np.full(n, 2 * n + 1), n + k, n + (k + 1) % n], 1)])
+    return v, f
+
+
+def make_mesh(parts, materials):
+    """parts: [(vertices, faces, material index, node name)] -> canonical Mesh."""
+    vs, fs, fm, fn, off = [], [], [], [], 0
+    for k, (v, f, m, _) in enumerate(parts):
+        vs.append(v)
+        fs.append(f + off)
+        fm.append(np.full(len(f), m))
+        fn.append(np.full(len(f), k))
+        off += len(v)
+    v = np.concatenate(vs)
+    lo, hi = v.min(0), v.max(0)
+    d = np.linalg.norm(hi - lo)
+    return Mesh(path="hand-made", sha256="cd" * 32, vertices=(v - (lo + hi) / 2) / d,
+                faces=np.concatenate(fs).astype(np.uint32),
+                face_material=np.concatenate(fm).astype(np.uint16), materials=materials,
+                face_node=np.concatenate(fn).astype(np.int32),
+                node_names=[p[3] for p in parts])
+
+
+def car():
+    """Body box, 4 tyres (tori), 4 rims (discs), a glass box enclosing a seat, and a box
+    enclosed by the opaque body shell (never visible)."""
+    mats = [Material("paint", (0.6, 0.1, 0.1, 1.0), metallic=0.5, roughness=0.3),
+            Material("tyre", (0.02, 0.02, 0.02, 1.0)),
+            Material("rim", (0.8, 0.8, 0.8, 1.0), metallic=1.0, roughness=0.2),
+            Material("glass", (0.1, 0.1, 0.1, 0.3), "BLEND", transmission=0.9),
+            Material("seat", (0.3, 0.2, 0.1, 1.0)),
+            Material("hidden", (0.5, 0.5, 0.5, 1.0))]
+    parts = [(*box([-2, 0.3, -0.8], [2, 1.0, 0.8]), 0, "body")]
+    for x in (-1.3, 1.3):
+        for z, s in ((0.85, 1), (-0.85, -1)):
+            parts.append((*torus([x, 0.38, z], 0.28, 0.1), 1, f"tyre_{x}_{z}"))
+            parts.append((*disc([x, 0.38, z + s * 0.02 - (0.04 if s < 0 else 0)], 0.2, 0.04),
+                          2, f"rim_{x}_{z}"))
+    parts.append((*box([-0.8, 1.0, -0.7], [0.8, 1.5, 0.7]), 3, "cabin_glass"))
+    parts.append((*box([-0.3, 1.05, -0.3], [0.3, 1.3, 0.3]), 4, "seat"))
+    parts.append((*box([-1.5, 0.5, -0.2], [-1.0, 0.8, 0.2]), 5, "inner_block"))
+    return make_mesh(parts, mats)
+
+
+@pytest.fixture(scope="module")
+def car_views(runtime):
+    from ucad_cl.render import render_views
+
+    mesh = car()
+    return mesh, render_views(mesh, make_ring(azimuth_step=30, elevations=(15.0, 40.0), size=96))
+
+
+# ---------------------------------------------------------------------------------------------
+# features
+# ---------------------------------------------------------------------------------------------
+def test_a_ring_is_a_ring_and_a_disc_a_disc(car_views):
+    mesh, views = car_views
+    t = material_table(mesh, views)
+    X = t.X
+    assert len(t.wheels) == 4                                    # tyre + rim merged per axle
+    tyre, rim, body = X[1], X[2], X[0]
+    assert tyre[COL["comp_wheel"]] == pytest.approx(1.0)
+    assert rim[COL["comp_wheel"]] == pytest.approx(1.0)
+    assert body[COL["comp_wheel"]] == 0.0
+    assert 10 ** tyre[COL["log_comps"]] == pytest.approx(4.0)    # four separate tyres
+    # a torus of radii 0.28 +- 0.1 around the axle: r / R (R = 0.38) between 0.47 and 1,
+    # concentrated near 0.74, with a hole (no area near the axle); a disc reaches the axle
+    assert 0.65 < tyre[COL["ring_r"]] < 0.85 and tyre[COL["ring_spread"]] < 0.2
+    assert rim[COL["ring_r"]] < tyre[COL["ring_r"]]
+    assert tyre[COL["rho_hub"]] < 0.3 and rim[COL["rho_hub"]] > 0.9     # rho: / tyre radius
+    assert tyre[COL["rho_tyre"]] + tyre[COL["rho_rim"]] + tyre[COL["rho_hub"]] > 0.99  # inside
+    assert body[COL["rho_mean"]] > 1.0
+
+
+def test_behind_glass_layer_finds_the_seat_and_not_the_enclosed_block(car_views):
+    mesh, views = car_views
+    assert see_through(mesh).tolist() == [False, False, False, True, False, False]
+    t = material_table(mesh, views)
+    assert t.pixels[4] == 0 and t.behind_pixels[4] > 20          # seat: only through glass
+    assert t.X[4, COL["through_glass"]] == pytest.approx(1.0)
+    assert t.pixels[5] == 0 and t.behind_pixels[5] == 0          # inside the opaque body
+    assert t.X[0, COL["through_glass"]] < 0.5                    # paint: seen directly
+
+
+def test_mirror_pairs_names_and_hidden_names(car_views):
+    mesh, views = car_views
+    X = material_table(mesh, views).X
+    name_cols = [COL[f"name_{p}"] for p in PART_NAMES]
+    # names: 'paint' -> body, 'tyre' -> wheel, 'rim' -> rim, 'glass' -> window, 'seat' ->
+    # interior, 'hidden' -> nothing
+    want = {0: "body", 1: "wheel", 2: "rim", 3: "window", 4: "interior"}
+    for m, p in want.items():
+        assert X[m, name_cols].sum() == 1 and X[m, COL[f"name_{p}"]] == 1
+    assert X[5, name_cols].sum() == 0
+    meaningless = replace(mesh, materials=[replace(m, name=f"Material.{i:03d}")
+                                           for i, m in enumerate(mesh.materials)],
+                          node_names=[f"Object_{i}" for i in range(len(mesh.node_names))])
+    Xm = material_table(meaningless, views).X
+    assert not Xm[:, name_cols].any()
+    assert not Xm[:, [COL[f"node_{p}"] for p in PART_NAMES]].any()
+    np.testing.assert_array_equal(np.delete(Xm, name_cols + [COL[f"node_{p}"]
+                                                             for p in PART_NAMES], axis=1),
+                                  np.delete(X, name_cols + [COL[f"node_{p}"]
+                                                            for p in PART_NAMES], axis=1))
+    # off-centre mirror images: tyres are one material on both sides (centred), so no pair
+    assert X[1, COL["mirror"]] == 0.0
+
+
+def test_features_do_not_depend_on_front_back_or_left_right(car_views, runtime):
+    """Geometric features use |u| and |w|: the car turned by 180 degrees about +Y gives the
+    same rows (visibility features come from the same ring, which is symmetric too)."""
+    from ucad_cl.render import render_views
+
+    mesh, views = car_views
+    turned = replace(mesh, vertices=mesh.vertices * [-1.0, 1.0, -1.0])
+    ring = make_ring(azimuth_step=30, elevations=(15.0, 40.0), size=96)
+    a = material_table(mesh, views).X
+    b = material_table(turned, render_views(turned, ring)).X
+    geo = [COL[k] for k in ("h_mean", "u_mean", "w_mean", "comp_wheel", "ring_r", "rho_tyre",
+                            "flat", "log_area", "z_wheel", "log_comps")]
+    np.testing.assert_allclose(a[:, geo], b[:, geo], atol=1e-6)
+    np.testing.assert_allclose(a[:, COL["pix_share"]], b[:, COL["pix_share"]], atol=0.02)
+
+
+# ---------------------------------------------------------------------------------------------
+# the shipped model
+# ---------------------------------------------------------------------------------------------
+def test_shipped_model_record_and_size():
+    rec = json.loads(MODEL_PATH.with_suffix(".json").read_text())
+    assert MODEL_PATH.stat().st_size < 5 * 2**20
+    assert tuple(rec["features"]) == FEATURE_NAMES and rec["classes"] == list(PART_NAMES)
+    assert rec["recipe"]["seed"] == 2026 and rec["recipe"]["vehicles"] >= 100
+    assert rec["metrics"]["heldout_generated_material_accuracy"] >= 0.97
+    assert len(rec["check"]["X"]) >= 5
+
+
+def test_model_loads_and_predicts_in_a_fresh_environment(tmp_path):
+    """The wheel holds the model; a fresh venv with only numpy and onnxruntime (no scikit-learn,
+    no onnx, no OpenCL) loads it and reproduces scikit-learn's probabilities stored at training."""
+    wheel_dir = tmp_path / "wheel"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
+                    "--no-build-isolation", "-w", str(wheel_dir), str(ROOT)], check=True,
+                   capture_output=True, timeout=300)
+    whl = next(wheel_dir.glob("ucad_cl-*.whl"))
+    with zipfile.ZipFile(whl) as z:
+        names = z.namelist()
+        assert "ucad_cl/models/labeller.onnx" in names and "ucad_cl/models/labeller.json" in names
+        venv = tmp_path / "venv"
+        subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True,
+                       timeout=120)
+        site = next((venv / "lib").glob("python*/site-packages"))
+        z.extractall(site)                                       # installing a pure wheel
+    deps = tmp_path / "deps"
+    deps.mkdir()
+    import numpy
+    import onnxruntime
+    for mod in (numpy, onnxruntime):
+        src = Path(mod.__file__).parent
+        (deps / src.name).symlink_to(src)
+        libs = src.parent / f"{src.name}.libs"
+        if libs.exists():
+            (deps / libs.name).symlink_to(libs)
+    (site / "deps.pth").write_text(str(deps) + "\n")
+    code = ("import json, numpy as np, importlib.util as u\n"
+            "assert u.find_spec('sklearn') is None and u.find_spec('onnx') is None\n"
+            "assert u.find_spec('pyopencl') is None\n"
+            "from ucad_cl.labeller import LabellerModel, MODEL_PATH\n"
+            "assert 'site-packages' in str(MODEL_PATH), MODEL_PATH\n"
+            "rec = json.loads(MODEL_PATH.with_suffix('.json').read_text())\n"
+            "p = LabellerModel(MODEL_PATH).predict(np.array(rec['check']['X'], np.float32))\n"
+            "ref = np.array(rec['check']['prob'])\n"
+            "assert np.abs(p - ref).max() < 1e-4, np.abs(p - ref).max()\n"
+            "assert (p.argmax(1) == ref.argmax(1)).all()\n"
+            "print('ok', p.shape)\n")
+    out = subprocess.run([str(venv / "bin" / "python"), "-I", "-c", code], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("ok")
+
+
+def test_stale_or_missing_model_is_a_clear_error(tmp_path):
+    from ucad_cl.labeller import LabellerModel
+
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        LabellerModel(tmp_path / "nope.onnx")
+    bad = tmp_path / "m.onnx"
+    bad.write_bytes(MODEL_PATH.read_bytes())
+    rec = json.loads(MODEL_PATH.with_suffix(".json").read_text())
+    rec["features"] = rec["features"][:-1]
+    bad.with_suffix(".json").write_text(json.dumps(rec))
+    with pytest.raises(ValueError, match="retrain"):
+        LabellerModel(bad)
+
+
+# ---------------------------------------------------------------------------------------------
+# training script
+# ---------------------------------------------------------------------------------------------
+def test_training_script_end_to_end_is_deterministic(tmp_path, runtime):
+    pytest.importorskip("sklearn")
+    pytest.importorskip("onnx")
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from train_labeller import main
+
+    outs = []
+    for k in range(2):
+        out = tmp_path / f"run{k}" / "labeller.onnx"
+        assert main(["--vehicles", "2", "--test-vehicles", "1", "--max-iter", "3",
+                     "--no-real", "--seed", "5", "--out", str(out)]) == 0
+        outs.append(out)
+    assert outs[0].read_bytes() == outs[1].read_bytes()
+    rec = json.loads(outs[0].with_suffix(".json").read_text())
+    assert rec["recipe"]["seed"] == 5 and rec["recipe"]["vehicles"] == 2
+    assert 0 <= rec["metrics"]["heldout_generated_material_accuracy"] <= 1
+    from ucad_cl.labeller import LabellerModel
+
+    p = LabellerModel(outs[0]).predict(np.array(rec["check"]["X"], np.float32))
+    np.testing.assert_allclose(p, np.array(rec["check"]["prob"]), atol=1e-4)
+
+
+# ---------------------------------------------------------------------------------------------
+# segmenter + classification
+# ---------------------------------------------------------------------------------------------
+def test_labeller_segmenter_behind_glass_unseen_and_prob(car_views):
+    from ucad_cl.classify import classify_parts
+    from ucad_cl.segment import LabellerSegmenter, make_segmenter
+
+    mesh, views = car_views
+    seg = make_segmenter("labeller")
+    assert isinstance(seg, LabellerSegmenter)
+    masks = seg.segment(mesh, views)
+    assert masks.source.startswith("labeller") and masks.labels is not None
+    table = classify_parts(mesh, views, masks)
+    rows = {r.name: r for r in table.rows}
+    assert rows["seat"].decision == "behind-glass" and rows["seat"].pixels > 0
+    assert rows["seat"].part in PART_NAMES
+    assert rows["hidden"].part == "unseen" and rows["hidden"].decision == "unseen"
+    for r in table.rows:
+        if r.part != "unseen":
+            assert 0.0 < r.prob <= 1.0
+            assert r.prob == pytest.approx(float(masks.labels.prob[r.material,
+                                                                   PART_NAMES.index(r.part)]))
+    # the mask confidence of a part is the probability of the materials painted with it
+    lab = masks.labels
+    part = PART_NAMES[int(lab.part[0])]
+    v = int(np.argmax(views.material_counts()[:, 1]))
+    only = [m for m in range(len(mesh.materials)) if lab.part[m] == lab.part[0]
+            and views.material_counts(len(mesh.materials) + 1)[v, m + 1] > 0]
+    if only == [0]:
+        assert masks.confidence[v, PART_NAMES.index(part)] == pytest.approx(
+            lab.probability(0), rel=1e-5)
+
+
+def test_shared_paint_on_rims_is_split_by_component(runtime):
+    from ucad_cl.classify import classify_parts
+    from ucad_cl.render import render_views
+    from ucad_cl.segment import LabellerSegmenter
+    from ucad_cl.synth import make_vehicle
+
+    veh = make_vehicle(11, "sedan", realism=["one_paint", "paint_rims"])
+    mesh = veh.mesh()
+    views = render_views(mesh, make_ring(azimuth_step=30, elevations=(15.0,), size=96))
+    masks = LabellerSegmenter().segment(mesh, views)
+    table = classify_parts(mesh, views, masks)
+    row = next(r for r in table.rows if r.name == "paint")
+    assert row.split is not None
+    parts = [g["part"] for g in row.split]
+    assert "rim" in parts and "body" in parts
+    rim = next(g for g in row.split if g["part"] == "rim")
+    assert rim["components"] == 4 and 0.0 < rim["area_share"] < 0.5
+    assert all(len(b) == 6 for b in rim["boxes"])
+    tyre = next(r for r in table.rows if r.name.startswith("tyre"))
+    assert tyre.split is None
+
+
+def test_default_segmenter_everywhere():
+    from ucad_cl.build import BuildOptions, make_segmenter
+    from ucad_cl.segment import LabellerSegmenter
+
+    assert BuildOptions().segmenter == "labeller"
+    assert isinstance(make_segmenter("labeller"), LabellerSegmenter)
+    assert isinstance(make_segmenter(f"labeller:{MODEL_PATH}"), LabellerSegmenter)
+    with pytest.raises(FileNotFoundError):
+        make_segmenter("labeller:/no/such/model.onnx")
+
+
+def test_show_prints_the_probability():
+    from ucad_cl.artifacts import MaterialPart
+    from ucad_cl.commands.parts import format_rows
+    from ucad_catalog.reader import PartRow
+
+    rows = [MaterialPart(0, "paint", "body", 1.0, 0.9, 3, "best-view", 500, 0.873,
+                         [{"part": "body", "area_share": 0.8}, {"part": "rim",
+                                                                "area_share": 0.2}]),
+            MaterialPart(1, "m1", "unseen", 0.0, 0.0, -1, "unseen", 0)]
+    text = format_rows(rows)
+    assert " 0.87 " in text and "body:0.80 rim:0.20" in text
+    assert text.splitlines()[2].split()[2] == "-"
+    stored = [PartRow("paint", "body", 1.0, 0.9, 3, "best-view", 500, 0,
+                      {"prob": 0.5, "split": None})]
+    assert " 0.50 " in format_rows(stored)
+
+
+def test_same_labels_in_all_24_axis_aligned_poses(tmp_path, runtime):
+    """Acceptance: the same model in any of the 24 axis-aligned poses gets the same labels for
+    >= 99 % of its materials. Needs the orientation stage (issue 10) at load time: skipped
+    until ``ucad_cl.orient`` exists."""
+    pytest.importorskip("ucad_cl.orient")
+    import itertools
+
+    from ucad_cl.classify import classify_parts
+    from ucad_cl.ingest import load_mesh
+    from ucad_cl.render import render_views
+    from ucad_cl.segment import LabellerSegmenter
+    from ucad_cl.synth import make_vehicle
+
+    veh = make_vehicle(31, "hatchback", realism=["one_paint", "lens_lamps"])
+    ring = make_ring(azimuth_step=30, elevations=(15.0,), size=96)
+    seg = LabellerSegmenter()
+    labels = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1, -1), repeat=3):
+            R = np.zeros((3, 3))
+            R[np.arange(3), perm] = signs
+            if np.linalg.det(R) < 0:
+                continue
+            T = np.eye(4)
+            T[:3, :3] = R
+            scene = veh.scene.copy()
+            scene.apply_transform(T)
+            path = tmp_path / f"pose_{len(labels)}.glb"
+            path.write_bytes(scene.export(file_type="glb"))
+            mesh = load_mesh(path)
+            views = render_views(mesh, ring)
+            table = classify_parts(mesh, views, seg.segment(mesh, views))
+            labels.append({r.name: r.part for r in table.rows})
+    assert len(labels) == 24
+    same = [sum(lab[k] == labels[0][k] for k in labels[0]) / len(labels[0]) for lab in labels]
+    assert min(same) >= 0.99, same

@@ -1,0 +1,493 @@
+"""The catalogue as a product: the reader installed alone (no OpenCL, no trimesh) reading a
+catalogue the full package built, mesh ids and path spellings, views by angle, the one-part EXR
+decoder against OpenEXR, and the command-line cases of issue 14.
+
+References are independent of the code under test: views re-rendered by the pipeline, edges
+recomputed from them, raw sqlite3 rows, OpenEXR's own decoder, brute-force loops.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ucad_catalog import CatalogError, CatalogReader
+from ucad_catalog.exr import ViewStackFile
+
+ROOT = Path(__file__).resolve().parents[1]
+CATALOG_PY = ROOT / ".venv-catalog" / "bin" / "python"
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """A small library (3 vehicles, a one-material mesh, a broken file) and its catalogue."""
+    pytest.importorskip("pyopencl")
+    import trimesh
+
+    from ucad_cl.build import BuildOptions, build
+    from ucad_cl.synth import make_vehicle, write_library
+
+    base = tmp_path_factory.mktemp("reader")
+    lib = base / "lib"
+    write_library(lib, 3, seed=21, messy_fraction=0.0, progress=False)
+    mesh = make_vehicle(7, "sedan").mesh()
+    trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(lib / "single.glb")
+    (lib / "broken.glb").write_bytes(b"glTF\x02\x00\x00\x00garbage")
+    opts = BuildOptions(azimuth_step=45.0, elevations=(0.0, 30.0), size=64)
+    build(lib, base / "cat", opts, progress=False, log=lambda *a: None)
+    return lib, base / "cat", opts
+
+
+def references(lib: Path, cat: Path, opts) -> dict:
+    """Per accepted mesh: its views re-rendered and its edges recomputed by the pipeline."""
+    from ucad_cl.cameras import make_ring
+    from ucad_cl.edges import material_edges
+    from ucad_cl.ingest import load_mesh
+    from ucad_cl.render import render_views
+
+    ring = make_ring(azimuth_step=opts.azimuth_step, elevations=opts.elevations, size=opts.size)
+    out = {}
+    con = sqlite3.connect(cat / "catalog.sqlite")
+    for sha, path in con.execute("SELECT sha256, path FROM meshes WHERE state='accepted'"):
+        views = render_views(load_mesh(lib / path), ring)
+        out[sha] = {"views": views, "edges": material_edges(views).edges > 0, "ring": ring,
+                    "table": con.execute("SELECT idx, part FROM materials m JOIN meshes x ON "
+                                         "m.mesh_id=x.id WHERE x.sha256=?", (sha,)).fetchall()}
+    con.close()
+    return out
+
+
+STANDALONE = r"""
+import importlib.util, json, sys
+import numpy as np
+for name in ("pyopencl", "trimesh", "ucad_cl", "cv2"):
+    assert importlib.util.find_spec(name) is None, f"{name} is installed in the reader's venv"
+import ucad_catalog
+cat = ucad_catalog.open(sys.argv[1])
+out, arrays = {}, {}
+for m in cat.meshes():
+    views = cat.views(m.id[:8])                                 # an 8-digit prefix names it
+    rec = {"n_views": len(views), "angles": [(v.index, v.azimuth, v.elevation) for v in views],
+           "K": views[0].K.tolist(), "w2c": [v.w2c.tolist() for v in views],
+           "parts": [(p.index, p.name, p.part, p.props) for p in cat.parts(m.id)],
+           "by_angle": [cat.nearest_view(m.id, a, e) for a, e in
+                        ((100.0, 25.0), (350.0, 0.0), (181.0, 14.9), (0.0, 89.0))]}
+    v = cat.view(m.id, azimuth=100.0, elevation=25.0)
+    rec["view_by_angle"] = v.view
+    for i in range(len(views)):
+        r = cat.view(m.id, i)
+        arrays[f"{m.id}/mat/{i}"], arrays[f"{m.id}/tri/{i}"] = r.mat_id, r.tri_id
+        arrays[f"{m.id}/depth/{i}"] = r.depth
+        assert np.array_equal(cat.material_map(m.id, i), r.mat_id)
+        assert np.array_equal(cat.depth(m.id, i), r.depth, equal_nan=True)
+        assert np.array_equal(cat.triangle_map(m.id, i), r.tri_id)
+        for part, mask in cat.part_masks(m.id, i).items():
+            arrays[f"{m.id}/mask/{part}/{i}"] = mask
+        arrays[f"{m.id}/edges/{i}"] = cat.edges(m.id, i)
+    arrays[f"{m.id}/features"] = cat.features(m.id)
+    assert np.array_equal(cat.edges(m.id), np.stack([arrays[f"{m.id}/edges/{i}"]
+                                                     for i in range(len(views))]))
+    rec["record_keys"] = sorted(cat.record(m.id))
+    e = cat.entry(m.name)
+    assert (e.id, e.info.path, [p.part for p in e.parts], len(e.views)) == \
+        (m.id, m.path, [p.part for p in cat.parts(m.id)], len(views))
+    assert all(p.is_file() for p in e.artifacts.values()) and e.orientation is None
+    rec["provenance"] = {k: v for k, v in e.provenance.items() if k != "run_started"}
+    rec["artifact_kinds"] = sorted(cat.record(m.id)["artifacts"])
+    out[m.id] = rec
+out["_rejected"] = [(m.path, m.reason) for m in cat.meshes("rejected")]
+cat.export(sys.argv[2] + "/cat.jsonl")
+cat.export(sys.argv[2] + "/cat.parquet")
+bad = [k for k in sys.modules if k.split(".")[0] in ("pyopencl", "trimesh", "ucad_cl", "cv2")]
+assert not bad, bad
+np.savez(sys.argv[2] + "/arrays.npz", **arrays)
+json.dump(out, open(sys.argv[2] + "/out.json", "w"))
+print("ok")
+"""
+
+
+def test_reader_installed_alone_reads_every_artifact(built, tmp_path):
+    """In .venv-catalog (only ucad_catalog, numpy, OpenEXR, pyarrow): every artifact kind, views
+    by angle, part masks and edges equal what the pipeline renders and computes."""
+    if not CATALOG_PY.exists():
+        if os.environ.get("UCAD_REQUIRE_CATALOG_VENV"):
+            pytest.fail(f"{CATALOG_PY} missing: scripts/catalog-venv.sh should have made it")
+        pytest.skip("no .venv-catalog (bash scripts/catalog-venv.sh makes it)")
+    lib, cat, opts = built
+    run = subprocess.run([str(CATALOG_PY), "-I", "-c", STANDALONE, str(cat), str(tmp_path)],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert run.stdout.strip() == "ok", run.stderr[-3000:]
+    out = json.loads((tmp_path / "out.json").read_text())
+    arrays = np.load(tmp_path / "arrays.npz")
+    refs = references(lib, cat, opts)
+    assert sorted(k for k in out if k != "_rejected") == sorted(refs)
+    assert sorted(r for _, r in out["_rejected"]) == ["too_few_materials", "unreadable"]
+    for sha, ref in refs.items():
+        rec, views, ring = out[sha], ref["views"], ref["ring"]
+        assert rec["n_views"] == ring.n_views == 16
+        assert [tuple(a) for a in rec["angles"]] == \
+            [(v, ring.azimuth[v], ring.elevation[v]) for v in range(ring.n_views)]
+        assert np.array_equal(rec["K"], ring.K) and np.array_equal(rec["w2c"], ring.w2c)
+        assert rec["by_angle"] == [brute_nearest(ring, a, e) for a, e in
+                                   ((100.0, 25.0), (350.0, 0.0), (181.0, 14.9), (0.0, 89.0))]
+        assert rec["by_angle"][1] == 0 and rec["view_by_angle"] == rec["by_angle"][0]
+        assert rec["artifact_kinds"] == ["edges.npy.gz", "features.npy", "parts.png",
+                                         "views.exr"]
+        prov = rec["provenance"]
+        assert (prov["library_root"], prov["run_id"], prov["engine"]) == (str(lib), 1, "local")
+        assert prov["options"]["size"] == opts.size and prov["options"]["code"]
+        lut = dict(ref["table"])
+        for v in range(ring.n_views):
+            assert np.array_equal(arrays[f"{sha}/mat/{v}"], views.mat_id[v])
+            assert np.array_equal(arrays[f"{sha}/tri/{v}"], views.tri_id[v])
+            assert np.array_equal(arrays[f"{sha}/depth/{v}"], views.depth[v])
+            assert np.array_equal(arrays[f"{sha}/edges/{v}"], ref["edges"][v])
+            for part in set(lut.values()):
+                want = np.isin(views.mat_id[v], [i + 1 for i, p in lut.items() if p == part])
+                assert np.array_equal(arrays[f"{sha}/mask/{part}/{v}"], want), (part, v)
+        with sqlite3.connect(cat / "catalog.sqlite") as con:
+            obj = con.execute("SELECT a.sha256 FROM artifacts a JOIN meshes m ON a.mesh_id=m.id "
+                              "WHERE m.sha256=? AND kind='features.npy'", (sha,)).fetchone()[0]
+        assert np.array_equal(arrays[f"{sha}/features"],
+                              np.load(cat / "objects" / obj[:2] / obj))
+    pq = pytest.importorskip("pyarrow.parquet")
+    assert pq.read_table(tmp_path / "cat.parquet").num_rows == 5
+    assert len((tmp_path / "cat.jsonl").read_text().splitlines()) == 5
+
+
+def brute_nearest(ring, az: float, el: float) -> int:
+    """Smallest angle between unit viewing directions, ties to the lower index (loop)."""
+    def unit(a, e):
+        a, e = np.radians(a), np.radians(e)
+        return np.array([np.cos(e) * np.cos(a), np.sin(e), -np.cos(e) * np.sin(a)])
+    q = unit(az, el)
+    best, best_d = -1, np.inf
+    for v in range(ring.n_views):
+        d = float(np.arccos(np.clip(unit(ring.azimuth[v], ring.elevation[v]) @ q, -1, 1)))
+        if d < best_d - 1e-12:
+            best, best_d = v, d
+    return best
+
+
+def test_every_module_imports_without_opencl_trimesh_or_opencv():
+    code = """
+import pkgutil, sys, importlib
+for name in ("ucad_cl", "pyopencl", "trimesh", "cv2"):
+    sys.modules[name] = None                     # any import of them now raises ImportError
+import ucad_catalog
+mods = sorted(m.name for m in pkgutil.iter_modules(ucad_catalog.__path__))
+for m in mods:
+    importlib.import_module("ucad_catalog." + m)
+from ucad_catalog.views import ViewSet, CameraRing
+import numpy as np
+vs = ViewSet(CameraRing(np.eye(3), np.zeros((2, 4, 4)), 3, 2, np.zeros(2), np.zeros(2), 1, .1),
+             np.zeros((2, 2, 3), np.uint32), np.array([[[0, 1, 1], [2, 0, 0]]] * 2, np.uint16),
+             np.zeros((2, 2, 3), np.float32))
+assert vs.material_counts().tolist() == [[3, 2, 1], [3, 2, 1]]     # NumPy path, no OpenCV
+print(" ".join(mods))
+"""
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=ROOT, timeout=60)
+    assert run.returncode == 0, run.stderr
+    assert set(run.stdout.split()) >= {"reader", "store", "exr", "export", "views", "parts",
+                                       "entry"}
+
+
+# ---------------------------------------------------------------------------- ids and paths
+def test_mesh_ids_prefixes_and_path_spellings(built, monkeypatch):
+    lib, cat, _ = built
+    with CatalogReader(cat) as r:
+        metas = r.meshes(None)
+        assert [m.path for m in metas] == sorted(m.path for m in metas)     # listed by path
+        assert all(m.library_root == str(lib) for m in metas)
+        m = next(x for x in metas if x.state == "accepted")
+        assert m.id == m.sha256 and m.source == lib / m.path
+        for key in (m.sha256, m.sha256[:8].upper(), str(lib / m.path), m.path,
+                    f"./{m.path}", str(lib / "sub" / ".." / m.path), m.name):
+            assert r.mesh(key).sha256 == m.sha256, key
+        monkeypatch.chdir(lib.parent)
+        assert r.mesh(f"lib/{m.path}").sha256 == m.sha256            # relative to here
+        monkeypatch.chdir(lib)
+        assert r.mesh(m.path).sha256 == m.sha256
+        with pytest.raises(CatalogError, match="no mesh matches"):
+            r.mesh(m.sha256[:7])                                     # below the minimum
+        with pytest.raises(CatalogError, match="no mesh matches"):
+            r.mesh("nothing.glb")
+        assert [x.sha256 for x in r.find(m.sha256[:8])] == [m.sha256]
+        with r.snapshot():                                           # snapshots nest
+            assert r.entry(m.sha256[:8]).info.sha256 == m.sha256
+            assert r.export(lib.parent / "nested.jsonl") == len(metas)
+
+
+def test_ambiguous_prefix_is_an_error_listing_the_matches(tmp_path):
+    from tests.test_catalog import build, make_entry
+
+    a, b = make_entry(0), make_entry(1)
+    a.sha256, b.sha256 = "abcdef01" + "0" * 56, "abcdef01" + "1" * 56
+    build(tmp_path / "cat", [a, b]).close()
+    with CatalogReader(tmp_path / "cat") as r:
+        with pytest.raises(CatalogError, match="2 meshes match 'abcdef01'") as info:
+            r.mesh("abcdef01")
+        assert "lib/m000.glb" in str(info.value) and "lib/m001.glb" in str(info.value)
+        assert r.mesh("abcdef011").path == "lib/m001.glb"
+
+
+def test_schema_1_catalogue_is_upgraded_by_the_writer(tmp_path):
+    """A schema-1 catalogue: the read-only reader says how to upgrade; the writer does it."""
+    from tests.test_catalog import build, make_entry
+    from ucad_catalog import Catalog
+
+    build(tmp_path / "cat", [make_entry(0)]).close()
+    con = sqlite3.connect(tmp_path / "cat" / "catalog.sqlite")
+    con.executescript("DROP INDEX meshes_path; ALTER TABLE meshes DROP COLUMN library_root; "
+                      "ALTER TABLE meshes DROP COLUMN orientation; ALTER TABLE meshes DROP "
+                      "COLUMN meta; CREATE INDEX meshes_path ON meshes(path); "
+                      "UPDATE meta SET value='1' WHERE key='schema_version';")
+    con.close()
+    with pytest.raises(CatalogError, match="schema_version 1.*ucad-index status"):
+        CatalogReader(tmp_path / "cat")
+    Catalog.open(tmp_path / "cat").close()
+    with CatalogReader(tmp_path / "cat") as r:
+        (m,) = r.meshes()
+        assert (m.path, m.library_root, m.orientation, m.meta) == ("lib/m000.glb", "", None, {})
+
+
+# ---------------------------------------------------------------------------- one-part decoder
+def test_one_part_decoder_equals_openexr(tmp_path):
+    """ViewStackFile against OpenEXR's own decoder: ZIP (compressible and incompressible
+    chunks), ZIPS, no compression, a single-part file, empty views; PIZ goes through OpenEXR."""
+    import OpenEXR
+
+    rng = np.random.default_rng(3)
+    H, W = 37, 29
+    for comp in ("ZIP_COMPRESSION", "ZIPS_COMPRESSION", "NO_COMPRESSION", "PIZ_COMPRESSION"):
+        for n_parts in (1, 4):
+            parts = []
+            for v in range(n_parts):
+                box = (v % 3, H - (v % 2) * 5, 2 * v, W)       # y0, y1, x0, x1 (half-open)
+                h, w = box[1] - box[0], box[3] - box[2]
+                if v == 2:
+                    h = w = 1
+                    box = (0, 1, 0, 1)
+                chans = {"tri": rng.integers(0, 2**32, (h, w), dtype=np.uint32),  # noise
+                         "mat": np.repeat(rng.integers(0, 5, (h, 1)), w, 1).astype(np.uint32),
+                         "Z": rng.random((h, w)).astype(np.float32)}
+                header = {"dataWindow": (np.array([box[2], box[0]], np.int32),
+                                         np.array([box[3] - 1, box[1] - 1], np.int32)),
+                          "displayWindow": (np.array([0, 0], np.int32),
+                                            np.array([W - 1, H - 1], np.int32)),
+                          "compression": getattr(OpenEXR, comp), "type": OpenEXR.scanlineimage}
+                parts.append(OpenEXR.Part(header, {k: OpenEXR.Channel(x)
+                                                   for k, x in chans.items()}, f"view_{v:03d}"))
+            path = tmp_path / f"{comp}-{n_parts}.exr"
+            OpenEXR.File(parts).write(str(path))
+            ref = OpenEXR.File(str(path), separate_channels=True).parts
+            f = ViewStackFile(path)
+            assert f.n_views == n_parts
+            for v in range(n_parts):
+                got = f.read(v)
+                (x0, y0), (x1, y1) = ref[v].header["dataWindow"]
+                for c in ("tri", "mat", "Z"):
+                    want = ref[v].channels[c].pixels
+                    assert np.array_equal(got[c][y0:y1 + 1, x0:x1 + 1], want), (comp, v, c)
+                    outside = np.ones((H, W), bool)
+                    outside[y0:y1 + 1, x0:x1 + 1] = False
+                    bg = {"tri": 0xFFFFFFFF, "mat": 0, "Z": np.inf}[c]
+                    assert np.all(got[c][outside] == bg)
+                assert got["mat"].dtype == np.uint16 and f.read(v, ("Z",)).keys() == {"Z"}
+    with pytest.raises(ValueError, match="no view 9"):
+        f.read(9)
+    bad = tmp_path / "bad.exr"
+    bad.write_bytes(b"\x76\x2f\x31\x01" + b"\x02\x00\x00\x00" + b"junk")
+    with pytest.raises(ValueError, match="bad.exr"):
+        ViewStackFile(bad)
+    data = bytearray((tmp_path / "ZIP_COMPRESSION-4.exr").read_bytes())
+    data[-40:] = b"\xff" * 40                             # corrupt the last chunk
+    (tmp_path / "corrupt.exr").write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="corrupt.exr"):
+        g = ViewStackFile(tmp_path / "corrupt.exr")
+        for v in range(g.n_views):
+            g.read(v)
+
+
+# ---------------------------------------------------------------------------- command line
+def test_cli_build_single_mesh_quiet_and_rejection_summary(built, tmp_path, capsys):
+    from ucad_cl.cli import main
+
+    lib, _, _ = built
+    one = sorted(lib.glob("synth_*.glb"))[0]
+    args = ["--azimuth-step", "180", "--size", "32", "--no-features"]
+    assert main(["build", str(one), "--catalog", str(tmp_path / "c1"), "-q", *args]) == 0
+    out = capsys.readouterr()
+    assert out.out == ""                                           # --quiet: nothing on stdout
+    with CatalogReader(tmp_path / "c1") as r:
+        (m,) = r.meshes()
+        assert (m.path, m.library_root) == (one.name, str(lib))
+    assert main(["build", str(lib), "--catalog", str(tmp_path / "c2"), *args]) == 0
+    out = capsys.readouterr().out
+    assert "OpenCL device" in out and "rejected 2 mesh(es), by reason" in out
+    assert "too_few_materials" in out and "single.glb" in out and "broken.glb" in out
+    log = tmp_path / "c2" / "logs" / "run-00001.log"
+    assert f"run log (every mesh, reasons, timings): {log}" in out and log.is_file()
+
+
+def test_cli_uid_lists(built, tmp_path, capsys):
+    from ucad_cl.cli import main
+
+    lib, _, _ = built
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    keep = sorted(p.stem for p in lib.glob("synth_*.glb"))[:2]
+    pq.write_table(pa.table({"uid": keep + ["not-there"], "n": [1, 2, 3]}), tmp_path / "u.parquet")
+    args = ["--catalog", str(tmp_path / "c"), "--azimuth-step", "180", "--size", "32",
+            "--no-features", "-q"]
+    assert main(["build", str(lib), "--uids", str(tmp_path / "u.parquet"), *args]) == 0
+    with CatalogReader(tmp_path / "c") as r:
+        assert sorted(Path(m.path).stem for m in r.meshes(None)) == keep
+    pq.write_table(pa.table({"name": ["a"]}), tmp_path / "nouid.parquet")
+    (tmp_path / "junk.parquet").write_bytes(b"PAR1 not really")
+    (tmp_path / "binary.txt").write_bytes(b"\xff\xfe\x00\x81")
+    for f, msg in (("nouid.parquet", "no uid column"), ("junk.parquet", "not a readable Parquet"),
+                   ("binary.txt", "not a uid list"), ("missing.txt", "does not exist")):
+        assert main(["build", str(lib), "--uids", str(tmp_path / f), *args]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and f in err and msg in err and "Traceback" not in err
+    (tmp_path / "lib.bin").write_bytes(b"\x00\xff\xfe")              # a library that is neither
+    assert main(["build", str(tmp_path / "lib.bin"), *args]) == 2
+    assert "not a mesh folder, a mesh file" in capsys.readouterr().err
+
+
+def test_cli_export_show_and_errors(built, tmp_path, capsys):
+    from ucad_cl.cli import main
+
+    lib, cat, _ = built
+    assert main(["export", "--catalog", str(cat), "--out", "/missing/dir/x.jsonl"]) == 2
+    err = capsys.readouterr().err
+    assert err == "error: cannot write /missing/dir/x.jsonl: folder /missing/dir does not exist\n"
+    assert main(["export", "--catalog", str(cat), "--out", str(tmp_path / "x.txt")]) == 2
+    assert "cannot tell the export format" in capsys.readouterr().err
+    pq = pytest.importorskip("pyarrow.parquet")
+    assert main(["export", "--catalog", str(cat), "--out", str(tmp_path / "x.parquet")]) == 0
+    assert pq.read_table(tmp_path / "x.parquet").num_rows == 5           # suffix -> Parquet
+    assert pq.read_table(tmp_path / "x.materials.parquet").num_rows > 20
+    assert main(["export", "--catalog", str(cat), "--out", str(tmp_path / "y.parquet"),
+                 "--format", "jsonl"]) == 0                              # --format overrides
+    assert (tmp_path / "y.parquet").read_text().startswith('{"artifacts":')
+    capsys.readouterr()
+    with CatalogReader(cat) as r:
+        m = r.meshes()[0]
+    for key in (m.sha256[:8], str(lib / m.path), m.name):
+        assert main(["show", key, "--catalog", str(cat)]) == 0
+        assert capsys.readouterr().out.startswith(f"mesh {m.sha256[:12]}  {m.path}")
+    assert main(["show", "synth", "--catalog", str(cat)]) == 2
+    assert "0 meshes match 'synth'" in capsys.readouterr().err
+
+
+def test_cli_parts_segmenter_spelling_and_stem_clashes(built, tmp_path, capsys):
+    from ucad_cl.cli import main
+
+    lib, _, _ = built
+    car = sorted(lib.glob("synth_*.glb"))[0]
+    small = ["--azimuth-step", "180", "--size", "32", "--out", str(tmp_path / "p")]
+    assert main(["parts", "--segmenter", "prior", str(car), *small]) == 0   # mesh not swallowed
+    assert (tmp_path / "p" / f"{car.stem}.parts.csv").exists()
+    assert main(["parts", str(car), "--segmenter", "masks", *small]) == 2
+    assert "unknown segmenter 'masks'" in capsys.readouterr().err
+    twin = tmp_path / "other" / car.name
+    twin.parent.mkdir()
+    twin.write_bytes(car.read_bytes())
+    for cmd in (["render", str(car), str(twin), "--out", str(tmp_path / "r"), "--size", "32"],
+                ["parts", str(car), str(twin), *small[:-1], str(tmp_path / "r")]):
+        assert main(cmd) == 2
+        err = capsys.readouterr().err
+        assert "two inputs would write the same outputs" in err and str(twin) in err
+        assert not (tmp_path / "r").exists()                             # nothing written
+
+
+def test_sheet_labels_draw_a_degree_sign():
+    """Labels say 'az 30° el 15°'; OpenCV's font has no '°' (it draws '?'): ours draws a ring."""
+    import cv2
+
+    from ucad_cl.cameras import make_ring
+    from ucad_cl.sheets import DEGREE, put_label, view_labels
+
+    labels = view_labels(make_ring(azimuths=[30.0], elevations=[15.0], size=8))
+    assert labels == [f"az 30{DEGREE} el 15{DEGREE}"]
+    ours = np.zeros((20, 60, 3), np.uint8)
+    put_label(ours, f"30{DEGREE}", (2, 15))
+    plain = np.zeros_like(ours)
+    cv2.putText(plain, "30", (2, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (230, 230, 230), 1,
+                cv2.LINE_AA)
+    question = np.zeros_like(ours)
+    cv2.putText(question, "30?", (2, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (230, 230, 230), 1,
+                cv2.LINE_AA)
+    w = cv2.getTextSize("30", cv2.FONT_HERSHEY_SIMPLEX, 0.35, 1)[0][0] + 2
+    assert np.array_equal(ours[:, :w], plain[:, :w])                  # the digits unchanged
+    ring = ours[:, w:].max(axis=2) > 0
+    ys, xs = np.nonzero(ring)
+    assert ring.sum() >= 4 and ys.max() <= 15 - 4                     # a raised mark...
+    assert not np.array_equal(ours, question)                         # ... that is not '?'
+
+
+def test_info_names_the_device_and_why(capsys):
+    from ucad_cl.cli import main
+    from ucad_cl.runtime import device_infos, device_rank, get_runtime
+
+    assert main(["info"]) == 0
+    out = capsys.readouterr().out
+    rt = get_runtime()
+    assert f"in use: {rt.info.spec} " in out and f"why: {rt.why}" in out
+    infos = device_infos()
+    if not os.environ.get("UCAD_CL_DEVICE") and len(infos) > 1:
+        # the chosen device is the best-ranked one that compiles: nothing better-ranked works
+        better = [i for i in infos if device_rank(i) < device_rank(rt.info)]
+        assert all("could not compile" in rt.why for _ in better)
+
+
+# ---------------------------------------------------------------------------- SCHEMA.md
+def _doc_tables(text: str) -> dict[str, list[list[str]]]:
+    """{heading: rows of the first markdown table after it} for '###' headings and the
+    'Meshes table' / 'Materials table' paragraphs of SCHEMA.md."""
+    import re
+
+    out, current = {}, None
+    for line in text.splitlines():
+        m = re.match(r"### `?([\w ]+?)`?(?: \(|$)", line)
+        if m or line.startswith(("Meshes table", "Materials table")):
+            current = m.group(1) if m else "export " + line.split(" table")[0].lower()
+            continue
+        if current and line.startswith("|") and not line.startswith("|---"):
+            cells = [c.strip() for c in line.strip().strip("|").split(" | ")]
+            if cells[0] not in ("column", "kind"):
+                out.setdefault(current, []).append(cells)
+    return out
+
+
+def test_schema_doc_matches_the_code(tmp_path):
+    """SCHEMA.md lists exactly the SQL columns (names and types), the artifact kinds and the
+    export columns the code defines: the two cannot drift apart."""
+    from ucad_catalog import Catalog
+    from ucad_catalog._db import ARTIFACT_KINDS, SCHEMA_VERSION
+    from ucad_catalog.export import MATERIAL_COLUMNS, MESH_COLUMNS
+
+    text = (ROOT / "ucad_catalog" / "SCHEMA.md").read_text(encoding="utf-8")
+    assert text.startswith(f"# Catalogue format — `schema_version` {SCHEMA_VERSION}")
+    doc = _doc_tables(text)
+    Catalog.open(tmp_path / "c").close()
+    con = sqlite3.connect(tmp_path / "c" / "catalog.sqlite")
+    for table in ("runs", "meshes", "materials", "views", "artifacts"):
+        actual = {r[1]: r[2] for r in con.execute(f"PRAGMA table_info({table})")}
+        documented = {c[0].strip("`"): c[1] for c in doc[table]}
+        assert documented == actual, table
+    con.close()
+    assert {c[0].strip("`"): c[1] for c in doc["Artifact kinds"]} == ARTIFACT_KINDS
+    for name, columns in (("export meshes", MESH_COLUMNS),
+                          ("export materials", MATERIAL_COLUMNS)):
+        assert [(c[0].strip("`"), c[1], c[2]) for c in doc[name]] == list(columns)
