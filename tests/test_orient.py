@@ -339,6 +339,20 @@ def test_catalogue_records_flags_and_rejects_uncertain_orientation(tmp_path, run
     s = build(lib, tmp_path / "cat2", replace(opts, reject_uncertain_orientation=True),
               progress=False, log=lambda *a: None)
     assert (s.accepted, s.rejected, s.reasons) == (1, 1, {"uncertain_orientation": 1})
+    # the CLI: a per-mesh override file wins over --orientation for the mesh it names
+    (tmp_path / "o.txt").write_text("lib/van_00000040.glb +Y,-X\n")
+    assert main(["build", str(lib), "--catalog", str(tmp_path / "cat3"), "--orientation", "file",
+                 "--orientation-file", str(tmp_path / "o.txt"), "--azimuth-step", "90",
+                 "--size", "48", "--no-features", "--no-edges"]) == 0
+    capsys.readouterr()
+    with CatalogReader(tmp_path / "cat3") as r:
+        src = {m.source.name: m.orientation for m in r.meshes(state=None)}
+    assert src["van_00000040.glb"]["source"] == "override"
+    assert src["van_00000040.glb"]["rotation"] == [[-1, 0, 0], [0, 1, 0], [0, 0, -1]]
+    assert src["sedan_00000041.glb"]["source"] == "file"
+    assert main(["build", str(lib), "--catalog", str(tmp_path / "cat4"),
+                 "--orientation", "sideways"]) == 2
+    assert "orientation 'sideways'" in capsys.readouterr().err
 
 
 def test_default_demo_library_comes_out_upright_facing_plus_x(tmp_path):
