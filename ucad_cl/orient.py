@@ -11,40 +11,50 @@ estimator alone.
 How ``auto`` decides (every step works on pose-invariant statistics, so a re-posed file gives
 the same decisions; ties go to fixed rules written next to the code):
 
-1. **Surface samples.** 2,048 area-weighted points with their face normals (fixed random
-   stream), so a model's dense details do not outweigh its big panels.
-2. **Mirror plane** (the width axis). Candidate normals (the principal axes of the samples,
-   the file axes and their in-between directions) are scored by reflecting the samples and
-   measuring how far they land from the surface (KD tree); the best few are refined by
-   reflect-and-match (ICP-like) iterations. Left and right of a vehicle mirror each other;
-   front/back and top/bottom do not.
-3. **Side view.** Inside the mirror plane the samples form the side view; its principal axes
-   are the length and height candidates.
-4. **Up** (which side is the ground), from cues each scoring in [-1, 1] for the height axis
-   pointing up, weighted and summed: wheels (a Hough vote for tyre-tread circles whose axes
-   are along the width; the common tangent line of the wheels that no point crosses is the
-   ground), glazing above the belt (glass materials), the side-view convex hull (a long flat
-   edge at the bottom), lamps below the roof, names (roof, floor, underbody...), and wheel
-   names low. Wheels also give the ground direction (so a tilted car comes out level).
-5. **Front** (which end is the nose), from weak cues, weighted and summed: names (front/rear,
-   head/tail, FL/RR..., in several languages) of materials and nodes, lamp colours (red at
-   the rear; white, yellow or amber at the front), the windscreen (more forward-facing glass
-   at the front than rear-facing glass at the back), side mirrors (lateral protrusions in the
-   front half, above the wheels), an axle pattern (a lone steering axle at the front, tandem
-   axles at the rear) and the roof profile (the nose lower than the tail).
-6. **Snap.** A result within ``SNAP_DEG`` of a signed file axis is snapped to that exact axis
-   (first up, then front), so axis-aligned files, the common case, get an exact signed
-   permutation, and a re-posed file gives bit-identical canonical vertices.
+1. **Samples.** 4,096 area-weighted surface points with their face normals and 4,096 faces
+   drawn by count (finely tessellated parts such as tyres get many), from a fixed random
+   stream. A ground sheet, cloth or display base under the vehicle (one thin material broader
+   than the rest, all of the rest on one side) is left out and says which way is up.
+2. **Mirror plane** (the width axis). Candidate normals (the principal axes, the file axes and
+   in-between directions; not the length axis of an elongated body) are ranked by how many
+   reflected samples land on the surface; the best are refined by a point-to-plane
+   symmetric ICP (converges from ~10 degrees off to ~0.05 degree). Left and right of a vehicle
+   mirror each other; front and back, top and bottom do not.
+3. **Side view.** In the mirror plane, the length axis is the long side of the side view's
+   smallest bounding rectangle (a vehicle stands on its wheels or sills).
+4. **Wheels.** A Hough vote with normals for circles in the side view, checked to be whole,
+   round tyres on both sides of the mirror plane, low on the body, two or more on one line
+   standing on the ground (``_find_wheels``). They give the ground line (up is levelled on the
+   tyres' contacts, so a tilted car comes out level) and the axle pattern.
+5. **Up** (which side is the ground): cues each scoring in [-1, 1], weighted (UP_WEIGHTS) and
+   summed: wheels, ground sheet, glazing high, the side view's long flat edge low, lamps low,
+   names (roof, floor, underbody...), wheel names low, the roof narrower than the body.
+6. **Front** (which end is the nose): names of materials and nodes (front/rear, head/tail,
+   FL/RR..., in several languages), lamp colours (red at the rear; white, yellow or amber at
+   the front), the windscreen (more glazing across the length at the front of the glazed
+   region), glazing only near one end (a cab), side mirrors (spikes of the width in the front
+   half), an axle pattern (a lone steering axle at the front, tandem axles at the rear) and
+   the roof profile (the nose lower than the tail); weights FRONT_WEIGHTS.
+7. **Snap.** Up within SNAP_DEG of a signed file axis (SNAP_DEG_COARSE when no wheels level
+   it) is snapped to it, then front within SNAP_DEG; an axis-aligned file, the common case,
+   gets an exact signed permutation, applied by indexing, so a re-posed file gives
+   bit-identical canonical vertices.
+8. **Flags.** ``multiple_vehicles`` (vehicles side by side: nothing crosses the mirror plane;
+   apart: separate clusters of surface; on top of each other: node groups that each look like
+   a whole vehicle), ``no_wheels``, ``asymmetric`` (a poor mirror plane), ``ground_plane``,
+   ``up_ambiguous`` / ``front_ambiguous`` (confidence under UNCERTAIN_BELOW).
 
 Confidences are in [0, 1]: ``1 - exp(-|score| / scale)`` of the summed cue scores, so one
 strong cue or several weak agreeing ones give a confident answer, and cues that cancel give
-a low one. ``Orientation.uncertain`` is ``min(up, front) < UNCERTAIN_BELOW``.
+a low one. ``Orientation.uncertain`` is ``min(up, front) < UNCERTAIN_BELOW``. The cues and
+their weights were designed on the generator and on the 20 real models of ``../shared``
+(``bench/orient.py`` says which figures are held out); none of those models is special-cased.
 
 Canonical placement (after the rotation): x and y centred on the bounding box, so the ground
 contact (the lowest point: the tyres' contact for a wheeled vehicle) is at y = -height / 2;
-z centred on the mirror plane when the model is mirror-symmetric (``symmetry`` >= 0.5 and the
-plane within 2 % of the diagonal of the box centre), on the box otherwise; scale: the
-bounding-box diagonal is 1.
+z centred on the mirror plane when the model is mirror-symmetric (``symmetry`` >= 0.5) and
+the plane is 0.2 % to 2 % of the diagonal off the box centre, on the box otherwise (for a
+symmetric model they coincide); scale: the bounding-box diagonal is 1.
 """
 from __future__ import annotations
 
@@ -77,9 +87,9 @@ FLAGS = ("multiple_vehicles", "no_wheels", "front_ambiguous", "up_ambiguous", "a
          "ground_plane")
 
 #: weight of each cue in the summed score (see the module docstring and ``bench/orient.py``)
-UP_WEIGHTS: dict[str, float] = {"wheels": 3.0, "ground_plane": 3.0, "glass_high": 1.5, "hull_base": 1.0,
-                                "lamps_low": 0.5, "names_up": 1.5, "wheel_names_low": 1.0,
-                                "roof_narrow": 0.5}
+UP_WEIGHTS: dict[str, float] = {"wheels": 3.0, "ground_plane": 3.0, "glass_high": 1.5,
+                                "hull_base": 1.0, "lamps_low": 0.5, "names_up": 1.5,
+                                "wheel_names_low": 1.0, "roof_narrow": 0.5}
 FRONT_WEIGHTS: dict[str, float] = {"names": 3.0, "lamp_colours": 2.0, "windscreen": 1.5,
                                    "cab_glass": 1.5, "mirrors": 1.0, "axles": 1.5,
                                    "profile": 0.5}
@@ -252,7 +262,8 @@ def _apply(mesh: Mesh, orientation: Orientation, plane=None) -> Mesh:
     if plane is not None:
         mirror_z = float(R[2] @ plane[2])
         shift = abs(mirror_z - centre[2])
-        if orientation.symmetry >= 0.5 and MIRROR_MIN_SHIFT * diag < shift <= MIRROR_CENTRE_MAX * diag:
+        if (orientation.symmetry >= 0.5
+                and MIRROR_MIN_SHIFT * diag < shift <= MIRROR_CENTRE_MAX * diag):
             # on a grid of 2^-20 diagonals, so a re-posed file gives the same bits
             grid = diag * 2.0 ** -20
             centre = np.array([centre[0], centre[1], round(mirror_z / grid) * grid])
@@ -462,13 +473,17 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
 
     Candidates: the principal axes, the file axes and in-between directions (15-degree steps
     between the two minor axes, whose order is arbitrary when width and height are alike;
-    45 degrees between the major and each minor one), each through the centroid. They are
-    ranked by the share of 128 reflected samples landing near a sample (KD tree of every
-    2 x MIRROR_STRIDE-th sample); the best two at least 25 degrees apart are refined
-    (``_refine_plane``, on the same samples). Quality: the share of every MIRROR_STRIDE-th
-    sample whose reflection lands within 2.5 sample spacings of a sample; the best quality wins, except that among planes within 0.03
-    of the best the one whose normal is the longest extent (1.5 times another's) is dropped:
-    a vehicle is longer than wide, so a front/back-symmetric body keeps its width axis."""
+    45 degrees between the major and each minor one), each through the centroid; for a clearly
+    elongated body (``evals``: largest variance twice the next) none within 30 degrees of its
+    length axis. They are ranked by the share of 128 reflected samples landing near a sample
+    (KD tree of every 2 x MIRROR_STRIDE-th sample); the best six get two refinement steps
+    (``_refine_plane``, on the same samples; neighbouring candidates can fall into different
+    basins), and the two best distinct results are refined in full. The winner has the most
+    of every MIRROR_STRIDE-th sample whose reflection lands within one sample spacing of a
+    sample (a tight test: a long box's diagonal planes pass a loose one), except that among
+    planes within 0.05 of the best the one whose normal is the longest extent (1.5 times
+    another's) is dropped: a vehicle is longer than wide, so a front/back-symmetric body keeps
+    its width axis. Quality (returned): the share within 2.5 sample spacings."""
     from scipy.spatial import cKDTree
 
     cands = [pca[:, 0], pca[:, 1], pca[:, 2], *np.eye(3)]
@@ -497,26 +512,33 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     scores = [float(np.mean(ctree.query(_reflect(few, n, float(mu @ n)), k=1)[0] < 4.0 * step))
               for n in cands]
     order = sorted(range(len(cands)), key=lambda i: (-scores[i], i))   # tie: candidate order
-    picked: list[int] = []                                 # the best 2 in different basins
-    for i in order:
-        if len(picked) == 2:
-            break
-        if all(abs(float(cands[i] @ cands[k])) < math.cos(math.radians(25.0)) for k in picked):
-            picked.append(i)
-    refined = []
-    for i in picked:
+    # two refinement steps for the six best, then the two best distinct results in full
+    rough = []
+    for rank, i in enumerate(order[:6]):
         n, d = _refine_plane(ctree, coarse, coarse_n, cands[i], float(mu @ cands[i]),
-                             1.4 * step)
+                             1.4 * step, iters=2)
+        hit = float(np.mean(ctree.query(_reflect(coarse[::2], n, d), k=1)[0] < 1.5 * step))
+        rough.append((hit, rank, n, d))
+    rough.sort(key=lambda r: (-r[0], r[1]))                        # tie: the earlier rank
+    picked: list = []
+    for _, _, n, d in rough:
+        if len(picked) < 2 and all(abs(float(n @ k[0])) < math.cos(math.radians(3.0))
+                                   for k in picked):
+            picked.append((n, d))
+    refined = []
+    for n, d in picked:
+        n, d = _refine_plane(ctree, coarse, coarse_n, n, d, 1.4 * step)
         dist, _ = tree.query(_reflect(sub, n, d), k=1)
-        refined.append((float(np.mean(dist < 2.5 * step)), float(np.ptp(sub @ n)), n, d))
+        refined.append((float(np.mean(dist < step)), float(np.ptp(sub @ n)), n, d,
+                        float(np.mean(dist < 2.5 * step))))
     top = max(r[0] for r in refined)
-    tied = [r for r in refined if r[0] >= top - 0.03]
+    tied = [r for r in refined if r[0] >= top - 0.05]
     if len(tied) >= 2 and max(r[1] for r in tied) > 1.5 * min(r[1] for r in tied):
         # a vehicle is longer than wide: a plane across the length axis (a bus or a van
         # with both ends alike) is not its mirror plane
         tied = [r for r in tied if r[1] < max(r_[1] for r_ in tied)]
-    best = max(tied, key=lambda r: r[0])                   # tie: the better voxel rank
-    return best[2], best[3], best[0]
+    best = max(tied, key=lambda r: r[0])                   # tie: the earlier one
+    return best[2], best[3], best[4]
 
 
 def _refine_plane(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: float,
@@ -708,16 +730,13 @@ def _cross2(o, a, b) -> float:
 
 
 def _find_wheels(ctx: _Context) -> _Wheels | None:
-    """Tyre treads: samples (area and face samples) whose normals are perpendicular to the
-    width axis, away from the mirror plane, vote for each radius r for the circle centres
-    p -+ r n in the side view (a Hough transform with normals, both normal signs; cells of
-    0.15 r, summed over 3 x 3; the 5 highest peaks per radius are checked). A peak is a wheel pair
-    when it is fed from at least 6 of 8 directions around the circle, from both sides of the mirror plane, by samples in a narrow band across (a
-    tyre, not a body arc: 60 % within a quarter of the half-width), evenly (sector entropy
-    >= 0.8 of the maximum) and at a consistent distance (median deviation <= 6 % of the
-    radius); it scores votes x evenness. Wheels: the peaks with a radius within 0.65-1.5 of the strongest
-    one's, on a line within 30 degrees of the length axis, at least two radii apart.
-    Radii searched: 2.5 % to 13 % of the length (8 steps). None when fewer than two are found."""
+    """Road wheels in the side view, or None. Tyre treads: samples (area and face samples)
+    away from the mirror plane whose normals are perpendicular to the width axis vote, for
+    each of 8 radii from 2.5 % to 13 % of the length, for the circle centre p - r n (a Hough
+    transform with normals; cells of 0.15 r summed over 3 x 3). The 5 highest peaks per radius
+    that are not at mid-height are checked (``_check_circle``: a whole, round tyre pair); of
+    concentric circles (tyre, rim, hub) the outermost is kept; the wheels are the best group
+    standing on the ground (``_wheel_group``), on a line within 30 degrees of the length axis."""
     L, H = ctx.half_len, ctx.half_h
     S = ctx.S
     pts = np.r_[S.points, S.detail_points]                 # area samples and face samples
