@@ -219,15 +219,14 @@ def generated(args, disabled_sets=None):
                 flags_ok[body].append("multiple_vehicles" in o.flags)
             if r[0] > 10 or (r[1] is not None and r[1] > 15):
                 misses.append((i, kind, pose, body, r, o))
-    s, b = summary(rows), summary(base)
     print(f"\nTable 2: {args.generated} generated vehicles, seeds {args.seed}..."
           f"{args.seed + args.generated - 1} (held out), through GLB + ingest "
           f"({time.perf_counter() - t0:.0f} s)")
     print(f"{'group':30s} {'n':>4s} {'up %':>6s} {'front %':>8s} {'yaw med':>8s} | "
           f"{'base up':>8s} {'base fr':>8s}")
     for label, sel in [("pooled", lambda c: True)] + [
-            (f"pose {p}", (lambda p: lambda c: c[1] == p)(p)) for p in POSES] + [
-            (f"body {bd}", (lambda bd: lambda c: c[2] == bd)(bd)) for bd in dict.fromkeys(BODIES)]:
+            (f"pose {p}", lambda c, p=p: c[1] == p) for p in POSES] + [
+            (f"body {bd}", lambda c, bd=bd: c[2] == bd) for bd in dict.fromkeys(BODIES)]:
         idx = [k for k, c in enumerate(cases) if sel(c)]
         if not idx:
             continue
