@@ -150,6 +150,9 @@ class Runtime:
     _kernels: dict = field(default_factory=dict)
     _scratch: dict = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
+    # held by callers that use kernels and scratch buffers from several threads (``kernel`` and
+    # ``scratch`` are not thread-safe): e.g. every FeatureIndex on this runtime
+    exclusive: threading.RLock = field(default_factory=threading.RLock)
 
     @property
     def is_pocl(self) -> bool:
