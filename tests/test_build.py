@@ -61,7 +61,7 @@ def test_build_labels_rejections_and_skip(library, tmp_path, runtime):
     assert s.reasons == {"too_few_materials": 1, "unreadable": 1}
     content = catalogue_content(cat)
     ok = total = 0
-    for sha, rec in content.items():
+    for rec in content.values():
         if rec["state"] != "accepted":
             continue
         truth = json.loads((library / rec["path"]).with_suffix(".json").read_text())["materials"]
@@ -108,7 +108,7 @@ def test_sigkill_resume_equals_uninterrupted_build(library, tmp_path, runtime):
     cat = tmp_path / "killed"
     rng = random.Random(5)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    for attempt in range(5):
+    for _attempt in range(5):
         proc = subprocess.Popen(_build_cmd(library, cat), env=env, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL, start_new_session=True)
         time.sleep(rng.uniform(0.5, 4.0))

@@ -25,7 +25,7 @@ from tests.hostile_corpus import (box_gltf, pack_glb, remove_deep, vehicle_glb, 
 from tests.test_build import catalogue_content
 from ucad_cl import reasons
 from ucad_cl.build import BuildOptions, BuildStopped, build, printable
-from ucad_cl.ingest import Budgets, IngestError, load_mesh, mesh_identity
+from ucad_cl.ingest import Budgets, IngestError, load_mesh
 
 OPTS = BuildOptions(azimuth_step=90.0, size=64)
 QUIET = dict(progress=False, log=lambda *a: None)

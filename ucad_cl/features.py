@@ -33,7 +33,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
-import cv2
+import cv2  # noqa: TID253  # OpenCV throughout (crops, resizes)
 import numpy as np
 
 from .abi import HOG_PARAMS, MAX_BINS

@@ -30,6 +30,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 from importlib import resources
 
 from . import abi
@@ -280,7 +282,6 @@ def pick_device_info(spec: str | None = None) -> tuple[DeviceInfo, str]:
 
 def _probe(dev) -> tuple[bool, str]:
     """Build and run a one-line kernel on ``dev``; (ok, first line of the error)."""
-    import numpy as np
     import pyopencl as cl
 
     try:
