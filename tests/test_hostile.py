@@ -25,8 +25,8 @@ from tests.hostile_corpus import (box_gltf, pack_glb, remove_deep, vehicle_glb, 
 from tests.test_build import catalogue_content
 from ucad_cl import reasons
 from ucad_cl.build import BuildOptions, BuildStopped, build
+from ucad_cl.ingest import Budgets, IngestError, load_mesh
 from ucad_cl.system import printable
-from ucad_cl.ingest import Budgets, IngestError, load_mesh, mesh_identity
 
 OPTS = BuildOptions(azimuth_step=90.0, size=64)
 QUIET = dict(progress=False, log=lambda *a: None)

@@ -30,14 +30,15 @@ Extractors:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
-import cv2
+import cv2  # noqa: TID253  # OpenCV throughout (crops, resizes)
 import numpy as np
 
 from .abi import HOG_PARAMS, MAX_BINS
 from .artifacts import Features, ViewSet
+from .runtime import Runtime, get_runtime
 
 BATCH = 512             # images per kernel launch (bounds device memory: ~BATCH * 70 KiB)
 
@@ -151,7 +152,8 @@ class HogExtractor:
     signed: orientations over 360 deg instead of 180; eps, clip: L2-Hys block normalisation;
     min_grad: soft threshold subtracted from each pixel's gradient magnitude (max 1.41);
     silhouette: side of the resized mask appended (0 = none), weighted to norm ``sil_weight``
-    relative to the HOG part; pad: crop padding (fraction of the box side on each side).
+    relative to the HOG part; pad: crop padding (fraction of the box side on each side);
+    runtime: the OpenCL runtime it runs on (None: ``get_runtime()``), like ``FeatureIndex``'s.
     """
 
     size: int = 64
@@ -167,6 +169,7 @@ class HogExtractor:
     local_cells: int | None = None      # work-group size of the cell kernel (None: PoCL picks)
     local_pixels: int = 64              # work-group size of the per-pixel gradient kernel
     kind: str = "hog"
+    runtime: Runtime | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         if self.size < 2 * self.cell or self.size % self.cell:
@@ -176,7 +179,6 @@ class HogExtractor:
             raise ValueError(f"bins={self.bins} must be in 1..{MAX_BINS}")
         if min(self.silhouette, self.eps, self.sil_weight, self.min_grad) < 0 or self.clip <= 0:
             raise ValueError("silhouette, eps, sil_weight, min_grad must be >= 0 and clip > 0")
-        self._kernels = None
 
     @property
     def n_cells(self) -> int:
@@ -219,15 +221,9 @@ class HogExtractor:
     def _run(self, crops: np.ndarray, sil: np.ndarray) -> np.ndarray:
         import pyopencl as cl
 
-        from .runtime import get_runtime
-
-        rt = get_runtime()
-        if self._kernels is None:
-            prg = rt.program("features")
-            self._kernels = {n: cl.Kernel(prg, n) for n in
-                             ("hog_pixel_gradients", "hog_cell_histograms",
-                              "hog_block_normalise", "hog_finalise")}
-        k = self._kernels
+        rt = self.runtime or get_runtime()
+        k = {n: rt.kernel("features", n) for n in ("hog_pixel_gradients", "hog_cell_histograms",
+                                                   "hog_block_normalise", "hog_finalise")}
         B = crops.shape[0]
         nc, nb = self.n_cells, self.n_cells - 1
         prm = self.params()

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
+import cv2  # noqa: TID253  # OpenCV throughout (GrabCut, warps)
 import numpy as np
 
 RENDER_BACKGROUND = (128, 128, 128)     # the flat background of the renders pose search compares

@@ -9,7 +9,8 @@ filter by views -> edges -> segment -> classify -> features -> ``CatalogEntry``.
 ``staging`` (EXR) or stay bytes; their kinds are ``ucad_catalog._db.ARTIFACT_KINDS``.
 
 The loader is a seam: ``Pipeline(options, loader=...)`` replaces ``ingest.load_mesh`` (a picklable
-module-level function ``loader(path, *, budgets) -> Mesh``), so tests can stand in a native reader
+module-level function ``loader(path, *, budgets, orientation) -> Mesh``; the pipeline orients
+the mesh itself, so it passes ``orientation=None``), so tests can stand in a native reader
 that crashes or hangs; ``build(..., loader=...)`` hands it to every worker.
 """
 from __future__ import annotations
@@ -41,6 +42,7 @@ from .features import HogExtractor, view_features
 from .filter import filter_mesh, filter_views
 from .ingest import (Budgets, IngestError, describe_exception, load_mesh, mesh_identity,
                      unreadable_identity)
+from .orient import OrientationOverrides, orient_mesh, parse_mode
 from .pose import box_side
 from .render import render_views
 from .segment import name_priors, segmenter_from_spec
@@ -50,7 +52,7 @@ from .sheets import part_sheet
 if TYPE_CHECKING:
     from .build import BuildSummary
 
-CODE_VERSION = "4"        # bump when a change alters results: it enters the options hash
+CODE_VERSION = "5"        # bump when a change alters results: it enters the options hash
 
 
 @dataclass(frozen=True)
@@ -71,10 +73,19 @@ class BuildOptions:
     features: bool = True
     edges: bool = True
     max_input_triangles: int = Budgets.max_triangles   # ingest budget, before allocation
+    orientation: str = "auto"           # 'auto' | 'file' | 'UP,FRONT' (ucad_cl.orient)
+    orientation_overrides: tuple = ()   # ((path or sha256, 'UP,FRONT' | 'auto' | 'file'), ...)
+    reject_uncertain_orientation: bool = False   # reject instead of flag (uncertain_orientation)
+
+    def __post_init__(self):
+        parse_mode(self.orientation)                      # a bad mode fails here
+        object.__setattr__(self, "orientation_overrides",
+                           tuple((str(k), str(v)) for k, v in self.orientation_overrides))
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["elevations"] = list(self.elevations)
+        d["orientation_overrides"] = [list(kv) for kv in self.orientation_overrides]
         return d
 
     def hash(self) -> str:
@@ -150,6 +161,7 @@ class Pipeline:
         self.options = options
         self.loader = loader or load_mesh
         self.budgets = options.budgets()
+        self.overrides = OrientationOverrides(dict(options.orientation_overrides))
         self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
                               fov_deg=options.fov_deg, size=options.size)
         self.segmenter = segmenter_from_spec(options.segmenter)
@@ -166,10 +178,14 @@ class Pipeline:
             return sha, rejected_entry(ref, sha, exc.reason, str(exc))
 
     def load(self, ref: MeshRef):
-        """Ingest (may raise IngestError or MemoryError). Returns (mesh, seconds)."""
+        """Ingest, then orient (may raise IngestError or MemoryError). Returns (mesh,
+        {stage: seconds})."""
         t0 = time.perf_counter()
-        mesh = self.loader(ref.path, budgets=self.budgets)
-        return mesh, time.perf_counter() - t0
+        mesh = self.loader(ref.path, budgets=self.budgets, orientation=None)
+        t1 = time.perf_counter()
+        mode = self.overrides.mode_for(ref.path, mesh.sha256, self.options.orientation)
+        mesh = orient_mesh(mesh, mode)
+        return mesh, {"ingest": t1 - t0, "orient": time.perf_counter() - t1}
 
     def load_entry(self, ref: MeshRef, sha: str):
         """``load`` with every input fault turned into a rejected entry: (mesh, secs, None) or
@@ -185,10 +201,12 @@ class Pipeline:
             return None, 0.0, rejected_entry(ref, sha, "unreadable",
                                              f"{ref.path}: {describe_exception(exc)}")
 
-    def process(self, ref: MeshRef, mesh, load_seconds: float, staging: Path):
-        """Everything after ingest; returns a CatalogEntry (accepted or rejected)."""
+    def process(self, ref: MeshRef, mesh, load_seconds: float | dict, staging: Path):
+        """Everything after ingest; returns a CatalogEntry (accepted or rejected).
+        ``load_seconds``: the ingest seconds, or ``{stage: seconds}`` from ``load``."""
         o = self.options
-        timings = {"ingest": load_seconds}
+        timings = (dict(load_seconds) if isinstance(load_seconds, dict)
+                   else {"ingest": load_seconds})
         t = time.perf_counter()
         notes = "; ".join(mesh.report.notes)
 
@@ -205,6 +223,13 @@ class Pipeline:
                                              mtime=ref.mtime, verdict=verdict, mesh=mesh,
                                              timings=timings)
 
+        orient = mesh.orientation
+        if o.reject_uncertain_orientation and orient is not None and orient.uncertain:
+            return rejected(Verdict(False, "uncertain_orientation",
+                                    f"{ref.path}: orientation confidence up "
+                                    f"{orient.up_confidence:.2f}, front "
+                                    f"{orient.front_confidence:.2f} (flags: "
+                                    f"{', '.join(orient.flags) or 'none'})"))
         if o.triangle_budget and mesh.n_faces > o.triangle_budget:
             mesh = decimate(mesh, o.triangle_budget)
             lap("decimate")
