@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT))
 VEHICLES = ROOT.parent / "shared" / "data" / "vehicles"
 
 from ucad_cl.cameras import make_ring  # noqa: E402
-from ucad_cl.classify import classify_parts, last_timing, part_histogram  # noqa: E402
+from ucad_cl.classify import classify_parts, part_histogram  # noqa: E402
 from ucad_cl.render import render_views  # noqa: E402
 from ucad_cl.segment import LabellerSegmenter, PriorSegmenter, name_priors  # noqa: E402
 from ucad_cl.artifacts import PART_NAMES  # noqa: E402
@@ -253,11 +253,11 @@ def speed_table(args):
                 first = time.perf_counter() - t0
                 t, tk = [], []
                 for _ in range(args.repeats):
-                    t0 = time.perf_counter()
+                    t0, st = time.perf_counter(), {}
                     part_histogram(mat, masks, n_ids=n_ids, local_size=local,
-                                   pixels_per_item=ppi, use_local=use_local)
+                                   pixels_per_item=ppi, use_local=use_local, stats=st)
                     t.append(time.perf_counter() - t0)
-                    tk.append(last_timing["histogram"])
+                    tk.append(st["histogram"])
                 med = float(np.median(t))
                 name = f"{'local' if use_local else 'global'} atomics L={local} ppi={ppi}"
                 print(f"{name:34s} {first:12.3f} {med:9.4f} {V / med:9.1f} "

@@ -1,6 +1,15 @@
-"""Shared fixtures: one OpenCL runtime per session, paths to the shared real vehicle models."""
+"""Shared fixtures: the OpenCL runtime(s) under test, paths to the shared real vehicle models.
+
+``runtime`` is the process's default runtime (``get_runtime()``). In modules marked
+``pytestmark = pytest.mark.every_device`` (the kernel tests, which pass ``runtime=`` to every
+call) it is parametrised instead over the devices ``UCAD_TEST_DEVICES`` names, as pyopencl's
+tests follow ``PYOPENCL_TEST``: a comma-separated list of device specs ("0:0", "pocl", see
+``ucad_cl.runtime``), or "all" for every device that compiles a probe kernel. Unset: the
+default device only.
+"""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -9,10 +18,38 @@ ROOT = Path(__file__).resolve().parents[1]
 VEHICLES = ROOT.parent / "shared" / "data" / "vehicles"
 
 
+def pytest_configure(config):
+    config.addinivalue_line("markers", "every_device: run once per device of UCAD_TEST_DEVICES")
+
+
+def test_device_specs() -> list[str | None]:
+    """Device specs from ``UCAD_TEST_DEVICES``; [None] (the default device) when unset."""
+    value = os.environ.get("UCAD_TEST_DEVICES", "").strip()
+    if not value:
+        return [None]
+    if value.lower() == "all":
+        from ucad_cl.runtime import usable_device_specs
+        return list(usable_device_specs())
+    return [s.strip() for s in value.split(",") if s.strip()]
+
+
+test_device_specs.__test__ = False          # a helper, not a test
+
+
+def pytest_generate_tests(metafunc):
+    if "runtime" in metafunc.fixturenames and metafunc.definition.get_closest_marker(
+            "every_device"):
+        specs = test_device_specs()
+        metafunc.parametrize("runtime", specs, indirect=True, scope="session",
+                             ids=[f"device={s}" if s else "default" for s in specs])
+
+
 @pytest.fixture(scope="session")
-def runtime():
-    from ucad_cl.runtime import get_runtime
-    return get_runtime()
+def runtime(request):
+    """The runtime under test (session-scoped: one per device)."""
+    from ucad_cl.runtime import create_runtime, get_runtime
+    spec = getattr(request, "param", None)
+    return get_runtime() if spec is None else create_runtime(spec)
 
 
 @pytest.fixture(scope="session")

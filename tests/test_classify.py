@@ -6,11 +6,12 @@ import json
 
 import numpy as np
 import pytest
-
 from ucad_cl.classify import classify_parts, part_histogram, symmetric_pairs
 from ucad_cl.segment import masks_from_labels
 from tests.reference import flat_mesh, flat_views
 from ucad_cl.artifacts import PART_NAMES, Material, Mesh, PartMasks
+
+pytestmark = pytest.mark.every_device      # tests/conftest.py: UCAD_TEST_DEVICES
 
 
 def numpy_histogram(mat_id, masks, n_ids):
@@ -45,7 +46,7 @@ def test_histogram_matches_numpy(runtime, use_local, local, ppi):
     masks = rng.random((V, P, H, W)) < 0.3
     masks[:, 2, 10:30] = True
     h = part_histogram(mat, masks, n_ids=n_ids, local_size=local, pixels_per_item=ppi,
-                       use_local=use_local)
+                       use_local=use_local, runtime=runtime)
     assert h.dtype == np.uint32 and h.shape == (V, n_ids, 1 + P)
     np.testing.assert_array_equal(h, numpy_histogram(mat, masks, n_ids))
 
@@ -54,35 +55,35 @@ def test_histogram_bit_identical_across_runs_and_launch_shapes(runtime):
     rng = np.random.default_rng(1)
     mat = rng.integers(0, 30, (8, 64, 64)).astype(np.uint16)
     masks = rng.random((8, 16, 64, 64)) < 0.5       # 16 parts: every bit of the packing used
-    ref = part_histogram(mat, masks)
+    ref = part_histogram(mat, masks, runtime=runtime)
     for local, ppi, loc in [(1, 1, True), (4, 33, False), (16, 256, True), (16, 256, True)]:
         assert np.array_equal(part_histogram(mat, masks, local_size=local, pixels_per_item=ppi,
-                                             use_local=loc), ref)
+                                             use_local=loc, runtime=runtime), ref)
     np.testing.assert_array_equal(ref, numpy_histogram(mat, masks, 30))
 
 
 def test_histogram_rejects_bad_input(runtime):
     mat = np.zeros((2, 4, 4), np.uint16)
     with pytest.raises(ValueError, match="uint16"):
-        part_histogram(mat.astype(np.int32), np.zeros((2, 1, 4, 4), bool))
+        part_histogram(mat.astype(np.int32), np.zeros((2, 1, 4, 4), bool), runtime=runtime)
     with pytest.raises(ValueError, match="does not match"):
-        part_histogram(mat, np.zeros((2, 1, 4, 5), bool))
+        part_histogram(mat, np.zeros((2, 1, 4, 5), bool), runtime=runtime)
     with pytest.raises(ValueError, match="1..16 part masks"):
-        part_histogram(mat, np.zeros((2, 17, 4, 4), bool))
+        part_histogram(mat, np.zeros((2, 17, 4, 4), bool), runtime=runtime)
     with pytest.raises(ValueError, match="bool"):
-        part_histogram(mat, np.zeros((2, 1, 4, 4), np.uint8))
+        part_histogram(mat, np.zeros((2, 1, 4, 4), np.uint8), runtime=runtime)
     bits = np.zeros((2, 4, 4), np.uint16)
     with pytest.raises(ValueError, match="either"):
-        part_histogram(mat, np.zeros((2, 1, 4, 4), bool), bits=bits, n_parts=1)
+        part_histogram(mat, np.zeros((2, 1, 4, 4), bool), bits=bits, n_parts=1, runtime=runtime)
     with pytest.raises(ValueError, match="n_parts"):
-        part_histogram(mat, bits=bits)
+        part_histogram(mat, bits=bits, runtime=runtime)
     with pytest.raises(ValueError, match="does not match"):
-        part_histogram(mat, bits=bits[:1], n_parts=1)
+        part_histogram(mat, bits=bits[:1], n_parts=1, runtime=runtime)
     with pytest.raises(ValueError, match="uint16"):
-        part_histogram(mat, bits=bits.astype(np.uint8), n_parts=1)
+        part_histogram(mat, bits=bits.astype(np.uint8), n_parts=1, runtime=runtime)
     bits[1, 2, 3] = 1 << 3                                # part 3 of 3 parts (0..2): no row
     with pytest.raises(ValueError, match="beyond the 3 parts"):
-        part_histogram(mat, bits=bits, n_parts=3)
+        part_histogram(mat, bits=bits, n_parts=3, runtime=runtime)
 
 
 @pytest.mark.parametrize("use_local", [True, False])
@@ -97,13 +98,13 @@ def test_histogram_of_packed_bits_and_stacked_views(runtime, use_local):
     bits = sum(masks[:, p].astype(np.uint16) << p for p in range(P)).astype(np.uint16)
     want = numpy_histogram(np.concatenate([mat, core]), np.concatenate([masks, masks]), n_ids)
     kw = dict(n_ids=n_ids, use_local=use_local, local_size=8, pixels_per_item=100)
-    np.testing.assert_array_equal(part_histogram(mat, masks, **kw), want[:V])
-    np.testing.assert_array_equal(part_histogram(mat, bits=bits, n_parts=P, **kw), want[:V])
+    np.testing.assert_array_equal(part_histogram(mat, masks, **kw, runtime=runtime), want[:V])
+    np.testing.assert_array_equal(part_histogram(mat, bits=bits, n_parts=P, **kw, runtime=runtime), want[:V])
     np.testing.assert_array_equal(
-        part_histogram([mat, core], bits=[bits, bits], n_parts=P, **kw), want)
+        part_histogram([mat, core], bits=[bits, bits], n_parts=P, **kw, runtime=runtime), want)
     np.testing.assert_array_equal(                        # again: reused device buffers
         part_histogram([mat[:1], mat[1:], core], bits=[bits, bits[:2], bits[2:]], n_parts=P,
-                       **kw), want)
+                       **kw, runtime=runtime), want)
 
 
 # -- decision rules and hard cases --------------------------------------------------------------
@@ -118,7 +119,7 @@ def test_scores_and_iou_match_numpy_reference(runtime):
     light = rng.random((V, H, W)) < 0.2
     pm = part_masks(V, H, W, {"window": win, "light": light}, conf=[[0.9, 0.5], [0.8, 0.5],
                                                                     [0.7, 0.5]])
-    table = classify_parts(flat_mesh(2), flat_views(mat), pm, symmetry=False)
+    table = classify_parts(flat_mesh(2), flat_views(mat), pm, symmetry=False, runtime=runtime)
     r = table.rows[0]
     assert r.part == "window" and r.view == 0 and r.decision == "best-view"
     m = mat[0] == 1
@@ -133,7 +134,7 @@ def test_empty_part_masks(runtime):
     mat = np.zeros((2, 16, 16), np.uint16)
     mat[:, 4:12, 4:12] = 1
     pm = part_masks(2, 16, 16, {p: np.zeros((2, 16, 16), bool) for p in PART_NAMES})
-    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm).rows
+    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, runtime=runtime).rows
     assert (r.part, r.decision, r.score, r.iou, r.pixels) == ("other", "below-threshold", 0.0,
                                                               0.0, 128)
 
@@ -144,9 +145,9 @@ def test_material_visible_in_one_pixel(runtime):
     win = np.zeros((1, 8, 8), bool)
     win[0, 3, 3] = True
     pm = part_masks(1, 8, 8, {"window": win})
-    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, min_pixels=1).rows
+    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, min_pixels=1, runtime=runtime).rows
     assert (r.part, r.score, r.iou, r.pixels, r.view) == ("window", 1.0, 1.0, 1, 0)
-    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, min_pixels=2).rows
+    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, min_pixels=2, runtime=runtime).rows
     assert (r.part, r.decision, r.view) == ("unseen", "unseen", -1)
 
 
@@ -155,7 +156,7 @@ def test_part_mask_covering_whole_image(runtime):
     mat[:, :, :4] = 1
     mat[:, :, 4:7] = 2
     pm = part_masks(2, 10, 10, {"body": np.ones((2, 10, 10), bool)})
-    rows = classify_parts(flat_mesh(3), flat_views(mat), pm).rows
+    rows = classify_parts(flat_mesh(3), flat_views(mat), pm, runtime=runtime).rows
     assert [r.part for r in rows] == ["body", "body", "unseen"]
     assert rows[0].score == 1.0 and rows[0].iou == pytest.approx(40 / 100)
     assert rows[1].iou == pytest.approx(30 / 100)
@@ -169,10 +170,10 @@ def test_equal_overlap_tie_goes_to_part_names_order(runtime, order):
     left[0, :, :4] = True
     masks = {"window": left, "light": ~left}
     pm = part_masks(1, 8, 8, {p: masks[p] for p in order})
-    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, threshold=0.4).rows
+    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, threshold=0.4, runtime=runtime).rows
     assert PART_NAMES.index("window") < PART_NAMES.index("light")
     assert (r.part, r.score) == ("window", 0.5)
-    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm).rows      # 0.5 is not > 0.5
+    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, runtime=runtime).rows      # 0.5 is not > 0.5
     assert r.decision == "below-threshold"
 
 
@@ -183,10 +184,10 @@ def test_equal_view_confidence_tie_goes_to_lower_view(runtime):
     light = np.zeros((2, 8, 8), bool)
     win[0], light[1] = True, True               # the two views disagree, equal weight
     pm = part_masks(2, 8, 8, {"window": win, "light": light}, conf=[[0.7, 0.7], [0.7, 0.7]])
-    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm).rows
+    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, runtime=runtime).rows
     assert (r.part, r.view, r.decision) == ("window", 0, "best-view")
     pm.masks = pm.masks[::-1].copy()
-    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm).rows
+    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, runtime=runtime).rows
     assert (r.part, r.view, r.decision) == ("light", 0, "best-view")
 
 
@@ -201,7 +202,7 @@ def test_vote_overrides_single_confident_view(runtime):
     light[0], win[1:] = True, True
     conf = [[0.0, 0.99]] + [[0.6, 0.0]] * 3
     pm = part_masks(V, 12, 12, {"window": win, "light": light}, conf=conf)
-    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm).rows
+    (r,) = classify_parts(flat_mesh(1), flat_views(mat), pm, runtime=runtime).rows
     assert (r.part, r.decision) == ("window", "vote")
     assert r.view == 1 and r.score == 1.0
 
@@ -212,11 +213,11 @@ def test_small_leftover_merges_into_body_unless_prior(runtime):
     mat[:, 18:22, 18:22] = 2                    # a small badge on the body
     body = mat == 1
     pm = part_masks(2, 40, 40, {"body": body})
-    rows = classify_parts(flat_mesh(2), flat_views(mat), pm).rows
+    rows = classify_parts(flat_mesh(2), flat_views(mat), pm, runtime=runtime).rows
     assert (rows[1].part, rows[1].decision) == ("body", "merged-body")
-    rows = classify_parts(flat_mesh(2), flat_views(mat), pm, priors={1: "plate"}).rows
+    rows = classify_parts(flat_mesh(2), flat_views(mat), pm, priors={1: "plate"}, runtime=runtime).rows
     assert (rows[1].part, rows[1].decision) == ("plate", "prior")
-    rows = classify_parts(flat_mesh(2), flat_views(mat), pm, merge_max_fraction=0.001).rows
+    rows = classify_parts(flat_mesh(2), flat_views(mat), pm, merge_max_fraction=0.001, runtime=runtime).rows
     assert (rows[1].part, rows[1].decision) == ("other", "below-threshold")
 
 
@@ -260,9 +261,9 @@ def test_symmetric_pair_gets_one_label(runtime):
     light[0, 10:13, 10:] = True                         # 30 % of lamp_r
     chrome = (mat == 3) & ~light                        # 70 % of lamp_r
     pm = part_masks(1, 20, 20, {"body": mat == 1, "light": light, "chrome": chrome})
-    rows = classify_parts(mesh, flat_views(mat), pm, symmetry=False).rows
+    rows = classify_parts(mesh, flat_views(mat), pm, symmetry=False, runtime=runtime).rows
     assert (rows[1].part, rows[2].part) == ("light", "chrome")
-    rows = classify_parts(mesh, flat_views(mat), pm).rows
+    rows = classify_parts(mesh, flat_views(mat), pm, runtime=runtime).rows
     assert (rows[1].part, rows[1].decision) == ("light", "best-view")
     assert (rows[2].part, rows[2].decision) == ("light", "symmetric")
     assert rows[2].score == pytest.approx(0.7)          # evidence of its own view kept
@@ -308,7 +309,7 @@ def rendered_real(vehicles_dir, runtime):
     for f in GT_MODELS:
         mesh = load_mesh(vehicles_dir / f)
         truth = {i: manifest[f][m.name] for i, m in enumerate(mesh.materials)}
-        out.append((mesh, render_views(mesh, ring), truth))
+        out.append((mesh, render_views(mesh, ring, runtime=runtime), truth))
     return out
 
 
@@ -389,11 +390,11 @@ def test_bits_and_masks_give_identical_tables(runtime):
         assert gt.packed and prior.packed and not deg.packed
         for pm in (gt, prior, deg):
             packed = pm.packed
-            a = classify_parts(mesh, views, pm, priors=name_priors(mesh))
+            a = classify_parts(mesh, views, pm, priors=name_priors(mesh), runtime=runtime)
             assert pm.packed == packed                     # no (V, P, H, W) masks were built
             other = _other_form(pm)
             assert other.packed != packed
-            b = classify_parts(mesh, views, other, priors=name_priors(mesh))
+            b = classify_parts(mesh, views, other, priors=name_priors(mesh), runtime=runtime)
             assert a == b and len(a.rows) == len(mesh.materials)
 
 
@@ -404,17 +405,17 @@ def test_classify_rejects_bad_packed_masks(runtime):
     bits = (mat == 1).astype(np.uint16)
     conf = np.ones((2, 1), np.float32)
     with pytest.raises(ValueError, match="does not match the views"):
-        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits[:, :4], conf))
+        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits[:, :4], conf), runtime=runtime)
     with pytest.raises(ValueError, match="uint16"):
-        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits.astype(bool), conf))
+        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits.astype(bool), conf), runtime=runtime)
     with pytest.raises(ValueError, match="1..16 parts"):
         classify_parts(mesh, views, PartMasks.from_bits([f"p{i}" for i in range(17)], bits,
-                                                        np.ones((2, 17), np.float32)))
+                                                        np.ones((2, 17), np.float32)), runtime=runtime)
     with pytest.raises(ValueError, match=r"confidence must be \(2, 1\)"):
-        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits, conf[:1]))
+        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits, conf[:1]), runtime=runtime)
     with pytest.raises(ValueError, match="beyond the 1 parts"):
-        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits * 2, conf))
-    (r,) = classify_parts(mesh, views, PartMasks.from_bits(["body"], bits, conf)).rows
+        classify_parts(mesh, views, PartMasks.from_bits(["body"], bits * 2, conf), runtime=runtime)
+    (r,) = classify_parts(mesh, views, PartMasks.from_bits(["body"], bits, conf), runtime=runtime).rows
     assert (r.part, r.score, r.pixels) == ("body", 1.0, 8)
 
 
@@ -424,10 +425,10 @@ def test_classify_rejects_bad_masks(runtime):
     views, mesh = flat_views(mat), flat_mesh(1)
     good = part_masks(2, 8, 8, {"body": mat == 1})
     with pytest.raises(ValueError, match="unknown part names"):
-        classify_parts(mesh, views, PartMasks(["roof"], good.masks, good.confidence))
+        classify_parts(mesh, views, PartMasks(["roof"], good.masks, good.confidence), runtime=runtime)
     with pytest.raises(ValueError, match="does not match the views"):
-        classify_parts(mesh, views, PartMasks(["body"], good.masks[:, :, :4], good.confidence))
+        classify_parts(mesh, views, PartMasks(["body"], good.masks[:, :, :4], good.confidence), runtime=runtime)
     with pytest.raises(ValueError, match=r"inside \[0, 1\]"):
-        classify_parts(mesh, views, PartMasks(["body"], good.masks, good.confidence + 2))
+        classify_parts(mesh, views, PartMasks(["body"], good.masks, good.confidence + 2), runtime=runtime)
     with pytest.raises(ValueError, match="material id 1 in the views"):
-        classify_parts(flat_mesh(0), views, good)
+        classify_parts(flat_mesh(0), views, good, runtime=runtime)

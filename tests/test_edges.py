@@ -4,10 +4,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
 from ucad_cl import edges as E
 from ucad_cl.edges import canny, colour_ids, material_edges, write_conditioning_pngs
 from ucad_cl.artifacts import CameraRing, EdgeSet, ViewSet
+
+pytestmark = pytest.mark.every_device      # tests/conftest.py: UCAD_TEST_DEVICES
 
 THRESHOLDS = [(50, 150), (0, 0), (100, 100), (150, 50), (10.7, 20.2), (-5, 3), (255, 400),
               (2039, 2041), (1e4, 2e4), (0.5, float("inf"))]
@@ -17,8 +18,8 @@ def reference(images: np.ndarray, low, high, l2) -> np.ndarray:
     return np.stack([cv2.Canny(im, low, high, apertureSize=3, L2gradient=l2) for im in images])
 
 
-def assert_same(images, low, high, l2):
-    ours = canny(images, low, high, l2)
+def assert_same(images, low, high, l2, runtime):
+    ours = canny(images, low, high, l2, runtime=runtime)
     ref = reference(images, low, high, l2)
     assert ours.shape == ref.shape and ours.dtype == np.uint8
     diff = int(np.count_nonzero(ours != ref))
@@ -65,7 +66,7 @@ def test_random_noise_matches_opencv(runtime, l2):
     rng = np.random.default_rng(1)
     imgs = rng.integers(0, 256, (3, 37, 53), dtype=np.uint8)
     for low, high in THRESHOLDS:
-        assert_same(imgs, low, high, l2)
+        assert_same(imgs, low, high, l2, runtime)
 
 
 @pytest.mark.parametrize("l2", [False, True])
@@ -73,10 +74,10 @@ def test_structured_and_hard_images_match_opencv(runtime, l2):
     hard = hard_images()
     imgs = np.stack(list(hard.values()) + [shapes_image(23, 29, s) for s in range(3)])
     for low, high in THRESHOLDS:
-        assert_same(imgs, low, high, l2)
+        assert_same(imgs, low, high, l2, runtime)
     # the hard cases are not all trivially empty
-    assert canny(hard["single_pixel"], 50, 150, l2).any()
-    assert not canny(hard["constant"], 0, 0, l2).any()
+    assert canny(hard["single_pixel"], 50, 150, l2, runtime=runtime).any()
+    assert not canny(hard["constant"], 0, 0, l2, runtime=runtime).any()
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (1, 17), (17, 1), (2, 2), (3, 40), (37, 53), (64, 65)])
@@ -86,7 +87,7 @@ def test_odd_and_tiny_sizes_match_opencv(runtime, shape):
     img[: shape[0] // 2] //= 4
     for l2 in (False, True):
         for low, high in [(20, 60), (0, 0), (100, 90)]:
-            ours = canny(img, low, high, l2)
+            ours = canny(img, low, high, l2, runtime=runtime)
             assert ours.shape == shape
             assert np.array_equal(ours, cv2.Canny(img, low, high, L2gradient=l2))
 
@@ -96,7 +97,7 @@ def test_three_channel_odd_sizes_match_opencv(runtime, shape):
     rng = np.random.default_rng(shape[0] * 7 + shape[1])
     img = rng.integers(0, 256, (*shape, 3), dtype=np.uint8)
     for l2 in (False, True):
-        assert np.array_equal(canny(img, 30, 90, l2), cv2.Canny(img, 30, 90, L2gradient=l2))
+        assert np.array_equal(canny(img, 30, 90, l2, runtime=runtime), cv2.Canny(img, 30, 90, L2gradient=l2))
 
 
 def test_material_map_images_match_opencv(runtime):
@@ -104,10 +105,10 @@ def test_material_map_images_match_opencv(runtime):
     ids = cv2.resize(rng.integers(0, 9, (12, 12)).astype(np.uint16), (48, 48),
                      interpolation=cv2.INTER_NEAREST)[None]
     grey = (ids.astype(np.int32) * 29 % 256).astype(np.uint8)
-    assert_same(grey, 50, 150, False)
+    assert_same(grey, 50, 150, False, runtime)
     col = colour_ids(ids)
     for l2 in (False, True):
-        ours = canny(col, 10, 20, l2)
+        ours = canny(col, 10, 20, l2, runtime=runtime)
         assert np.array_equal(ours[0], cv2.Canny(col[0], 10, 20, L2gradient=l2))
 
 
@@ -122,29 +123,29 @@ def test_three_channel_matches_opencv(runtime, l2):
     tie[:, :, 2] = shapes_image(31, 45, 9)
     imgs = np.concatenate([noise, tie[None]])
     for low, high in [(50, 150), (0, 0), (30.5, 30.5)]:
-        ours = canny(imgs, low, high, l2)
+        ours = canny(imgs, low, high, l2, runtime=runtime)
         for b in range(imgs.shape[0]):
             assert np.array_equal(ours[b], cv2.Canny(imgs[b], low, high, L2gradient=l2))
-        assert np.array_equal(canny(imgs[0], low, high, l2), ours[0])      # (H, W, 3) input
+        assert np.array_equal(canny(imgs[0], low, high, l2, runtime=runtime), ours[0])      # (H, W, 3) input
 
 
 def test_batched_equals_single_and_is_deterministic(runtime):
     rng = np.random.default_rng(5)
     imgs = rng.integers(0, 256, (5, 40, 33), dtype=np.uint8)
-    batch = canny(imgs, 40, 120)
-    singles = np.stack([canny(im, 40, 120) for im in imgs])
+    batch = canny(imgs, 40, 120, runtime=runtime)
+    singles = np.stack([canny(im, 40, 120, runtime=runtime) for im in imgs])
     assert np.array_equal(batch, singles)
-    assert np.array_equal(canny(imgs, 40, 120), batch)                      # reused buffers
-    assert np.array_equal(canny(imgs[:, :, :, None], 40, 120), batch)      # (B, H, W, 1)
+    assert np.array_equal(canny(imgs, 40, 120, runtime=runtime), batch)                      # reused buffers
+    assert np.array_equal(canny(imgs[:, :, :, None], 40, 120, runtime=runtime), batch)      # (B, H, W, 1)
     assert set(np.unique(batch)) <= {0, 255}
 
 
 def test_chunked_batches_equal_one_launch(runtime, monkeypatch):
     rng = np.random.default_rng(6)
     imgs = rng.integers(0, 256, (5, 16, 16), dtype=np.uint8)
-    whole = canny(imgs, 30, 90)
+    whole = canny(imgs, 30, 90, runtime=runtime)
     monkeypatch.setattr(E, "MAX_CHUNK_PIXELS", 2 * 16 * 16)
-    assert np.array_equal(canny(imgs, 30, 90), whole)
+    assert np.array_equal(canny(imgs, 30, 90, runtime=runtime), whole)
 
 
 def test_thresholds_follow_opencv():
@@ -157,20 +158,20 @@ def test_thresholds_follow_opencv():
 
 def test_bad_input_is_rejected_with_clear_errors(runtime):
     with pytest.raises(TypeError, match="uint8"):
-        canny(np.zeros((8, 8), np.float32), 1, 2)
+        canny(np.zeros((8, 8), np.float32), 1, 2, runtime=runtime)
     with pytest.raises(ValueError, match="shape"):
-        canny(np.zeros((2, 8, 8, 4), np.uint8), 1, 2)
+        canny(np.zeros((2, 8, 8, 4), np.uint8), 1, 2, runtime=runtime)
     with pytest.raises(ValueError, match="shape"):
-        canny(np.zeros(8, np.uint8), 1, 2)
+        canny(np.zeros(8, np.uint8), 1, 2, runtime=runtime)
     with pytest.raises(ValueError, match="empty"):
-        canny(np.zeros((0, 8, 8), np.uint8), 1, 2)
+        canny(np.zeros((0, 8, 8), np.uint8), 1, 2, runtime=runtime)
     with pytest.raises(ValueError, match="NaN"):
-        canny(np.zeros((8, 8), np.uint8), float("nan"), 2)
+        canny(np.zeros((8, 8), np.uint8), float("nan"), 2, runtime=runtime)
     with pytest.raises(TypeError, match="threshold"):
-        canny(np.zeros((8, 8), np.uint8), "10", 2)
+        canny(np.zeros((8, 8), np.uint8), "10", 2, runtime=runtime)
     bad = _viewset(np.zeros((1, 8, 8), np.int32))
     with pytest.raises(ValueError, match="uint16"):
-        material_edges(bad)
+        material_edges(bad, runtime=runtime)
     with pytest.raises(ValueError, match="uint8"):
         write_conditioning_pngs(EdgeSet(edges=np.zeros((8, 8), np.uint8)), "/tmp", "x")
 
@@ -212,7 +213,7 @@ def _random_id_maps(seed, S=40):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_every_id_boundary_has_an_edge_within_one_pixel(runtime, seed):
     ids = _random_id_maps(seed)
-    e = material_edges(_viewset(ids)).edges
+    e = material_edges(_viewset(ids), runtime=runtime).edges
     assert e.shape == ids.shape and e.dtype == np.uint8
     assert _pairs_missed(ids, e) == 0
     # precision: every edge pixel has two different ids in its 3x3 neighbourhood
@@ -226,14 +227,16 @@ def test_every_id_boundary_has_an_edge_within_one_pixel(runtime, seed):
 def test_canny_alone_misses_period2_stripes_and_repair_fixes_them(runtime):
     ids = np.zeros((1, 12, 12), np.uint16)
     ids[0, ::2] = 1                              # 1-pixel stripes: every Sobel response is 0
-    raw = canny(colour_ids(ids), 10, 20)
+    raw = canny(colour_ids(ids), 10, 20, runtime=runtime)
     assert not raw[0, 2:-2].any() and _pairs_missed(ids, raw) > 0   # edges only at the border
-    e = material_edges(_viewset(ids)).edges
-    assert _pairs_missed(ids, e) == 0 and E.last_stats.extra["repaired"] > 0
+    st = E.CannyStats()
+    e = material_edges(_viewset(ids), runtime=runtime, stats=st).edges
+    assert _pairs_missed(ids, e) == 0 and st.extra["repaired"] > 0
     # a plain two-region map needs no repair and equals Canny of the colouring
     ids2 = np.zeros((1, 20, 20), np.uint16); ids2[0, :, 8:] = 2
-    e2 = material_edges(_viewset(ids2)).edges
-    assert E.last_stats.extra["repaired"] == 0
+    st = E.CannyStats()
+    e2 = material_edges(_viewset(ids2), runtime=runtime, stats=st).edges
+    assert st.extra["repaired"] == 0
     assert np.array_equal(e2[0], cv2.Canny(colour_ids(ids2)[0], 10, 20))
 
 
@@ -337,7 +340,7 @@ def test_boxed_pairs_and_repair_equal_whole_image_definitions():
 
 def test_write_conditioning_pngs(tmp_path, runtime):
     ids = np.zeros((2, 16, 20), np.uint16); ids[:, 4:10, 5:15] = 3
-    es = material_edges(_viewset(ids))
+    es = material_edges(_viewset(ids), runtime=runtime)
     paths = write_conditioning_pngs(es, tmp_path / "png", "car")
     assert [p.name for p in paths] == ["car_000.png", "car_001.png"]
     for v, p in enumerate(paths):
@@ -351,8 +354,9 @@ def test_material_edges_of_rendered_synthetic_vehicle(runtime):
     from ucad_cl.render import render_views
 
     mesh = synth.make_vehicle(0).mesh()
-    views = render_views(mesh, make_ring(azimuth_step=90.0, size=96))
-    e = material_edges(views).edges
+    views = render_views(mesh, make_ring(azimuth_step=90.0, size=96), runtime=runtime)
+    st = E.CannyStats()
+    e = material_edges(views, stats=st, runtime=runtime).edges
     assert e.shape == views.mat_id.shape
     assert _pairs_missed(views.mat_id, e) == 0
     assert e.any()
@@ -360,7 +364,7 @@ def test_material_edges_of_rendered_synthetic_vehicle(runtime):
     # mostly stripes two pixels thick, where OpenCV's NMS tie rule drops the second side)
     boundary = int(np.count_nonzero(views.mat_id[:, :, 1:] != views.mat_id[:, :, :-1])
                    + np.count_nonzero(views.mat_id[:, 1:] != views.mat_id[:, :-1]))
-    assert E.last_stats.extra["repaired"] <= 0.1 * boundary
+    assert st.extra["repaired"] <= 0.1 * boundary
 
 
 def test_sixteen_bit_direction_test_equals_opencv_fixed_point():

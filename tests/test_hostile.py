@@ -440,30 +440,39 @@ def _workers_of(pid):
 
 def test_sigkill_of_single_workers_leaves_an_identical_catalogue(small_library, small_expected,
                                                                   tmp_path):
-    """Workers SIGKILL-ed from outside at random moments (6 kills): their meshes are retried,
-    nothing is recorded against them, and the catalogue equals an undisturbed build's."""
-    cat = tmp_path / "cat"
+    """Workers SIGKILL-ed from outside at random moments (up to 6 kills): their meshes are
+    retried, nothing is recorded against them, and the catalogue equals an undisturbed build's.
+
+    How many kills land before the build ends depends on the machine's speed, so a build that
+    finished after fewer than 3 kills is started again on a fresh catalogue (at most 3 tries)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     rng = random.Random(13)
-    kills = rounds = 0
-    while True:
-        rounds += 1
-        proc = subprocess.Popen(_cli(small_library, cat, "--workers", "2"), env=env,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 240
-        while proc.poll() is None and kills < 6 and time.monotonic() < deadline:
-            time.sleep(rng.uniform(0.3, 1.5))
-            victims = _workers_of(proc.pid)
-            if victims:
-                os.kill(rng.choice(victims).pid, signal.SIGKILL)
-                kills += 1
-        err = proc.communicate(timeout=300)[1]
-        assert "Traceback" not in err
-        if proc.returncode == 0:
+    for attempt in range(3):
+        cat = tmp_path / f"cat{attempt}"
+        kills = rounds = 0
+        while True:
+            rounds += 1
+            proc = subprocess.Popen(_cli(small_library, cat, "--workers", "2"), env=env,
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            deadline = time.monotonic() + 240
+            while proc.poll() is None and kills < 6 and time.monotonic() < deadline:
+                time.sleep(rng.uniform(0.05, 0.6))
+                victims = _workers_of(proc.pid)
+                if victims and proc.poll() is None:
+                    try:
+                        os.kill(rng.choice(victims).pid, signal.SIGKILL)
+                        kills += 1
+                    except ProcessLookupError:          # it finished between look and kill
+                        pass
+            err = proc.communicate(timeout=300)[1]
+            assert "Traceback" not in err
+            if proc.returncode == 0:
+                break
+            assert proc.returncode == 2 and "killed from outside" in err, err[-2000:]
+            assert rounds < 4
+        if kills >= 3:                                # the build outlived most of the kills
             break
-        assert proc.returncode == 2 and "killed from outside" in err, err[-2000:]
-        assert rounds < 4
-    assert kills >= 3, kills                          # the build outlived most of the kills
+    assert kills >= 3, kills
     assert catalogue_content(cat) == small_expected[0]
     assert _export(cat, tmp_path / "x.jsonl") == small_expected[1]
     from ucad_catalog.store import Catalog

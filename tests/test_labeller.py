@@ -343,7 +343,7 @@ def test_default_segmenter_everywhere():
 
 def test_show_prints_the_probability():
     from ucad_cl.artifacts import MaterialPart
-    from ucad_cl.commands.parts import format_rows
+    from ucad_cl.commands.common import format_rows
     from ucad_catalog.reader import PartRow
 
     rows = [MaterialPart(0, "paint", "body", 1.0, 0.9, 3, "best-view", 500, 0.873,

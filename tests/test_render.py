@@ -15,6 +15,8 @@ from ucad_cl.render import coverage_counts, raster_path, render_views
 from ucad_cl.artifacts import Material, Mesh
 from tests.reference import boundary_mask, raycast_views
 
+pytestmark = pytest.mark.every_device      # tests/conftest.py: UCAD_TEST_DEVICES
+
 pytest.importorskip("embreex")
 
 
@@ -50,8 +52,8 @@ def toy_car() -> Mesh:
     return make_mesh(v, np.concatenate(faces), np.concatenate(fm), "toy_car")
 
 
-def assert_matches_raycast(mesh: Mesh, ring, min_agree=0.995):
-    views = render_views(mesh, ring)
+def assert_matches_raycast(mesh: Mesh, ring, runtime, min_agree=0.995):
+    views = render_views(mesh, ring, runtime=runtime)
     ref_tri, ref_mat, ref_depth = raycast_views(mesh, ring)
     diff = views.mat_id != ref_mat
     agree = 1.0 - diff.mean()
@@ -67,7 +69,7 @@ def assert_matches_raycast(mesh: Mesh, ring, min_agree=0.995):
 
 def test_toy_car_matches_embree(runtime):
     ring = make_ring(azimuth_step=45, elevations=(10.0, 40.0), size=128)
-    views, _ = assert_matches_raycast(toy_car(), ring)
+    views, _ = assert_matches_raycast(toy_car(), ring, runtime)
     assert views.tri_id.dtype == np.uint32 and views.mat_id.dtype == np.uint16
     bg = views.mat_id == 0
     assert np.all(views.tri_id[bg] == 0xFFFFFFFF) and np.all(np.isinf(views.depth[bg]))
@@ -78,7 +80,7 @@ def test_synth_vehicle_matches_embree(runtime):
     synth = pytest.importorskip("ucad_cl.synth")
     mesh = synth.make_vehicle(3).mesh()
     ring = make_ring(azimuth_step=60, elevations=(15.0,), size=192)
-    assert_matches_raycast(mesh, ring)
+    assert_matches_raycast(mesh, ring, runtime)
 
 
 @pytest.mark.parametrize("name", ["o3dv_car.glb", "cesium_milk_truck.glb", "a_frame_car/car.obj",
@@ -90,7 +92,7 @@ def test_real_models_match_embree(runtime, vehicles_dir, name):
     ingest = pytest.importorskip("ucad_cl.ingest")
     mesh = ingest.load_mesh(vehicles_dir / name)
     ring = make_ring(azimuth_step=90, elevations=(20.0,), size=160)
-    assert_matches_raycast(mesh, ring)
+    assert_matches_raycast(mesh, ring, runtime)
 
 
 @pytest.mark.parametrize("offset,scale", [(1e5, 1.0), (0.0, 1e-3), (0.0, 1e4), (-3e4, 1e4)])
@@ -108,8 +110,8 @@ def test_far_tiny_huge_models_normalise_and_render(runtime, tmp_path, offset, sc
     mesh = ingest.load_mesh(path)
     assert np.allclose(mesh.vertices, base.vertices, atol=1e-6)
     ring = make_ring(azimuth_step=90, size=96)
-    a = render_views(mesh, ring).mat_id > 0
-    b = render_views(make_mesh(base.vertices, base.faces, np.zeros(len(base.faces))), ring).mat_id > 0
+    a = render_views(mesh, ring, runtime=runtime).mat_id > 0
+    b = render_views(make_mesh(base.vertices, base.faces, np.zeros(len(base.faces))), ring, runtime=runtime).mat_id > 0
     assert (a != b).mean() < 1e-3
 
 
@@ -122,9 +124,9 @@ def test_zero_area_and_sliver_triangles(runtime, path):
     f = np.array([[0, 1, 2], [3, 4, 5], [3, 3, 4], [9, 9, 9], [6, 7, 8]])
     mesh = make_mesh(v, f, [0, 1, 2, 3, 4])
     ring = make_ring(azimuth_step=30, elevations=(0.0, 30.0), size=128)
-    views, _ = assert_matches_raycast(mesh, ring)
+    views, _ = assert_matches_raycast(mesh, ring, runtime)
     assert not np.isin(views.tri_id, [1, 2, 3]).any(), "zero-area faces must cover nothing"
-    counts = coverage_counts(make_mesh(v, f[1:4], [1, 2, 3]), ring, path=path)
+    counts = coverage_counts(make_mesh(v, f[1:4], [1, 2, 3]), ring, path=path, runtime=runtime)
     assert counts.sum() == 0
 
 
@@ -136,7 +138,7 @@ def test_coplanar_duplicates_lower_face_id_wins(runtime, order):
     f = np.array([[0, 1, 2], list(order)])
     for first_mat, second_mat in ((0, 1), (1, 0)):
         mesh = make_mesh(v, f, [first_mat, second_mat])
-        views = render_views(mesh, make_ring(azimuth_step=40, elevations=(5.0, 50.0), size=96))
+        views = render_views(mesh, make_ring(azimuth_step=40, elevations=(5.0, 50.0), size=96), runtime=runtime)
         covered = views.tri_id != 0xFFFFFFFF
         assert covered.any()
         assert np.all(views.tri_id[covered] == 0)
@@ -148,7 +150,7 @@ def test_edge_on_face_covers_nothing(runtime):
     v = np.array([[-0.4, 0, -0.4], [0.4, 0, -0.4], [0.4, 0, 0.4], [-0.4, 0, 0.4]])
     mesh = make_mesh(v, [[0, 1, 2], [0, 2, 3]], [0, 0])
     ring = make_ring(azimuth_step=15, elevations=(0.0,), size=128)
-    views = render_views(mesh, ring)
+    views = render_views(mesh, ring, runtime=runtime)
     _, ref, _ = raycast_views(mesh, ring)
     assert not views.mat_id.any() and not ref.any()
 
@@ -159,10 +161,10 @@ def test_near_plane_crossing_matches_embree(runtime):
         sphere.vertices[sphere.faces].mean(1)[:, 1] > 0)
     mesh = make_mesh(sphere.vertices, sphere.faces, fm)
     ring = make_ring(azimuth_step=60, elevations=(0.0, 35.0), size=128, distance=1.0, near=0.8)
-    views, _ = assert_matches_raycast(mesh, ring)
+    views, _ = assert_matches_raycast(mesh, ring, runtime)
     assert views.depth[views.mat_id > 0].min() >= 0.8 * (1 - 1e-6)
     full = render_views(mesh, make_ring(azimuth_step=60, elevations=(0.0, 35.0), size=128,
-                                        distance=1.0, near=0.01))
+                                        distance=1.0, near=0.01), runtime=runtime)
     assert (views.tri_id != full.tri_id).mean() > 0.05, "the near plane must cut the sphere"
 
 
@@ -172,7 +174,7 @@ def test_camera_inside_model_guard_band(runtime):
     fm = np.arange(len(box.faces)) % 5
     mesh = make_mesh(box.vertices, box.faces, fm)
     ring = make_ring(azimuth_step=90, elevations=(10.0,), size=96, distance=0.1, near=0.001)
-    views, _ = assert_matches_raycast(mesh, ring)
+    views, _ = assert_matches_raycast(mesh, ring, runtime)
     assert (views.mat_id > 0).all(), "from inside a closed box every pixel sees a wall"
 
 
@@ -195,7 +197,7 @@ def test_subdivided_plane_is_covered_exactly_once(runtime, path, step):
     R, t = ring.w2c[0, :3, :3], ring.w2c[0, :3, 3]
     verts = (verts_cam - t) @ R            # camera -> canonical
     mesh = make_mesh(verts, faces, np.zeros(len(faces)))
-    counts = coverage_counts(mesh, ring, path=path)[0]
+    counts = coverage_counts(mesh, ring, path=path, runtime=runtime)[0]
     inside = np.zeros((size, size), bool)
     inside[0:n * step, 0:n * step] = True
     # top-left rule: centres on the grid's left/top border are in, on its right/bottom border out
@@ -204,7 +206,7 @@ def test_subdivided_plane_is_covered_exactly_once(runtime, path, step):
     # the same with the second half of the faces mirrored (opposite winding)
     faces2 = faces.copy()
     faces2[::2] = faces2[::2, ::-1]
-    counts2 = coverage_counts(make_mesh(verts, faces2, np.zeros(len(faces))), ring, path=path)[0]
+    counts2 = coverage_counts(make_mesh(verts, faces2, np.zeros(len(faces))), ring, path=path, runtime=runtime)[0]
     assert np.array_equal(counts, counts2)
 
 
@@ -212,11 +214,11 @@ def test_nan_and_empty_meshes_raise_clear_errors(runtime):
     ring = make_ring(azimuth_step=90, size=32)
     v = np.array([[0, 0, 0], [0.1, 0, 0], [0, np.nan, 0]])
     with pytest.raises(ValueError, match="NaN"):
-        render_views(make_mesh(v, [[0, 1, 2]], [0], name="bad.glb"), ring)
+        render_views(make_mesh(v, [[0, 1, 2]], [0], name="bad.glb"), ring, runtime=runtime)
     with pytest.raises(ValueError, match="no faces"):
-        render_views(make_mesh(np.zeros((0, 3)), np.zeros((0, 3)), [], name="empty.glb"), ring)
+        render_views(make_mesh(np.zeros((0, 3)), np.zeros((0, 3)), [], name="empty.glb"), ring, runtime=runtime)
     with pytest.raises(ValueError, match="out of range"):
-        render_views(make_mesh(v[:2], [[0, 1, 5]], [0]), ring)
+        render_views(make_mesh(v[:2], [[0, 1, 5]], [0]), ring, runtime=runtime)
 
 
 def test_large_triangles_list_overflow_and_chunks(runtime):
@@ -230,13 +232,16 @@ def test_large_triangles_list_overflow_and_chunks(runtime):
     v = rng.uniform(-0.45, 0.45, size=(3 * n, 3))
     mesh = make_mesh(v, np.arange(3 * n).reshape(n, 3), np.arange(n) % 7)
     ring = make_ring(azimuth_step=30, elevations=(10.0, 60.0), size=96)
-    views, _ = assert_matches_raycast(mesh, ring)
-    parallel = render_views(mesh, ring, path="parallel")
-    assert R.last_stats.big_triangles > 4096 and R.last_stats.reruns >= 1
+    views, _ = assert_matches_raycast(mesh, ring, runtime)
+    st = R.RenderStats()
+    parallel = render_views(mesh, ring, path="parallel", runtime=runtime, stats=st)
+    assert st.big_triangles > 4096 and st.reruns >= 1
     assert _digest(parallel) == _digest(views)
     for path in ("serial", "parallel"):
-        chunked = render_views(mesh, ring, max_key_bytes=3 * 96 * 96 * 8, path=path)
-        assert R.last_stats.chunks == 8
+        st = R.RenderStats()
+        chunked = render_views(mesh, ring, max_key_bytes=3 * 96 * 96 * 8, path=path,
+                               runtime=runtime, stats=st)
+        assert st.chunks == 8
         assert _digest(chunked) == _digest(views)
 
 
@@ -279,8 +284,8 @@ def test_serial_and_parallel_paths_give_identical_bytes(runtime, case):
     same keys: identical triangle ids, material ids and depth bits."""
     make, ring_kw = SAME_BYTES_CASES[case]
     mesh, ring = make(), make_ring(**ring_kw)
-    a = render_views(mesh, ring, path="serial")
-    b = render_views(mesh, ring, path="parallel")
+    a = render_views(mesh, ring, path="serial", runtime=runtime)
+    b = render_views(mesh, ring, path="parallel", runtime=runtime)
     assert (a.mat_id > 0).any()
     for name in ("tri_id", "mat_id", "depth"):
         x, y = getattr(a, name), getattr(b, name)
@@ -293,8 +298,8 @@ def test_synth_vehicle_paths_identical_at_bench_density(runtime):
     synth = pytest.importorskip("ucad_cl.synth")
     mesh = synth.make_vehicle(7, "sedan", target_triangles=100_000).mesh()
     ring = make_ring(azimuth_step=30, elevations=(15.0, 40.0), size=128)
-    assert _digest(render_views(mesh, ring, path="serial")) == \
-        _digest(render_views(mesh, ring, path="parallel"))
+    assert _digest(render_views(mesh, ring, path="serial", runtime=runtime)) == \
+        _digest(render_views(mesh, ring, path="parallel", runtime=runtime))
 
 
 def test_raster_path_choice(runtime, monkeypatch):
@@ -319,9 +324,9 @@ def _digest(views) -> str:
 def test_deterministic_across_runs_local_sizes_and_threads(runtime):
     mesh = toy_car()
     ring = make_ring(azimuth_step=30, elevations=(10.0, 45.0), size=128)
-    d0 = _digest(render_views(mesh, ring))
-    assert _digest(render_views(mesh, ring)) == d0
-    assert _digest(render_views(mesh, ring, local_size=16, path="parallel")) == d0
+    d0 = _digest(render_views(mesh, ring, runtime=runtime))
+    assert _digest(render_views(mesh, ring, runtime=runtime)) == d0
+    assert _digest(render_views(mesh, ring, local_size=16, path="parallel", runtime=runtime)) == d0
     script = ("import sys; sys.path.insert(0, %r); from tests.test_render import toy_car, _digest;"
               "from ucad_cl.cameras import make_ring; from ucad_cl.render import render_views;"
               "from ucad_cl.runtime import get_runtime;"
@@ -330,7 +335,8 @@ def test_deterministic_across_runs_local_sizes_and_threads(runtime):
               "*[_digest(render_views(toy_car(), ring, path=p)) for p in ('serial', 'parallel')])"
               % os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     for threads in ("1", "2"):
-        env = dict(os.environ, POCL_MAX_PTHREAD_COUNT=threads, POCL_CPU_MAX_CU_NUM=threads)
+        env = dict(os.environ, POCL_MAX_PTHREAD_COUNT=threads, POCL_CPU_MAX_CU_NUM=threads,
+                   UCAD_CL_DEVICE=runtime.info.spec)              # the device under test
         out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
                              text=True, check=True).stdout.split()
         assert out == [threads, d0, d0]
@@ -345,9 +351,10 @@ def test_two_million_triangles_in_bounded_memory(runtime):
     mesh = synth.make_vehicle(1, "bus", target_triangles=2_000_000).mesh()
     assert mesh.n_faces >= 1_800_000
     ring = make_ring(azimuth_step=60, elevations=(20.0,), size=96)
-    small = render_views(mesh, ring, max_key_bytes=24 * 2**20)
-    assert R.last_stats.chunks > 1
-    whole = render_views(mesh, ring)
+    st = R.RenderStats()
+    small = render_views(mesh, ring, max_key_bytes=24 * 2**20, stats=st, runtime=runtime)
+    assert st.chunks > 1
+    whole = render_views(mesh, ring, runtime=runtime)
     assert np.array_equal(small.tri_id, whole.tri_id) and np.array_equal(small.depth, whole.depth)
     _, ref, _ = raycast_views(mesh, ring)
     assert (ref != whole.mat_id).mean() < 0.005

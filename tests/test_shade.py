@@ -10,6 +10,8 @@ from ucad_cl.render import render_views
 from ucad_cl.shade import linear_to_srgb8, shade_views
 from ucad_cl.artifacts import Material, Mesh
 
+pytestmark = pytest.mark.every_device      # tests/conftest.py: UCAD_TEST_DEVICES
+
 
 def _mesh(tm: trimesh.Trimesh, fmat, colors) -> Mesh:
     v = tm.vertices - tm.bounds.mean(axis=0)
@@ -62,9 +64,9 @@ def test_shading_matches_independent_per_pixel_reference(runtime):
 
     mesh = _scene()
     ring = make_ring(60.0, (20.0, -10.0), size=40)
-    views = render_views(mesh, ring)
+    views = render_views(mesh, ring, runtime=runtime)
     kw = dict(light_dir=(0.3, -0.7, -1.0), ambient=0.2, specular=0.4, shininess=16.0)
-    got = shade_views(mesh, views, background=(10, 20, 30), **kw)
+    got = shade_views(mesh, views, background=(10, 20, 30), **kw, runtime=runtime)
     tri_ref, _, _ = raycast_views(mesh, ring)
     agree = tri_ref == np.where(views.tri_id == 0xFFFFFFFF, -1, views.tri_id.astype(np.int64))
     assert agree.mean() > 0.98
@@ -79,8 +81,8 @@ def test_two_sided_winding_does_not_matter(runtime):
     mesh = _scene()
     flipped = Mesh(**{**mesh.__dict__, "faces": mesh.faces[:, ::-1].copy()})
     ring = make_ring(90.0, (30.0,), size=48)
-    a = shade_views(mesh, render_views(mesh, ring))
-    b = shade_views(flipped, render_views(flipped, ring))
+    a = shade_views(mesh, render_views(mesh, ring), runtime=runtime)
+    b = shade_views(flipped, render_views(flipped, ring), runtime=runtime)
     assert np.array_equal(a, b)
     assert a.max() > 0
 
@@ -88,10 +90,10 @@ def test_two_sided_winding_does_not_matter(runtime):
 def test_colors_override_and_background_image(runtime):
     mesh = _scene()
     ring = make_ring(180.0, (10.0,), size=32)
-    views = render_views(mesh, ring)
+    views = render_views(mesh, ring, runtime=runtime)
     bg = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)
     white = shade_views(mesh, views, colors=np.ones((2, 3)), ambient=1.0, specular=0.0,
-                        background=bg)
+                        background=bg, runtime=runtime)
     fg = views.tri_id != 0xFFFFFFFF
     assert (white[fg] == 255).all()                               # ambient 1: albedo exactly
     assert np.array_equal(white[~fg], np.broadcast_to(bg, white.shape)[~fg])
@@ -99,15 +101,15 @@ def test_colors_override_and_background_image(runtime):
 
 def test_bad_arguments_name_the_problem(runtime):
     mesh = _scene()
-    views = render_views(mesh, make_ring(180.0, (10.0,), size=16))
+    views = render_views(mesh, make_ring(180.0, (10.0,), size=16), runtime=runtime)
     with pytest.raises(ValueError, match="colors must be"):
-        shade_views(mesh, views, colors=np.ones((1, 3)))
+        shade_views(mesh, views, colors=np.ones((1, 3)), runtime=runtime)
     with pytest.raises(ValueError, match="background must be"):
-        shade_views(mesh, views, background=np.zeros((8, 8, 3), np.uint8))
+        shade_views(mesh, views, background=np.zeros((8, 8, 3), np.uint8), runtime=runtime)
     with pytest.raises(ValueError, match="light_dir"):
-        shade_views(mesh, views, light_dir=(0, 0, 0))
+        shade_views(mesh, views, light_dir=(0, 0, 0), runtime=runtime)
     with pytest.raises(ValueError, match="ambient"):
-        shade_views(mesh, views, ambient=2.0)
+        shade_views(mesh, views, ambient=2.0, runtime=runtime)
 
 
 def test_device_shading_matches_numpy_reference(runtime):
@@ -118,12 +120,12 @@ def test_device_shading_matches_numpy_reference(runtime):
     from ucad_cl.synth import make_vehicle
 
     mesh = make_vehicle(4, "suv").mesh()
-    views = render_views(mesh, make_ring(azimuth_step=45, elevations=(10.0, 50.0), size=(96, 80)))
+    views = render_views(mesh, make_ring(azimuth_step=45, elevations=(10.0, 50.0), size=(96, 80)), runtime=runtime)
     for kw in ({}, {"background": (10, 200, 30), "specular": 0.6, "shininess": 8.0},
                {"specular": 0.8, "shininess": 12.5}, {"specular": 0.9, "shininess": 1.0},
                {"background": np.random.default_rng(0).integers(0, 255, (80, 96, 3), np.uint8)}):
-        ref = shade_views(mesh, views, device=False, **kw).astype(int)
-        dev = shade_views(mesh, views, device=True, **kw).astype(int)
+        ref = shade_views(mesh, views, device=False, **kw, runtime=runtime).astype(int)
+        dev = shade_views(mesh, views, device=True, **kw, runtime=runtime).astype(int)
         assert np.abs(ref - dev).max() <= 1
         assert (ref != dev).mean() < 0.01
 

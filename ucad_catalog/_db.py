@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import sqlite3
 from pathlib import Path
 from typing import Any
@@ -288,7 +289,6 @@ def catalog_status(conn: sqlite3.Connection, root: Path) -> dict:
 def remove_stale_exports(out: Path) -> None:
     """Delete ``.tmp-<name>.<pid>.*`` files next to ``out`` whose exporting process is gone
     (``ucad_catalog.export`` names its temporary files so)."""
-    import os
 
     prefix = f"{TMP_PREFIX}{out.name}."
     try:
@@ -304,7 +304,6 @@ def remove_stale_exports(out: Path) -> None:
 
 
 def _alive(pid: int) -> bool:
-    import os
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -324,8 +323,6 @@ def verify_catalog(conn: sqlite3.Connection, root: Path, rehash: bool = True) ->
     (a killed build's last objects, superseded artifacts) and ``.tmp-*`` files; while a build
     runs, the objects it is about to commit also show as unreferenced.
     """
-    import hashlib
-
     problems: list[str] = []
     conn.execute("BEGIN")
     try:
@@ -361,10 +358,10 @@ def verify_catalog(conn: sqlite3.Connection, root: Path, rehash: bool = True) ->
     objects = root / OBJECTS_DIR
     shards = sorted(p for p in objects.iterdir() if p.is_dir()) if objects.is_dir() else []
     for shard in shards:
-        for f in sorted(shard.iterdir()):
-            if f.name.startswith(TMP_PREFIX):
-                tmp_files.append((f"{shard.name}/{f.name}", f.stat().st_size))
-            elif f.name not in live:
-                unreferenced.append((f"{shard.name}/{f.name}", f.stat().st_size))
+        for obj in sorted(shard.iterdir()):
+            if obj.name.startswith(TMP_PREFIX):
+                tmp_files.append((f"{shard.name}/{obj.name}", obj.stat().st_size))
+            elif obj.name not in live:
+                unreferenced.append((f"{shard.name}/{obj.name}", obj.stat().st_size))
     return {"problems": problems, "unreferenced": unreferenced, "tmp_files": tmp_files,
             "objects": len(live), "bytes": total}

@@ -39,6 +39,7 @@ import os
 import struct
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -165,7 +166,7 @@ def read_viewset_exr(path):
 
 _MAGIC = b"\x76\x2f\x31\x01"
 _PIXEL_BYTES = {0: 4, 1: 2, 2: 4}                       # UINT, HALF, FLOAT
-_PIXEL_DTYPE = {0: np.dtype("<u4"), 1: np.dtype("<f2"), 2: np.dtype("<f4")}
+_PIXEL_DTYPE: dict[int, np.dtype] = {0: np.dtype("<u4"), 1: np.dtype("<f2"), 2: np.dtype("<f4")}
 _LINES_PER_CHUNK = {0: 1, 2: 1, 3: 16}                 # NONE, ZIPS, ZIP
 _OUT_DTYPE = {"tri": np.uint32, "mat": np.uint16, "Z": np.float32}
 
@@ -189,7 +190,7 @@ class ViewStackFile:
             self.parts, self._multipart = _parse_headers(self._data)
         except (IndexError, ValueError, UnicodeDecodeError) as exc:
             raise ValueError(f"{self.path}: not a readable OpenEXR view stack ({exc})") from None
-        self._fallback = None
+        self._fallback: Any = None                  # OpenEXR parts, when the fast path cannot
 
     @property
     def n_views(self) -> int:

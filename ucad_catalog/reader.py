@@ -40,6 +40,8 @@ from typing import Iterator, NamedTuple
 
 import numpy as np
 
+from .export import format_for, write_export
+from .exr import ViewStackFile
 from ._db import (MESH_ORDER, CatalogError, catalog_status, check_catalog_db, locate_db,
                   mesh_records, object_path, verify_catalog)
 
@@ -94,7 +96,7 @@ class PartRow(NamedTuple):
     view: int
     decision: str
     pixels: int
-    index: int
+    index: int  # type: ignore[assignment]   # the material index (shadows tuple.index)
     props: dict
 
 
@@ -171,7 +173,7 @@ class CatalogReader:
         except CatalogError:
             self._conn.close()
             raise
-        self._stacks: OrderedDict[str, object] = OrderedDict()   # artifact sha -> ViewStackFile
+        self._stacks: OrderedDict[str, ViewStackFile] = OrderedDict()   # artifact sha -> ViewStackFile
         self._npz: tuple[str, dict] | None = None                 # last views.npz read
         self._edges: tuple[str, np.ndarray] | None = None         # last edge stack read
         self._feats: dict[str, np.ndarray] = {}                   # features by artifact sha
@@ -291,7 +293,6 @@ class CatalogReader:
 
     def export(self, out: str | Path, format: str | None = None) -> int:
         """Export the catalogue (meshes table + materials table, ``ucad_catalog.export``)."""
-        from .export import format_for, write_export
 
         format_for(out, format)
         with self.snapshot():
@@ -347,7 +348,7 @@ class CatalogReader:
             d = np.abs((np.degrees(az) - float(azimuth)) % 360.0)
             dist = np.minimum(d, 360.0 - d)
         else:
-            dist = np.abs(np.degrees(el) - float(elevation))
+            dist = np.abs(np.degrees(el) - float(elevation))  # type: ignore[arg-type]
         best = np.flatnonzero(dist <= dist.min() + 1e-9)
         return int(idx[best].min())
 
@@ -444,13 +445,13 @@ class CatalogReader:
         if not owners:
             return []
         blocks, ranks, views = [], [], []
-        for rank, s in enumerate(owners):
+        for r, s in enumerate(owners):
             f = self.features(s)
             if f.shape[1] != q.shape[0]:
                 raise CatalogError(f"feature has D={q.shape[0]} but mesh {s[:12]} has "
                                    f"D={f.shape[1]}")
             blocks.append(f)
-            ranks.append(np.full(f.shape[0], rank, np.int64))
+            ranks.append(np.full(f.shape[0], r, np.int64))
             views.append(np.arange(f.shape[0], dtype=np.int64))
         diff = np.concatenate(blocks).astype(np.float64) - q.astype(np.float64)
         d = np.einsum("ij,ij->i", diff, diff)
@@ -472,7 +473,7 @@ class CatalogReader:
     def _query_meshes(self, where: str, args: tuple) -> list[MeshInfo]:
         rows = self._conn.execute(f"SELECT {_MESH_COLUMNS} FROM meshes {where} "
                                   f"ORDER BY {MESH_ORDER}", args).fetchall()
-        return [MeshInfo(*r[:10], np.array(json.loads(r[10]), np.float64), r[11], r[12],
+        return [MeshInfo(*r[:10], np.array(json.loads(r[10]), np.float64), r[11], r[12],  # type: ignore[call-arg]
                          json.loads(r[13]), None if r[14] is None else json.loads(r[14]),
                          json.loads(r[15])) for r in rows]
 
@@ -498,8 +499,6 @@ class CatalogReader:
         kinds = {r[0] for r in self._conn.execute(
             "SELECT kind FROM artifacts WHERE mesh_id=?", (self._mesh_id(sha),))}
         if "views.exr" in kinds:
-            from .exr import ViewStackFile
-
             path = self.artifact_path(sha, "views.exr")
             stack = self._stacks.pop(path.name, None)
             try:
@@ -520,11 +519,11 @@ class CatalogReader:
                 with np.load(path, allow_pickle=False) as z:
                     self._npz = (path.name, {"tri": z["tri_id"], "mat": z["mat_id"],
                                              "Z": z["depth"]})
-            stack = self._npz[1]
-            if not 0 <= index < stack["mat"].shape[0]:
+            arrays = self._npz[1]
+            if not 0 <= index < arrays["mat"].shape[0]:
                 raise CatalogError(f"mesh {sha[:12]}: view {index} is outside its view stack "
-                                   f"({stack['mat'].shape[0]} views)")
-            return {c: stack[c][index] for c in channels}
+                                   f"({arrays['mat'].shape[0]} views)")
+            return {c: arrays[c][index] for c in channels}
         raise CatalogError(f"mesh {sha[:12]} has no view stack artifact "
                            f"('views.exr' or 'views.npz'; has {sorted(kinds)})")
 

@@ -36,11 +36,12 @@ from ._db import (DB_NAME, FORMAT_NAME, LOCK_NAME, OBJECTS_DIR, SCHEMA_SQL, SCHE
                   TMP_PREFIX, CatalogError, canonical_json, catalog_status, check_catalog_db,
                   is_sha256, mesh_records, object_path, options_hash, printable, verify_catalog)
 from .entry import CatalogEntry
+from .export import format_for, write_export
 
 try:                                   # POSIX advisory lock for the single-writer rule
     import fcntl
 except ImportError:                    # pragma: no cover - non-POSIX: lock not enforced
-    fcntl = None
+    fcntl = None  # type: ignore[assignment]
 
 _CHUNK = 1 << 20
 _TMP_PREFIX = TMP_PREFIX
@@ -53,7 +54,7 @@ class Catalog:
                  durable: bool = True):
         self.root = root
         self.durable = durable
-        self._conn = conn
+        self._conn: sqlite3.Connection | None = conn
         self._lock_fd = lock_fd
         self._run_id: int | None = None
         self._run_hash: str | None = None
@@ -126,6 +127,7 @@ class Catalog:
         cur = self._db.execute(
             "INSERT INTO runs (started, options_hash, options, engine) VALUES (?, ?, ?, ?)",
             (time.time(), h, canonical_json(options), str(engine)))
+        assert cur.lastrowid is not None
         self._run_id, self._run_hash = int(cur.lastrowid), h
         return self._run_id
 
@@ -213,6 +215,7 @@ class Catalog:
                       printable(canonical_json(entry.meta)))
             row = conn.execute("SELECT id FROM meshes WHERE sha256=?",
                                (entry.sha256,)).fetchone()
+            mid: int | None
             if row is None:
                 mid = conn.execute(
                     "INSERT INTO meshes (path, size, mtime, state, reason, detail, n_triangles, "
@@ -253,6 +256,7 @@ class Catalog:
                 conn.execute("ROLLBACK")
             raise
         self.superseded_bytes += sum(n for _, n in gone)   # left for gc(): readers may hold them
+        assert mid is not None
         return int(mid)
 
     # ------------------------------------------------------------------ maintenance
@@ -264,7 +268,6 @@ class Catalog:
         """Write the meshes table to ``path`` and the materials table beside it; returns the
         mesh count. Format from ``format`` or the suffix (.parquet / .jsonl); see
         ``ucad_catalog.export``."""
-        from .export import format_for, write_export
 
         format_for(path, format)                    # a bad format fails before any reading
         self._db.execute("BEGIN")                   # one consistent snapshot

@@ -101,7 +101,7 @@ def _id_counts(mat_id: np.ndarray) -> np.ndarray:
     try:
         import cv2
     except ImportError:                 # the reader's install has no OpenCV: same counts
-        cv2 = None
+        cv2 = None  # type: ignore[assignment]
     if cv2 is None or mat_id.dtype != np.uint16 or mat_id[0].size >= 2**24:
         # (float32 histogram bins are exact below 2^24 pixels)
         return np.stack([np.bincount(m.ravel(), minlength=n) for m in mat_id]).astype(np.int64)

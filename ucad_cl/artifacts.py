@@ -18,6 +18,7 @@ Conventions (written once, used everywhere; see docs/CONVENTIONS.md):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -129,6 +130,8 @@ class PartMasks:
     """
 
     MAX_PARTS = 16                      # bits of the packed form
+    _masks: Any                         # (V, P, H, W) bool ndarray, or None until unpacked
+    _bits: Any                          # (V, H, W) uint16 ndarray, or None until packed
 
     def __init__(self, parts: list[str], masks: np.ndarray, confidence: np.ndarray,
                  source: str = ""):
@@ -190,7 +193,7 @@ class PartMasks:
     def nonempty(self) -> np.ndarray:
         """(V, P) bool: part p has at least one pixel in view v."""
         if self._masks is not None:
-            return np.asarray(self._masks).any(axis=(2, 3))
+            return np.asarray(np.asarray(self._masks).any(axis=(2, 3)))
         seen = np.bitwise_or.reduce(self._bits, axis=(1, 2))                 # (V,) uint16
         return (seen[:, None] >> np.arange(len(self.parts), dtype=np.uint16)) & 1 == 1
 

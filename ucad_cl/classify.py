@@ -48,29 +48,27 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .runtime import get_runtime
+from .abi import MAX_PARTS, PART_HIST_PARAMS
+from .runtime import Runtime, get_runtime
 from .artifacts import PART_NAMES, Mesh, MaterialPart, PartMasks, PartTable, ViewSet, pack_masks
 
-MAX_PARTS = PartMasks.MAX_PARTS  # part masks are packed into uint16 bit sets
 PIXELS_PER_ITEM = 1024      # contiguous pixels per work-item; measured in bench/parts.py
 LOCAL_SIZE = 16             # work-items per group; measured in bench/parts.py
-PARAMS_DTYPE = np.dtype([("n_pixels", np.uint32), ("n_views", np.uint32), ("n_ids", np.uint32),
-                         ("n_parts", np.uint32), ("pixels_per_item", np.uint32),
-                         ("pad", np.uint32)])
 
 
 def classify_parts(mesh: Mesh, views: ViewSet, masks: PartMasks, *, threshold: float = 0.5,
                    min_pixels: int = 4, merge_max_fraction: float = 0.02,
                    priors: Mapping[int, str] | None = None, core_radius: int = 2,
-                   symmetry: bool = True) -> PartTable:
-    """One ``MaterialPart`` row per material of ``mesh`` (material index order)."""
+                   symmetry: bool = True, runtime: Runtime | None = None) -> PartTable:
+    """One ``MaterialPart`` row per material of ``mesh`` (material index order); the histogram
+    runs on ``runtime`` (default ``get_runtime()``)."""
     parts = _validate(mesh, views, masks)
     n_mat = len(mesh.materials)
     V = views.mat_id.shape[0]
     core = core_ids(views.mat_id, core_radius)
     # full and core maps in one launch, both against the packed masks
     both = part_histogram([views.mat_id, core], bits=[masks.bits, masks.bits],
-                          n_parts=len(parts), n_ids=n_mat + 1)
+                          n_parts=len(parts), n_ids=n_mat + 1, runtime=runtime)
     hist, core_hist = both[:V].astype(np.int64), both[V:].astype(np.int64)
     conf = np.asarray(masks.confidence, np.float64)
     nonempty = masks.nonempty()
@@ -110,8 +108,11 @@ def part_histogram(mat_id: np.ndarray | Sequence[np.ndarray], masks: np.ndarray 
                    *, bits: np.ndarray | Sequence[np.ndarray] | None = None,
                    n_parts: int | None = None, n_ids: int | None = None,
                    local_size: int = LOCAL_SIZE, pixels_per_item: int = PIXELS_PER_ITEM,
-                   use_local: bool | None = None) -> np.ndarray:
-    """(V, n_ids, 1 + P) uint32: column 0 = |id| per view, column 1 + p = |id ∩ part p|.
+                   use_local: bool | None = None, runtime: Runtime | None = None,
+                   stats: dict | None = None) -> np.ndarray:
+    """(V, n_ids, 1 + P) uint32: column 0 = |id| per view, column 1 + p = |id ∩ part p|, counted
+    on ``runtime`` (default ``get_runtime()``); ``stats``, when given, receives "histogram": the
+    seconds of the kernels and the copy back.
 
     mat_id: (V, H, W) uint16 material maps, or a list of such arrays (same H, W) counted as one
     stack of V views (stacked in device memory: no host-side concatenation). The part masks of
@@ -156,11 +157,11 @@ def part_histogram(mat_id: np.ndarray | Sequence[np.ndarray], masks: np.ndarray 
     elif P < MAX_PARTS and max(int(b.max()) for b in bits if b.size) >> P:
         # the kernel would count a bit >= P into the next id's row
         raise ValueError(f"bits has bits set beyond the {P} parts")
-    rt = get_runtime()
+    rt = runtime or get_runtime()
     n_pix = H * W
     items = -(-n_pix // pixels_per_item)
     gx = -(-items // local_size) * local_size
-    prm = np.array([(n_pix, V, n_ids, P, pixels_per_item, 0)], PARAMS_DTYPE)
+    prm = np.array([(n_pix, V, n_ids, P, pixels_per_item, 0)], PART_HIST_PARAMS)
     table_bytes = 4 * n_ids * (1 + P)
     if use_local is None:
         use_local = table_bytes <= rt.device.local_mem_size // 2
@@ -187,7 +188,8 @@ def part_histogram(mat_id: np.ndarray | Sequence[np.ndarray], masks: np.ndarray 
         knl(q, (gx, V), (local_size, 1), d_mat, d_bits, prm, d_hist)
     cl.enqueue_copy(q, out, d_hist)
     q.finish()
-    last_timing["histogram"] = time.perf_counter() - t0
+    if stats is not None:
+        stats["histogram"] = time.perf_counter() - t0
     return out
 
 
@@ -203,8 +205,6 @@ def _view_stack(x, name: str) -> list[np.ndarray]:
             raise ValueError(f"{name}: views of sizes {a.shape[1:]} and {arrays[0].shape[1:]}")
     return arrays
 
-
-last_timing: dict[str, float] = {}
 
 
 def symmetric_pairs(mesh: Mesh, *, tol: float = 0.01, min_match: float = 0.8,

@@ -25,7 +25,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="print version and the OpenCL device in use, then exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in sorted(m.name for m in pkgutil.iter_modules(_commands.__path__)):
-        importlib.import_module(f"{_commands.__name__}.{mod}").register(sub)
+        module = importlib.import_module(f"{_commands.__name__}.{mod}")
+        if hasattr(module, "register"):           # helpers (common.py) have none
+            module.register(sub)
     return parser
 
 

@@ -27,18 +27,15 @@ from __future__ import annotations
 
 import math
 import time
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .runtime import get_runtime
+from .abi import CANNY_PARAMS
+from .runtime import Runtime, get_runtime
 from .artifacts import EdgeSet, ViewSet, nonzero_box
 
-PARAMS_DTYPE = np.dtype([("width", np.int32), ("height", np.int32), ("n_images", np.int32),
-                         ("channels", np.int32), ("low", np.int32), ("high", np.int32),
-                         ("l2", np.int32), ("pad", np.int32)])
 VSPAN = 16                   # pixels per work-item along x (VSPAN in canny.cl)
 ROWS = 32                    # rows per work-item of canny_gradient_nms (16/32/64 within 10 %)
 LOCAL = (1, 1, 1)            # its local size (1..16 along x, 1..4 along y: all within noise)
@@ -48,8 +45,11 @@ MAX_CHUNK_PIXELS = 1 << 25   # pixels per launch; bounds the device scratch (C +
 _INT_MIN = -(2**31)
 
 
-def canny(images: np.ndarray, low: float, high: float, l2: bool = False) -> np.ndarray:
-    """Canny edges of one image or a batch, bit-identical to ``cv2.Canny`` (aperture 3)."""
+def canny(images: np.ndarray, low: float, high: float, l2: bool = False, *,
+          runtime: Runtime | None = None, stats: CannyStats | None = None) -> np.ndarray:
+    """Canny edges of one image or a batch, bit-identical to ``cv2.Canny`` (aperture 3), on
+    ``runtime`` (default ``get_runtime()``); ``stats``, when given, receives the timings."""
+    rt = runtime or get_runtime()
     batch, single = _as_batch(images)
     lo, hi = opencv_thresholds(low, high, l2)
     B, H, W, C = batch.shape
@@ -57,7 +57,7 @@ def canny(images: np.ndarray, low: float, high: float, l2: bool = False) -> np.n
     per = max(1, MAX_CHUNK_PIXELS // (H * W))
     for b0 in range(0, B, per):
         b1 = min(B, b0 + per)
-        _run_canny(batch[b0:b1], lo, hi, bool(l2), out[b0:b1])
+        _run_canny(rt, batch[b0:b1], lo, hi, bool(l2), out[b0:b1], stats=stats)
     return out[0] if single else out
 
 
@@ -120,7 +120,8 @@ class _Buffers:
 
 @dataclass
 class CannyStats:
-    """Timings (seconds) of the last ``canny`` call: upload, kernels, download."""
+    """Timings (seconds) of ``canny`` calls (upload, kernels, download, summed over launches)
+    and ``extra`` counts (``material_edges``: "repaired"); pass one as ``stats=``."""
 
     upload: float = 0.0
     kernels: float = 0.0
@@ -128,35 +129,22 @@ class CannyStats:
     extra: dict = field(default_factory=dict)
 
 
-last_stats = CannyStats()
-_BUFFERS: OrderedDict = OrderedDict()   # (B, H, W, C) -> _Buffers, the 2 most recent shapes
+def _buffers(rt: Runtime, shape: tuple[int, int, int, int]) -> _Buffers:
+    """Device buffers for a (B, H, W, C) batch: the runtime's scratch buffers (reused across
+    calls, grown when a batch is larger)."""
+    B, H, W, C = shape
+    n = B * H * W
+    return _Buffers(src=rt.scratch("canny.src", n * C),
+                    planes=rt.scratch("canny.planes", n * C) if C > 1 else None,
+                    map=rt.scratch("canny.map", n), stack=rt.scratch("canny.stack", 4 * n))
 
 
-def _buffers(rt, shape: tuple[int, int, int, int]) -> _Buffers:
-    import pyopencl as cl
-
-    bufs = _BUFFERS.get(shape)
-    if bufs is None:
-        B, H, W, C = shape
-        n, mf = B * H * W, cl.mem_flags
-        bufs = _Buffers(src=cl.Buffer(rt.ctx, mf.READ_ONLY, n * C),
-                        planes=cl.Buffer(rt.ctx, mf.READ_WRITE, n * C) if C > 1 else None,
-                        map=cl.Buffer(rt.ctx, mf.READ_WRITE, n),
-                        stack=cl.Buffer(rt.ctx, mf.READ_WRITE, 4 * n))
-        _BUFFERS[shape] = bufs
-        while len(_BUFFERS) > 2:
-            _BUFFERS.popitem(last=False)
-    _BUFFERS.move_to_end(shape)
-    return bufs
-
-
-def _run_canny(batch: np.ndarray, lo: int, hi: int, l2: bool, out: np.ndarray,
-               lut: np.ndarray | None = None) -> None:
+def _run_canny(rt: Runtime, batch: np.ndarray, lo: int, hi: int, l2: bool, out: np.ndarray,
+               lut: np.ndarray | None = None, stats: CannyStats | None = None) -> None:
     """Canny of ``batch`` (B, H, W, C) uint8 into ``out``; with ``lut`` ((N,) uint32 colours,
     R in the low byte), ``batch`` is (B, H, W) uint16 ids of the colour image lut[ids]."""
     import pyopencl as cl
 
-    rt = get_runtime()
     q = rt.queue
     B, H, W = batch.shape[:3]
     C = 3 if lut is not None else batch.shape[3]
@@ -164,7 +152,7 @@ def _run_canny(batch: np.ndarray, lo: int, hi: int, l2: bool, out: np.ndarray,
     k_nms = rt.kernel("canny", "canny_gradient_nms", opts)
     k_trace = rt.kernel("canny", "canny_trace", opts)
     bufs = _buffers(rt, (B, H, W, C))           # src: 3 bytes a pixel, room for 2-byte ids
-    prm = np.array([(W, H, B, C, lo, hi, int(l2), 0)], PARAMS_DTYPE)
+    prm = np.array([(W, H, B, C, lo, hi, int(l2), 0)], CANNY_PARAMS)
     t0 = time.perf_counter()
     cl.enqueue_copy(q, bufs.src, batch)
     t1 = time.perf_counter()
@@ -192,8 +180,10 @@ def _run_canny(batch: np.ndarray, lo: int, hi: int, l2: bool, out: np.ndarray,
     t2 = time.perf_counter()
     cl.enqueue_copy(q, out, bufs.map)
     q.finish()
-    global last_stats
-    last_stats = CannyStats(upload=t1 - t0, kernels=t2 - t1, download=time.perf_counter() - t2)
+    if stats is not None:
+        stats.upload += t1 - t0
+        stats.kernels += t2 - t1
+        stats.download += time.perf_counter() - t2
 
 
 def _round_up(n: int, m: int) -> int:
@@ -205,7 +195,8 @@ def _round_up(n: int, m: int) -> int:
 # --------------------------------------------------------------------------------------------
 
 def material_edges(views: ViewSet, *, low: float = 10.0, high: float = 20.0,
-                   l2: bool = False) -> EdgeSet:
+                   l2: bool = False, runtime: Runtime | None = None,
+                   stats: CannyStats | None = None) -> EdgeSet:
     """Edges of the material-id maps of ``views`` (Canny of a colouring, plus a repair).
 
     Colouring: ids that touch anywhere (4-neighbours, over all views together) get different
@@ -220,7 +211,7 @@ def material_edges(views: ViewSet, *, low: float = 10.0, high: float = 20.0,
     (8-neighbourhood) of p or q. Canny alone cannot promise this for any colouring: inside a
     pattern of period 2 every Sobel response is 0, and on a stripe two pixels thick OpenCV's
     tie rule (strict on the previous side) suppresses the second boundary. Such pairs are found
-    after Canny and their first pixel (left or upper) is marked as an edge; ``last_stats.extra
+    after Canny and their first pixel (left or upper) is marked as an edge; ``stats.extra
     ["repaired"]`` counts them. Precision needs no repair: a pixel whose 3x3 neighbourhood holds
     one id has zero gradient, so every edge pixel is within one pixel of an id boundary.
     """
@@ -228,14 +219,16 @@ def material_edges(views: ViewSet, *, low: float = 10.0, high: float = 20.0,
     if ids.ndim != 3 or ids.dtype != np.uint16:
         raise ValueError(f"material_edges: mat_id must be a (V, H, W) uint16 array, got "
                          f"{ids.dtype} {ids.shape}")
-    edges = canny_of_colours(ids, colour_table(ids), low, high, l2)
+    edges = canny_of_colours(ids, colour_table(ids), low, high, l2, runtime=runtime, stats=stats)
     repaired = _repair_missed_boundaries(ids, edges)
-    last_stats.extra["repaired"] = repaired
+    if stats is not None:
+        stats.extra["repaired"] = stats.extra.get("repaired", 0) + repaired
     return EdgeSet(edges=edges)
 
 
 def canny_of_colours(ids: np.ndarray, table: np.ndarray, low: float, high: float,
-                     l2: bool = False) -> np.ndarray:
+                     l2: bool = False, *, runtime: Runtime | None = None,
+                     stats: CannyStats | None = None) -> np.ndarray:
     """``canny(table[ids][..., :3])`` for (B, H, W) uint16 ids and a (N, 4) uint8 colour table
     (RGB + padding, e.g. ``colour_table``) without building the colour images on the host: the
     device looks the colours up (``canny_id_planes``). Same result, bit for bit."""
@@ -256,7 +249,8 @@ def canny_of_colours(ids: np.ndarray, table: np.ndarray, low: float, high: float
     per = max(1, MAX_CHUNK_PIXELS // (H * W))
     for b0 in range(0, B, per):
         b1 = min(B, b0 + per)
-        _run_canny(ids[b0:b1], lo, hi, bool(l2), out[b0:b1], lut=lut)
+        _run_canny(runtime or get_runtime(), ids[b0:b1], lo, hi, bool(l2), out[b0:b1], lut=lut,
+                   stats=stats)
     return out
 
 

@@ -33,14 +33,9 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from .abi import HOG_PARAMS, MAX_BINS
 from .artifacts import Features, ViewSet
 
-HOG_PARAMS_DTYPE = np.dtype([
-    ("size", np.int32), ("cell", np.int32), ("n_cells", np.int32), ("bins", np.int32),
-    ("is_signed", np.int32), ("n_blocks", np.int32), ("d_hog", np.int32), ("d_sil", np.int32),
-    ("eps", np.float32), ("clip", np.float32), ("sil_weight", np.float32),
-    ("min_grad", np.float32)])
-MAX_BINS = 36           # ucad_cl/kernels/features.cl
 BATCH = 512             # images per kernel launch (bounds device memory: ~BATCH * 70 KiB)
 
 
@@ -178,7 +173,7 @@ class HogExtractor:
         nc = self.n_cells
         return np.array([(self.size, self.cell, nc, self.bins, int(self.signed), nc - 1,
                           (nc - 1) ** 2 * 4 * self.bins, self.silhouette ** 2, self.eps,
-                          self.clip, self.sil_weight, self.min_grad)], HOG_PARAMS_DTYPE)
+                          self.clip, self.sil_weight, self.min_grad)], HOG_PARAMS)
 
     def extract(self, images: np.ndarray, masks: np.ndarray) -> Features:
         crops, mcrops = crop_square(images, masks, self.size, self.pad,

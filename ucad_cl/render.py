@@ -1,10 +1,11 @@
-"""Batched material-index rendering: all views of one mesh per launch (``ucad_cl/kernels/raster.cl``).
+"""Batched material-index rendering: all views of one mesh per launch (``kernels/raster_*.cl``).
 
 ``render_views(mesh, ring)`` returns per view a triangle-id map (uint32, 0xFFFFFFFF background),
 a material-id map (uint16, material index + 1, 0 background) and linear camera-space depth
 (float32, +inf background). One sample per pixel at its centre; no antialiasing, so ids never
 blend. Visibility is decided by the minimum 64-bit key (depth bits, face index): output is
-bit-identical across runs, thread counts and work-group sizes. See raster.cl for the numerics.
+bit-identical across runs, thread counts and work-group sizes. See kernels/raster_common.h for
+the numerics.
 
 Two kernel paths give the same bytes: ``parallel`` (one work-item per face and view, atomic min;
 for GPUs) and ``serial`` (one work-item per view, faces 16 at a time in explicit vectors, no
@@ -23,12 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .runtime import get_runtime
+from .abi import RASTER_PARAMS
+from .runtime import Runtime, get_runtime
 from .artifacts import CameraRing, Mesh, ViewSet
 
-PARAMS_DTYPE = np.dtype([("width", np.int32), ("height", np.int32), ("n_faces", np.int32),
-                         ("n_views", np.int32), ("near", np.float32),
-                         ("big_capacity", np.uint32)])
 BUILD_OPTIONS = ("-cl-fp32-correctly-rounded-divide-sqrt",)
 LOCAL_SMALL = (64, 1)   # work-group (faces, views); see bench/render.py and the README
 LOCAL_PROJECT = (64, 1)  # work-group (vertices, views)
@@ -38,7 +37,8 @@ MAX_FACES = 2**32 - 2   # face ids must stay below the background id
 
 @dataclass
 class RenderStats:
-    """Timings of the last render (seconds) and how many triangles took the large path."""
+    """Timings of one render (seconds) and how many triangles took the large path; pass one
+    as ``render_views(..., stats=)`` to have it filled."""
 
     upload: float = 0.0
     raster: float = 0.0
@@ -49,48 +49,51 @@ class RenderStats:
     extra: dict = field(default_factory=dict)
 
 
-last_stats = RenderStats()
-
-
-def render_views(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
-                 local_size=LOCAL_SMALL, path: str = "auto") -> ViewSet:
-    """Render material-index, triangle-id and depth maps of ``mesh`` for every camera of ``ring``.
+def render_views(mesh: Mesh, ring: CameraRing, *, runtime: Runtime | None = None,
+                 max_key_bytes: int = 256 * 2**20, local_size=LOCAL_SMALL, path: str = "auto",
+                 stats: RenderStats | None = None) -> ViewSet:
+    """Render material-index, triangle-id and depth maps of ``mesh`` for every camera of ``ring``
+    on ``runtime`` (default: the process's, ``get_runtime()``).
 
     ``path``: "auto", "serial" or "parallel" (see the module docstring); ``local_size`` applies
-    to the parallel path's first pass."""
-    return _render(mesh, ring, max_key_bytes=max_key_bytes, local_size=local_size, path=path)
+    to the parallel path's first pass; ``stats``, when given, receives timings and counts."""
+    return _render(mesh, ring, runtime or get_runtime(), max_key_bytes=max_key_bytes,
+                   local_size=local_size, path=path, stats=stats)
 
 
-def raster_path(path: str = "auto") -> str:
-    """The kernel path ``render_views`` will use: "serial" or "parallel"."""
+def raster_path(path: str = "auto", runtime: Runtime | None = None) -> str:
+    """The kernel path ``render_views`` will use on ``runtime``: "serial" or "parallel"."""
     path = os.environ.get("UCAD_RASTER_PATH", "") or path
     if path == "auto":
         import pyopencl as cl
 
-        return "serial" if get_runtime().device.type & cl.device_type.CPU else "parallel"
+        rt = runtime or get_runtime()
+        return "serial" if rt.device.type & cl.device_type.CPU else "parallel"
     if path not in ("serial", "parallel"):
         raise ValueError(f"unknown raster path {path!r}: use 'auto', 'serial' or 'parallel' "
                          "(argument or UCAD_RASTER_PATH)")
     return path
 
 
-def coverage_counts(mesh: Mesh, ring: CameraRing, *, path: str = "auto") -> np.ndarray:
+def coverage_counts(mesh: Mesh, ring: CameraRing, *, runtime: Runtime | None = None,
+                    path: str = "auto") -> np.ndarray:
     """(V, H, W) uint64: how many triangles cover each pixel centre (a test of the fill rule)."""
-    return _render(mesh, ring, count=True, path=path)
+    return _render(mesh, ring, runtime or get_runtime(), count=True, path=path)
 
 
-def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
-            local_size=LOCAL_SMALL, count: bool = False, path: str = "auto"):
+def _render(mesh: Mesh, ring: CameraRing, rt: Runtime, *, max_key_bytes: int = 256 * 2**20,
+            local_size=LOCAL_SMALL, count: bool = False, path: str = "auto",
+            stats: RenderStats | None = None):
     verts, faces, fmat = _validate(mesh)
     # the serial kernel gathers with signed 32-bit offsets (2 per vertex)
-    serial = raster_path(path) == "serial" and 2 * verts.shape[0] < 2**31
-    rt = get_runtime()
+    serial = raster_path(path, rt) == "serial" and 2 * verts.shape[0] < 2**31
     import pyopencl as cl
 
     opts = BUILD_OPTIONS + (("-DUCAD_COUNT_COVERAGE",) if count else ())
+    program = "raster_serial" if serial else "raster_parallel"
     V, H, W = ring.n_views, ring.height, ring.width
     npix = H * W
-    stats = RenderStats()
+    stats = RenderStats() if stats is None else stats
     t0 = time.perf_counter()
     mf = cl.mem_flags
     ctx, q = rt.ctx, rt.queue
@@ -118,14 +121,14 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
     if serial:   # one index array per corner, for 16-lane gathers
         corners = [cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(c))
                    for c in faces.T]
-    stats.upload = time.perf_counter() - t0
+    stats.upload += time.perf_counter() - t0
 
-    k_project = rt.kernel("raster", "project_vertices", opts)
+    k_project = rt.kernel(program, "project_vertices", opts)
     for v0 in range(0, V, chunk):
         nv = min(chunk, V - v0)
         t1 = time.perf_counter()
         d_P = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=P_all[v0:v0 + nv].copy())
-        prm = np.array([(W, H, faces.shape[0], nv, ring.near, 0)], PARAMS_DTYPE)
+        prm = np.array([(W, H, faces.shape[0], nv, ring.near, 0)], RASTER_PARAMS)
         cl.enqueue_nd_range_kernel(
             q, _args(k_project, d_verts, d_P, prm, np.uint32(n_verts), d_pverts, d_pdepth,
                      np.uint32(serial)),
@@ -139,8 +142,6 @@ def _render(mesh: Mesh, ring: CameraRing, *, max_key_bytes: int = 256 * 2**20,
         stats.raster += t2 - t1
         stats.resolve += time.perf_counter() - t2
         stats.chunks += 1
-    global last_stats
-    last_stats = stats
     return outs[0] if count else ViewSet(cameras=ring, tri_id=outs[0], mat_id=outs[1],
                                          depth=outs[2])
 
@@ -159,7 +160,7 @@ def _draw_serial(rt, opts, bufs, corners, d_pdepth, n_verts, prm, outs, count) -
     else:
         d_outs = [cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY | cl.mem_flags.USE_HOST_PTR, hostbuf=o)
                   for o in outs]
-    k = rt.kernel("raster", "raster_views_serial", opts)
+    k = rt.kernel("raster_serial", "raster_views_serial", opts)
     cl.enqueue_nd_range_kernel(
         q, _args(k, d_verts, d_faces, *corners, d_P, d_pverts, d_pdepth, np.uint32(n_verts), prm,
                  d_keys, d_fmat, *d_outs), (nv,), (1,))
@@ -189,7 +190,7 @@ def _draw_parallel(rt, opts, bufs, n_verts, prm, local_size, outs, count, stats)
     n = nv * int(prm["width"][0]) * int(prm["height"][0])
     d_count = rt.scratch("raster.count", 4)
     d_big = rt.scratch("raster.big", 8 * 4096)
-    k_small = rt.kernel("raster", "raster_small", opts)
+    k_small = rt.kernel("raster_parallel", "raster_small", opts)
     cl.enqueue_fill_buffer(q, d_keys, np.uint64(0 if count else 0xFFFFFFFFFFFFFFFF), 0, 8 * n)
     while True:
         prm["big_capacity"] = d_big.size // 8
@@ -207,7 +208,7 @@ def _draw_parallel(rt, opts, bufs, n_verts, prm, local_size, outs, count, stats)
         stats.reruns += 1
     if n_big:
         cl.enqueue_nd_range_kernel(
-            q, _args(rt.kernel("raster", "raster_big", opts), d_verts, d_faces, d_P, d_pverts,
+            q, _args(rt.kernel("raster_parallel", "raster_big", opts), d_verts, d_faces, d_P, d_pverts,
                      np.uint32(n_verts), prm, d_keys, d_big, np.uint32(n_big)),
             (n_big, LANES), (1, LANES))
     stats.big_triangles += n_big
@@ -218,7 +219,7 @@ def _draw_parallel(rt, opts, bufs, n_verts, prm, local_size, outs, count, stats)
     else:
         d_outs = [rt.scratch(f"raster.out{i}", o.nbytes) for i, o in enumerate(outs)]
         cl.enqueue_nd_range_kernel(
-            q, _args(rt.kernel("raster", "resolve_maps", opts), d_keys, d_fmat, *d_outs,
+            q, _args(rt.kernel("raster_parallel", "resolve_maps", opts), d_keys, d_fmat, *d_outs,
                      np.uint32(n)), (_round_up(n, 256),), (256,))
         for o, d in zip(outs, d_outs):
             cl.enqueue_copy(q, o, d)

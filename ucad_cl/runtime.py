@@ -29,7 +29,10 @@ import re
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 from importlib import resources
+
+from . import abi
 
 INSTALL_HINT = (
     "Install the portable CPU runtime from PyPI with\n"
@@ -116,21 +119,30 @@ class OpenCLUnavailable(RuntimeError):
 
 
 def kernel_source(name: str) -> str:
-    """Text of ``ucad_cl/kernels/<name>.cl`` with ``#include "common.h"`` inlined."""
+    """Text of ``ucad_cl/kernels/<name>.cl`` with every ``#include "file"`` inlined (recursively,
+    each file once, like ``#pragma once``), so the source string is complete."""
     pkg = resources.files("ucad_cl.kernels")
-    src = (pkg / f"{name}.cl").read_text(encoding="utf-8")
+    seen: set[str] = set()
 
-    def inline(m: re.Match) -> str:
-        return (pkg / m.group(1)).read_text(encoding="utf-8")
+    def expand(fname: str) -> str:
+        seen.add(fname)
+        src = (pkg / fname).read_text(encoding="utf-8")
+        return re.sub(r'^#include\s+"([^"]+)"\s*$',
+                      lambda m: "" if m.group(1) in seen else expand(m.group(1)), src, flags=re.M)
 
-    return re.sub(r'^#include\s+"([^"]+)"\s*$', inline, src, flags=re.M)
+    return expand(f"{name}.cl")
 
 
 @dataclass
 class Runtime:
-    ctx: object
-    queue: object
-    device: object
+    """One OpenCL device in use: its context, in-order queue, device, the programs and kernels
+    built for it and its scratch buffers. Entry points that touch a device take
+    ``runtime: Runtime | None`` (None: ``get_runtime()``). pyopencl types are ``Any`` here so
+    that importing this module does not import pyopencl."""
+
+    ctx: Any                                        # pyopencl.Context
+    queue: Any                                      # pyopencl.CommandQueue
+    device: Any                                     # pyopencl.Device
     info: DeviceInfo | None = None
     why: str = ""                                   # how the device was chosen, one sentence
     compile_seconds: dict = field(default_factory=dict)
@@ -175,7 +187,8 @@ class Runtime:
         self._scratch.clear()
 
     def program(self, name: str, options: tuple[str, ...] = ()):
-        """Built program for ``ucad_cl/kernels/<name>.cl``; cached per process and on disk."""
+        """Built program for ``ucad_cl/kernels/<name>.cl``, with the kernel ABI's constants
+        (``abi.defines()``) and ``options``; cached per process and on disk."""
         import pyopencl as cl
 
         key = (name, tuple(options))
@@ -184,7 +197,7 @@ class Runtime:
             if prg is None:
                 t0 = time.perf_counter()
                 prg = cl.Program(self.ctx, kernel_source(name)).build(
-                    options=["-cl-std=CL1.2", *options])
+                    options=["-cl-std=CL1.2", *abi.defines(), *options])
                 self.compile_seconds[key] = time.perf_counter() - t0
                 self._programs[key] = prg
         return prg
@@ -220,7 +233,7 @@ def _pick_device(spec: str | None):
     # CPUs such as AMD Zen 5 and fails every build with "unknown target CPU 'generic'"; it is
     # then skipped. See README, "OpenCL runtime".)
     ordered = sorted(devices, key=lambda t: device_rank(infos[t[0], t[1]]))
-    errors = []
+    errors: list[str] = []
     for pi, di, p, d in ordered:
         ok, why = _probe(d)
         if ok:
@@ -282,23 +295,40 @@ def _probe(dev) -> tuple[bool, str]:
         return False, (lines[0] if lines else str(exc).splitlines()[0]).strip()
 
 
+def create_runtime(device: str | None = None) -> Runtime:
+    """A new runtime (its own context, queue, program and scratch caches) on ``device`` (a spec,
+    see the module docstring; None: ``UCAD_CL_DEVICE`` or the best device). Pass it explicitly
+    (``runtime=``) to run on a device other than the process default."""
+    import pyopencl as cl
+
+    dev, info, why = _pick_device(device or os.environ.get("UCAD_CL_DEVICE"))
+    ctx = cl.Context([dev])
+    return Runtime(ctx=ctx, queue=cl.CommandQueue(ctx), device=dev, info=info, why=why)
+
+
 def get_runtime(device: str | None = None) -> Runtime:
-    """The process-wide runtime (created on first use). ``device`` only matters the first time."""
+    """The process's default runtime, created on first use (``device`` only matters then); used
+    by every entry point called without ``runtime=``."""
     global _RUNTIME
     with _RUNTIME_LOCK:
         if _RUNTIME is None:
-            import pyopencl as cl
-
-            dev, info, why = _pick_device(device or os.environ.get("UCAD_CL_DEVICE"))
-            ctx = cl.Context([dev])
-            queue = cl.CommandQueue(ctx)
-            _RUNTIME = Runtime(ctx=ctx, queue=queue, device=dev, info=info, why=why)
+            _RUNTIME = create_runtime(device)
         return _RUNTIME
 
 
 def list_devices() -> list[str]:
     """Human-readable list of every OpenCL device: ``"P:D  platform | device | PoCL ..."``."""
     return [f"{i.spec}  {i.summary()}" for i in device_infos()]
+
+
+def usable_device_specs() -> list[str]:
+    """Specs ("P:D") of every device that builds and runs a probe kernel, best first."""
+    import pyopencl as cl
+
+    infos = [i for i in device_infos()
+             if _probe(cl.get_platforms()[int(i.spec.split(":")[0])]
+                       .get_devices()[int(i.spec.split(":")[1])])[0]]
+    return [i.spec for i in sorted(infos, key=device_rank)]
 
 
 def device_infos() -> list[DeviceInfo]:
@@ -316,7 +346,7 @@ def device_infos() -> list[DeviceInfo]:
 def slow_device_warning(info: DeviceInfo | None) -> str | None:
     """The warning to print when ``info`` is a device known to be slow, else None."""
     reason = info.slow_reason() if info is not None else None
-    if reason is None:
+    if info is None or reason is None:
         return None
     return (f"warning: OpenCL device {info.spec} ({info.device}): {reason}; {SLOW_POCL_COST}. "
             f"Fix: {INSTALL_FAST}.")

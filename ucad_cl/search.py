@@ -37,8 +37,9 @@ import threading
 
 import numpy as np
 
+from .abi import DIST_PARAMS, GATHER_PARAMS, K_MAX, MERGE_PARAMS, TOPK_PARAMS
+
 MODES = ("f32", "f16", "pca")
-K_MAX = 64              # KMAX in search.cl
 # Register block (queries x rows) of sq_l2_tile. PoCL, 2 cores, 100 x 72,000 x 512, quietest
 # runs: 4x4 22 ms, 6x4 22, 2x8 22-27, 4x8 35, 8x4 52, 8x2 63. Batches of 1-3 queries use QB = 1
 # (memory-bound: 8 ms vs 15 ms with zero-padded QB = 4).
@@ -51,12 +52,6 @@ DIST_BUDGET = 1 << 26   # floats in one (Q batch x N) distance matrix (256 MiB)
 UPLOAD_ROWS = 8192      # rows per host->device slice and per PCA chunk
 TOPK_ITEMS = 512        # target work-items of topk_rows (query x row chunk)
 
-_DIST_DT = np.dtype([("n_queries", np.int32), ("n_rows", np.int32), ("dim16", np.int32),
-                     ("q_stride", np.int32), ("dist_stride", np.int32)])
-_TOPK_DT = np.dtype([("n_queries", np.int32), ("n_rows", np.int32), ("dist_stride", np.int32),
-                     ("chunk", np.int32), ("n_chunks", np.int32), ("k", np.int32)])
-_MERGE_DT = np.dtype([("n_queries", np.int32), ("n_cand", np.int32), ("k", np.int32)])
-_GATHER_DT = np.dtype([("n_queries", np.int32), ("dim16", np.int32), ("n_cand", np.int32)])
 
 
 def search(queries: np.ndarray, db: np.ndarray, k: int, mode: str = "f32",
@@ -216,7 +211,7 @@ class FeatureIndex:
         mf = cl.mem_flags
         d_q = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=qbuf)
         d_dist = self._scratch("dist", 4 * q_pad * self.rows_pad)
-        prm = np.array([(nq, self.n_rows, self.dim_pad // 16, q_pad, self.rows_pad)], _DIST_DT)
+        prm = np.array([(nq, self.n_rows, self.dim_pad // 16, q_pad, self.rows_pad)], DIST_PARAMS)
         _launch(queue, self._tile_kernel(qb), (q_blocks, self.rows_pad // RB), (lq, 1),
                 prm, d_q, self.d_db, d_dist)
         # Row chunks per query: enough work-items for every core, each chunk at least k rows.
@@ -225,7 +220,7 @@ class FeatureIndex:
         n_chunks = -(-self.n_rows // chunk)
         d_cd = self._scratch("cand_d", 4 * nq * n_chunks * k)
         d_cr = self._scratch("cand_r", 4 * nq * n_chunks * k)
-        prm = np.array([(nq, self.n_rows, self.rows_pad, chunk, n_chunks, k)], _TOPK_DT)
+        prm = np.array([(nq, self.n_rows, self.rows_pad, chunk, n_chunks, k)], TOPK_PARAMS)
         _launch(queue, self._kernels["topk_rows"], (n_chunks, nq), ONE_ITEM, prm, d_dist, d_cd,
                 d_cr)
         return self._merge(d_cd, d_cr, nq, n_chunks * k, k)
@@ -236,7 +231,7 @@ class FeatureIndex:
         queue = self.rt.queue
         d_od = self._scratch("out_d", 4 * nq * k)
         d_or = self._scratch("out_r", 4 * nq * k)
-        prm = np.array([(nq, n_cand, k)], _MERGE_DT)
+        prm = np.array([(nq, n_cand, k)], MERGE_PARAMS)
         _launch(queue, self._kernels["topk_merge"], (nq,), (1,), prm, d_cd, d_cr, d_od, d_or)
         out_d = np.empty((nq, k), np.float32)
         out_r = np.empty((nq, k), np.int32)
@@ -257,7 +252,7 @@ class FeatureIndex:
         d_rows = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
                            hostbuf=np.ascontiguousarray(cand, np.int32))
         d_cd = self._scratch("gather_d", 4 * nq * n_cand)
-        prm = np.array([(nq, self.full_dim_pad // 16, n_cand)], _GATHER_DT)
+        prm = np.array([(nq, self.full_dim_pad // 16, n_cand)], GATHER_PARAMS)
         _launch(queue, self._kernels["sq_l2_gather"], (n_cand, nq), ONE_ITEM, prm, d_q,
                 self.d_full, d_rows, d_cd)
         return self._merge(d_cd, d_rows, nq, n_cand, k)

@@ -31,7 +31,9 @@ from typing import Sequence
 
 import numpy as np
 
+from .abi import SHADE_PARAMS, SRGB_BUCKETS
 from .artifacts import BACKGROUND_TRI, Mesh, ViewSet
+from .runtime import Runtime, get_runtime
 
 DEFAULT_LIGHT = (-0.4, -0.6, -1.0)
 
@@ -40,8 +42,9 @@ def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | N
                 light_dir: Sequence[float] = DEFAULT_LIGHT, ambient: float = 0.3,
                 specular: float = 0.25, shininess: float = 32.0,
                 background: Sequence[int] | np.ndarray = (0, 0, 0),
-                device: bool = True) -> np.ndarray:
-    """(V, H, W, 3) uint8 sRGB images of ``views`` (rendered from ``mesh``)."""
+                device: bool = True, runtime: Runtime | None = None) -> np.ndarray:
+    """(V, H, W, 3) uint8 sRGB images of ``views`` (rendered from ``mesh``), on ``runtime``
+    (default ``get_runtime()``) unless ``device`` is False (NumPy)."""
     V, H, W = views.tri_id.shape
     albedo = _albedo(mesh, colors)
     bg = _background(background, V, H, W)
@@ -59,8 +62,8 @@ def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | N
     fmat = np.asarray(mesh.face_material, np.int64)
     cam = views.cameras
     if device and V * H * W > 0:
-        return _shade_device(views, normals, v0, mesh.face_material, albedo, light, ambient,
-                             specular, shininess, bg)
+        return _shade_device(runtime or get_runtime(), views, normals, v0, mesh.face_material,
+                             albedo, light, ambient, specular, shininess, bg)
     # per pixel (same for every view): unit vector to the camera v = -K^-1 (j+.5, i+.5, 1) / |.|
     # and the Blinn-Phong half vector h = normalize(l + v)
     j, i = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
@@ -87,20 +90,12 @@ def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | N
     return out
 
 
-SHADE_PARAMS = np.dtype([("kinv", np.float32, 9), ("light", np.float32, 3),
-                         ("ambient", np.float32), ("specular", np.float32),
-                         ("shininess", np.float32), ("width", np.int32), ("height", np.int32),
-                         ("n_views", np.int32), ("int_shininess", np.int32),
-                         ("bg", np.uint8, 3), ("pad", np.uint8)])
 
 
-def _shade_device(views, normals, v0, face_material, albedo, light, ambient, specular, shininess,
-                  bg) -> np.ndarray:
+def _shade_device(rt: Runtime, views, normals, v0, face_material, albedo, light, ambient,
+                  specular, shininess, bg) -> np.ndarray:
     import pyopencl as cl
 
-    from .runtime import get_runtime
-
-    rt = get_runtime()
     V, H, W = views.tri_id.shape
     cam = views.cameras
     uniform_bg = bg.shape[0] == 1 and bool(np.all(bg[0] == bg[0, 0, 0]))
@@ -158,7 +153,6 @@ def srgb8_thresholds() -> np.ndarray:
     return out
 
 
-SRGB_BUCKETS = 4096          # ucad_cl/kernels/shade.cl
 
 
 @functools.lru_cache(maxsize=1)

@@ -6,6 +6,8 @@ import sys
 import time
 from pathlib import Path
 
+from .common import format_rows, match_meshes, open_reader
+
 
 def register(sub) -> None:
     p = sub.add_parser("status", help="counts by state and reason, and the last runs' throughput",
@@ -43,23 +45,6 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, type=Path, metavar="FILE",
                    help="e.g. cat.parquet or cat.jsonl (its folder must exist)")
     p.set_defaults(func=run_export)
-
-
-def open_reader(path):
-    """A CatalogReader for ``path``, or None after printing why it cannot be opened."""
-    from ucad_catalog._db import CatalogError
-    from ucad_catalog.reader import CatalogReader
-    try:
-        return CatalogReader(path)
-    except CatalogError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return None
-
-
-def match_meshes(reader, key: str) -> list:
-    """Catalogued meshes that ``key`` names (``CatalogReader.find``: id, id prefix of >= 8 hex
-    digits, path in any spelling, file name)."""
-    return reader.find(key)
 
 
 def run_status(args) -> int:
@@ -116,7 +101,6 @@ def run_show(args) -> int:
             print("  seconds: " + ", ".join(f"{k} {v:.3f}" for k, v in m.timings.items()))
         parts = r.parts(m.sha256)
         if parts:
-            from .parts import format_rows
             print(format_rows(parts, indent="  "))
         for kind in ("views.exr", "parts.png", "features.npy", "edges.npy.gz"):
             try:

@@ -41,7 +41,7 @@ def run(args) -> int:
     from ..build import content_sha256
     from ..glb import donor_materials, write_glb
     from ..ingest import IngestError, load_mesh
-    from .catalog import open_reader
+    from .common import open_reader
 
     if bool(args.ids) == bool(args.all):
         print("error: give mesh IDs or --all (not both)", file=sys.stderr)

@@ -34,7 +34,7 @@ def register(sub) -> None:
 
 
 def run_verify(args) -> int:
-    from .catalog import open_reader
+    from .common import open_reader
 
     r = open_reader(args.catalog)
     if r is None:

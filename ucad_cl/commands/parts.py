@@ -14,6 +14,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from .common import format_rows, match_meshes, open_reader
 from .render import add_camera_args, ring_from_args
 
 COLUMNS = ("material", "name", "part", "score", "iou", "view", "decision", "pixels", "prob",
@@ -71,34 +72,8 @@ def format_table(table) -> str:
     return format_rows(table.rows)
 
 
-def format_rows(rows, indent: str = "") -> str:
-    """Material -> part rows (anything with name, part, score, iou, view, decision, pixels:
-    a fresh ``MaterialPart`` or a catalogue ``PartRow``) as an aligned text table. ``prob`` is
-    the labeller's probability of the part (``-`` without a labeller: the score of self-painted
-    masks is 1.00 by construction and says nothing); ``split`` lists a shared material's parts
-    per component group with their area shares."""
-    lines = [f"{indent}{'material':32s} {'part':9s} {'prob':>5s} {'score':>5s} {'iou':>5s} "
-             f"{'view':>4s} {'decision':15s} {'pixels':>8s}  split"]
-    for r in rows:
-        prob, split = _prob_split(r)
-        p = f"{prob:5.2f}" if prob is not None else f"{'-':>5s}"
-        sp = " ".join(f"{g['part']}:{g['area_share']:.2f}" for g in split or [])
-        lines.append(f"{indent}{r.name[:32]:32s} {r.part:9s} {p} {r.score:5.2f} {r.iou:5.2f} "
-                     f"{r.view:4d} {r.decision:15s} {r.pixels:8d}  {sp}".rstrip())
-    return "\n".join(lines)
-
-
-def _prob_split(r):
-    """(prob, split) of a ``MaterialPart`` (fields) or a catalogue row (its ``props``)."""
-    if hasattr(r, "prob"):
-        return r.prob, r.split
-    props = getattr(r, "props", None) or {}
-    return props.get("prob"), props.get("split")
-
-
 def run_catalog(args) -> int:
     """Stored tables: one block per mesh, same columns as a fresh run."""
-    from .catalog import match_meshes, open_reader
 
     reader = open_reader(args.catalog)
     if reader is None:

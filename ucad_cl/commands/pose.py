@@ -98,7 +98,7 @@ def run_catalog(args, image, mask) -> int:
     from ..ingest import IngestError, load_mesh
     from ..pose import PoseCandidate, _box_side, reference_mask, search_catalog
 
-    from .catalog import open_reader
+    from .common import open_reader
 
     reader = open_reader(args.catalog)
     if reader is None:

@@ -2,7 +2,7 @@
  *
  * Numerics are explicit: no floating-point contraction (a*b+c is never fused behind our back),
  * so the same source gives the same bits on every conforming device. Where exactness matters we
- * use fixed point (see raster.cl: 8 sub-pixel bits, 64-bit edge functions).
+ * use fixed point (see raster_common.h: 8 sub-pixel bits, 64-bit edge functions).
  */
 #ifndef UCAD_COMMON_H
 #define UCAD_COMMON_H
@@ -10,7 +10,11 @@
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #pragma OPENCL EXTENSION cl_khr_int64_extended_atomics : enable
 
-#define UCAD_BG_TRI 0xFFFFFFFFu
-#define UCAD_BG_MAT 0u
+/* Constants shared with the host come from ucad_cl/abi.py as -D options (Runtime.program adds
+ * them to every build); a build without them stops here rather than use a stale copy. */
+#if !defined(UCAD_BG_TRI) || !defined(UCAD_BG_MAT) || !defined(BIG_PIXELS) || !defined(MAX_BINS) \
+    || !defined(KMAX) || !defined(SRGB_BUCKETS) || !defined(MAX_PARTS)
+#error "built without the ABI defines of ucad_cl/abi.py (build through ucad_cl.runtime.Runtime)"
+#endif
 
 #endif

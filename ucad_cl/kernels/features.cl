@@ -25,7 +25,7 @@
  */
 #include "common.h"
 
-#define MAX_BINS 36
+/* MAX_BINS: from ucad_cl/abi.py (-D) */
 
 typedef struct {
     int size;           /* S, crop side in pixels */

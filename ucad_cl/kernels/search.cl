@@ -42,7 +42,7 @@
 #ifndef RB
 #define RB 4
 #endif
-#define KMAX 64
+/* KMAX: from ucad_cl/abi.py (-D) */
 
 typedef struct {
     int n_queries;      /* Q (real, unpadded) */

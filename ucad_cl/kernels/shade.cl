@@ -13,7 +13,7 @@ typedef struct {
     float ambient, specular, shininess;
     int width, height, n_views;
     int int_shininess;      /* shininess when it is an integer in [1, 1024], else 0 */
-    uchar bg_r, bg_g, bg_b, pad;
+    uchar bg[3], pad;       /* background colour (sRGB 8-bit) */
 } shade_params;
 
 /* Linear value -> sRGB 8-bit level, exactly: the number of the 255 level thresholds (computed in
@@ -21,7 +21,7 @@ typedef struct {
  * A 4096-entry table gives a level that is never above the answer for the bucket of x (the
  * host builds it one bucket low, so float rounding of the bucket index cannot overshoot), then at
  * most a few comparisons step up to it: cheaper on PoCL than a binary search or pow(). */
-#define SRGB_BUCKETS 4096
+/* SRGB_BUCKETS: from ucad_cl/abi.py (-D) */
 static inline uchar srgb8(global const float *thr, global const uchar *start, float x) {
     float c = fmin(fmax(x, 0.0f), 1.0f);                   /* NaN -> 0 (fmax returns 0) */
     int lvl = start[(int)(c * (float)(SRGB_BUCKETS - 1))];
@@ -41,7 +41,7 @@ kernel void shade_pixels(global const uint *tri_id, global const float *w2c /* V
     uint view = g / npix, p = g - view * npix;
     uint t = tri_id[g];
     global uchar *o = rgb + 3 * (size_t)g;
-    if (t == UCAD_BG_TRI) { o[0] = prm.bg_r; o[1] = prm.bg_g; o[2] = prm.bg_b; return; }
+    if (t == UCAD_BG_TRI) { o[0] = prm.bg[0]; o[1] = prm.bg[1]; o[2] = prm.bg[2]; return; }
     global const float *M = w2c + 12 * view;
     float3 n = (float3)(normals[3 * t], normals[3 * t + 1], normals[3 * t + 2]);
     float3 a = (float3)(v0[3 * t], v0[3 * t + 1], v0[3 * t + 2]);

@@ -1,5 +1,7 @@
-/* raster.cl: exact, deterministic rasterization of triangle-id / material-id / depth maps for
- * many views of one mesh in one launch.
+/* raster_common.h: what both raster paths share (raster_parallel.cl, raster_serial.cl): vertex
+ * projection and clipping, fixed-point snapping, the exact triangle rasterizer, one face's
+ * clip-and-draw (raster_face) and key resolution. Each path's .cl file includes it and is built
+ * as its own program.
  *
  * Coordinates. Vertices are in the canonical frame (float32). Each view v has a 3x4 matrix
  * P_v = K [R|t] (float32, computed in float64 on the host), giving homogeneous image coordinates
@@ -26,15 +28,16 @@
  * vertices in a canonical rotation (first the vertex with the smallest (y, x)) so that duplicate
  * faces listed in another vertex order get identical depths.
  *
- * Work split. project_vertices: clip code and snapped position (and, for the serial path, depth)
- * of every (vertex, view), once. Then one of two paths, which give identical bytes (the same
- * keys, computed by the same expressions; tests/test_render.py checks it):
- *  - parallel (GPUs): raster_small, one work-item per (face, view). A triangle whose clipped
- *    bounding box exceeds BIG_PIXELS pixels is appended to a list instead, and raster_big spreads
- *    each listed triangle over LANES work-items (rows interleaved). If the list overflows, the host
- *    enlarges it and reruns raster_small: atomic_min is idempotent, so a rerun only repeats work.
- *  - serial (CPUs): raster_views_serial, one work-item per view; see its comment.
+ * Work split. project_vertices (here): clip code and snapped position (and, for the serial path,
+ * depth) of every (vertex, view), once. Then one of two paths, which give identical bytes (the
+ * same keys, computed by the same expressions; tests/test_render.py checks it): parallel (GPUs,
+ * raster_parallel.cl) and serial (CPUs, raster_serial.cl); see each file's header.
+ *
+ * BIG_PIXELS (from ucad_cl/abi.py, like every constant host and kernels share) bounds the boxes
+ * the 32-bit rasterizer takes; UCAD_COUNT_COVERAGE (test builds) counts coverage instead.
  */
+#ifndef UCAD_RASTER_COMMON_H
+#define UCAD_RASTER_COMMON_H
 #include "common.h"
 
 #define SUB_BITS 8
@@ -42,10 +45,6 @@
 #define SUB_HALF 128L
 #define GUARD 8192.0f
 #define MAX_POLY 9
-
-#ifndef BIG_PIXELS
-#define BIG_PIXELS 1024
-#endif
 
 typedef struct { float u, v, w; } hvert;
 
@@ -331,100 +330,8 @@ static void raster_face(global const float *verts, global const uint *faces,
                           face, prm.width, prm.height, row0, row_step, exclusive, kv);
 }
 
-/* One work-item per (face = global id 0, view = global id 1). */
-kernel void raster_small(global const float *verts, global const uint *faces, global const float *P,
-                         global const int2 *pverts, uint n_verts, raster_params prm,
-                         global ulong *keys, global uint *big_list, volatile global uint *big_count) {
-    uint face = get_global_id(0), view = get_global_id(1);
-    if (face >= (uint)prm.n_faces || view >= (uint)prm.n_views) return;
-    raster_face(verts, faces, P, pverts, n_verts, prm, face, view, 0, 1, MODE_SMALL, keys, big_list,
-                big_count);
-}
-
-/* One work-item per (listed triangle = global id 0, lane = global id 1 in [0, LANES)). */
-kernel void raster_big(global const float *verts, global const uint *faces, global const float *P,
-                       global const int2 *pverts, uint n_verts, raster_params prm,
-                       global ulong *keys, global const uint *big_list, uint n_big) {
-    uint entry = get_global_id(0), lane = get_global_id(1), lanes = get_global_size(1);
-    if (entry >= n_big) return;
-    raster_face(verts, faces, P, pverts, n_verts, prm, big_list[2 * entry], big_list[2 * entry + 1],
-                (int)lane, (int)lanes, MODE_LANES, keys, 0, 0);
-}
-
-/* ---- Serial path (CPU devices): one work-item per view -------------------------------------
- * On a CPU the parallel path pays for atomics and, above all, for branches that mispredict: at
- * 100k triangles and 256 px, 44 % of (face, view) pairs cover no pixel centre, 48 % have a box of
- * at most 2 x 2 pixel centres, and which is which is data-dependent. Here one work-item owns one
- * view: it clears that view's key map, draws every face into it with plain loads and stores, and
- * resolves it, while the map (0.5 MB at 256 px) is still in its core's cache. Faces go 16 at a
- * time through explicit 16-lane vectors (PoCL maps them to AVX-512; the gathers index with signed
- * 32-bit offsets, which let LLVM use 16-wide dword gathers). A "tiny" face (not clipped, and its
- * pixel-centre box empty, or at most 4 centres in one row or one column, or 2 x 2: 96 % of the
- * pairs above) has its at most 4 candidate centres tested without branches, exactly as
- * raster_triangle32 would (same origin, canonical rotation, winding, biases and depth
- * expression); only covered candidates are then merged, lane by lane, by a plain min. Any other
- * face goes through raster_face (MODE_OWNER). Output is the parallel path's, bit for bit, and
- * depends on no thread count: each view is one work-item's sequential loop, and the min of keys
- * does not depend on the order faces are drawn in. (On a GPU, one work-item per view would leave
- * the device nearly idle; the parallel path is the one for it.)
- */
-#define LANES16 16
-/* The 16 values p[ix.s0] .. p[ix.sf] as a T vector (int offsets: see above). */
-#define GATHER16(T, p, ix) (T)(                                                                 \
-    (p)[(int)(ix).s0], (p)[(int)(ix).s1], (p)[(int)(ix).s2], (p)[(int)(ix).s3],                 \
-    (p)[(int)(ix).s4], (p)[(int)(ix).s5], (p)[(int)(ix).s6], (p)[(int)(ix).s7],                 \
-    (p)[(int)(ix).s8], (p)[(int)(ix).s9], (p)[(int)(ix).sa], (p)[(int)(ix).sb],                 \
-    (p)[(int)(ix).sc], (p)[(int)(ix).sd], (p)[(int)(ix).se], (p)[(int)(ix).sf])
-
-/* Pixel-centre span [lo, hi] of a fixed-point interval [a, b] (pixel_span32, 16 lanes). */
-static inline void span16(int16 a, int16 b, int n, int16 *lo, int16 *hi) {
-    int16 l = a - (int)SUB_HALF, h = b - (int)SUB_HALF;
-    *lo = l <= 0 ? (int16)0 : (l + (int)SUB_ONE - 1) >> SUB_BITS;
-    *hi = h < 0 ? (int16)(-1) : min(h >> SUB_BITS, (int16)(n - 1));
-}
-
-/* Edge bias of raster_triangle32 for edge a -> b: 0 when owned (top-left rule), else -1. */
-static inline int16 bias16(int16 ax, int16 ay, int16 bx, int16 by) {
-    int16 dx = bx - ax, dy = by - ay;
-    return ~((dy < 0) | ((dy == 0) & (dx > 0)));
-}
-
-/* Bit l set where lane l of a (-1 / 0) mask is set. */
-static inline uint lane_mask(int16 m) {
-    uint16 b = as_uint16(m) & (uint16)(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096,
-                                       8192, 16384, 32768);
-    uint8 b8 = b.lo | b.hi;
-    uint4 b4 = b8.lo | b8.hi;
-    uint2 b2 = b4.lo | b4.hi;
-    return b2.x | b2.y;
-}
-
-/* Candidate c (0..3) of 16 tiny triangles: the c-th pixel centre of a row (row lanes), of a
- * column (col lanes) or of the 2 x 2 box (other lanes), from the box's first centre (xs0, ys0).
- * Stores its depth bits and its pixel index in the view, and returns the mask of the lanes that
- * cover it (ok set, centre inside the box and inside the triangle); other lanes' values are
- * meaningless. */
-static inline uint tiny_candidate(int c, int16 row, int16 col, int16 xs0, int16 xs1, int16 ys0,
-                                  int16 ys1, int W,
-                                  int16 ax, int16 ay, int16 bx, int16 by, int16 cx, int16 cy,
-                                  int16 bab, int16 bbc, int16 bca, float16 wa, float16 wb,
-                                  float16 wc, float16 num, int16 ok, uint *zbits, uint *at) {
-    int16 dx = row ? (int16)c : col ? (int16)0 : (int16)(c & 1);
-    int16 dy = row ? (int16)0 : col ? (int16)c : (int16)(c >> 1);
-    int16 px = dx * (int)SUB_ONE, py = dy * (int)SUB_ONE;
-    int16 e_ab = (bx - ax) * (py - ay) - (by - ay) * (px - ax);
-    int16 e_bc = (cx - bx) * (py - by) - (cy - by) * (px - bx);
-    int16 e_ca = (ax - cx) * (py - cy) - (ay - cy) * (px - cx);
-    int16 in = ok & (xs0 + dx <= xs1) & (ys0 + dy <= ys1) &
-               (e_ab + bab >= 0) & (e_bc + bbc >= 0) & (e_ca + bca >= 0);
-    float16 den = convert_float16(e_bc) * wa + convert_float16(e_ca) * wb +
-                  convert_float16(e_ab) * wc;
-    float16 z = num / den;   /* as raster_triangle32 */
-    vstore16(as_uint16(z), 0, zbits);
-    vstore16(as_uint16((ys0 + dy) * W + xs0 + dx), 0, at);
-    return lane_mask(in);
-}
-
+/* Key -> triangle id, material id (= face material + 1, UCAD_BG_MAT background), depth (+inf
+ * background), at pixel g. */
 static inline void resolve_key(ulong k, global const ushort *face_material, uint g,
                                global uint *tri_id, global ushort *mat_id, global float *depth) {
     int bg = k == 0xFFFFFFFFFFFFFFFFUL;
@@ -434,117 +341,4 @@ static inline void resolve_key(ulong k, global const ushort *face_material, uint
     depth[g] = bg ? INFINITY : as_float((uint)(k >> 32));
 }
 
-/* One work-item per view (global id 0). face_a/b/c: the faces' vertex indices, one array per
- * corner (the same as faces, which raster_face reads); pdepth: project_vertices' depths. */
-kernel void raster_views_serial(global const float *verts, global const uint *faces,
-                                global const uint *face_a, global const uint *face_b,
-                                global const uint *face_c, global const float *P,
-                                global const int2 *pverts, global const float *pdepth,
-                                uint n_verts, raster_params prm, global ulong *keys,
-                                global const ushort *face_material, global uint *tri_id,
-                                global ushort *mat_id, global float *depth) {
-    uint view = get_global_id(0);
-    if (view >= (uint)prm.n_views) return;
-    int W = prm.width, H = prm.height;
-    uint F = (uint)prm.n_faces, npix = (uint)(W * H);
-    global const int *pv = (global const int *)(pverts + (long)view * n_verts);
-    global const float *zv = pdepth + (long)view * n_verts;
-    global ulong *kv = keys + (long)view * npix;
-#ifdef UCAD_COUNT_COVERAGE
-    for (uint g = 0; g < npix; ++g) kv[g] = 0;
-#else
-    for (uint g = 0; g < npix; ++g) kv[g] = 0xFFFFFFFFFFFFFFFFUL;
 #endif
-
-    const uint16 lane = (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
-    for (uint f0 = 0; f0 < F; f0 += LANES16) {
-        uint16 face = (uint16)f0 + lane;
-        int16 live = face < (uint16)F;
-        uint16 fl = min(face, (uint16)(F - 1));
-        uint16 i0, i1, i2;
-        if (f0 + LANES16 <= F) {
-            i0 = vload16(0, face_a + f0); i1 = vload16(0, face_b + f0);
-            i2 = vload16(0, face_c + f0);
-        } else {
-            i0 = GATHER16(uint16, face_a, fl); i1 = GATHER16(uint16, face_b, fl);
-            i2 = GATHER16(uint16, face_c, fl);
-        }
-        uint16 x0i = 2 * i0, x1i = 2 * i1, x2i = 2 * i2;
-        uint16 y0i = x0i + 1, y1i = x1i + 1, y2i = x2i + 1;
-        int16 q0x = GATHER16(int16, pv, x0i), q1x = GATHER16(int16, pv, x1i);
-        int16 q2x = GATHER16(int16, pv, x2i), q0y = GATHER16(int16, pv, y0i);
-        int16 q1y = GATHER16(int16, pv, y1i), q2y = GATHER16(int16, pv, y2i);
-        int16 clipped = (q0x == CLIPPED) | (q1x == CLIPPED) | (q2x == CLIPPED);
-        /* clipped lanes are raster_face's; zero them so no lane's arithmetic can overflow */
-        q0x = clipped ? 0 : q0x; q1x = clipped ? 0 : q1x; q2x = clipped ? 0 : q2x;
-        q0y = clipped ? 0 : q0y; q1y = clipped ? 0 : q1y; q2y = clipped ? 0 : q2y;
-        int16 xs0, xs1, ys0, ys1;
-        span16(min(q0x, min(q1x, q2x)), max(q0x, max(q1x, q2x)), W, &xs0, &xs1);
-        span16(min(q0y, min(q1y, q2y)), max(q0y, max(q1y, q2y)), H, &ys0, &ys1);
-        /* tiny: no pixel centre, or at most 4 in a row, 4 in a column, or a 2 x 2 box */
-        int16 nx = xs1 - xs0, ny = ys1 - ys0;   /* centres per axis, minus 1 */
-        int16 work = live & ~clipped & (nx >= 0) & (ny >= 0);
-        int16 row = (ny == 0) & (nx <= 3), col = ~row & (nx == 0) & (ny <= 3);
-        int16 tiny = (live & ~clipped & ~work) | (work & (row | col | ((nx <= 1) & (ny <= 1))));
-        work &= tiny;
-        uint others = lane_mask(live & ~tiny);
-        if (!others && !lane_mask(work)) continue;   /* no lane covers a pixel centre */
-        float16 z0 = GATHER16(float16, zv, i0), z1 = GATHER16(float16, zv, i1);
-        float16 z2 = GATHER16(float16, zv, i2);
-        /* canonical rotation: first the vertex with the smallest (y, x); keeps the winding */
-        int16 r1 = (q1y < q0y) | ((q1y == q0y) & (q1x < q0x));
-        int16 rx = r1 ? q1x : q0x, ry = r1 ? q1y : q0y;
-        int16 r2 = (q2y < ry) | ((q2y == ry) & (q2x < rx));
-        int16 ax = r2 ? q2x : (r1 ? q1x : q0x), ay = r2 ? q2y : (r1 ? q1y : q0y);
-        int16 bx = r2 ? q0x : (r1 ? q2x : q1x), by = r2 ? q0y : (r1 ? q2y : q1y);
-        int16 cx = r2 ? q1x : (r1 ? q0x : q2x), cy = r2 ? q1y : (r1 ? q0y : q2y);
-        float16 za = r2 ? z2 : (r1 ? z1 : z0), zb = r2 ? z0 : (r1 ? z2 : z1);
-        float16 zc = r2 ? z1 : (r1 ? z0 : z2);
-        /* relative to the box's first pixel centre, as raster_triangle32 */
-        int16 ox = xs0 * (int)SUB_ONE + (int)SUB_HALF, oy = ys0 * (int)SUB_ONE + (int)SUB_HALF;
-        ax = work ? ax - ox : 0; ay = work ? ay - oy : 0;
-        bx = work ? bx - ox : 0; by = work ? by - oy : 0;
-        cx = work ? cx - ox : 0; cy = work ? cy - oy : 0;
-        int16 area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax);
-        int16 neg = area < 0;   /* make the winding positive: swap b and c */
-        int16 tx = bx, ty = by;
-        float16 tz = zb;
-        bx = neg ? cx : bx; by = neg ? cy : by; zb = neg ? zc : zb;
-        cx = neg ? tx : cx; cy = neg ? ty : cy; zc = neg ? tz : zc;
-        area = neg ? -area : area;
-        int16 bab = bias16(ax, ay, bx, by), bbc = bias16(bx, by, cx, cy);
-        int16 bca = bias16(cx, cy, ax, ay);
-        float16 wa = zb * zc, wb = za * zc, wc = za * zb, num = convert_float16(area) * za * wa;
-        int16 ok = work & (area != 0);
-        uint zbits[4][LANES16], at[4][LANES16], covered[4];
-        for (int c = 0; c < 4; ++c)
-            covered[c] = tiny_candidate(c, row, col, xs0, xs1, ys0, ys1, W, ax, ay, bx, by, cx, cy,
-                                        bab, bbc, bca, wa, wb, wc, num, ok, zbits[c], at[c]);
-        /* merge the covered candidates (lanes of each bit mask, lowest first) */
-        for (int c = 0; c < 4; ++c)
-            for (uint m = covered[c]; m; m &= m - 1) {
-                int l = 31 - clz(m & (0u - m));
-                global ulong *p = kv + at[c][l];
-#ifdef UCAD_COUNT_COVERAGE
-                *p += 1;
-#else
-                *p = min(*p, upsample(zbits[c][l], f0 + l));
-#endif
-            }
-        for (uint m = others; m; m &= m - 1)
-            raster_face(verts, faces, P, pverts, n_verts, prm, f0 + 31 - clz(m & (0u - m)), view,
-                        0, 1, MODE_OWNER, keys, 0, 0);
-    }
-#ifndef UCAD_COUNT_COVERAGE
-    for (uint g = 0; g < npix; ++g)
-        resolve_key(kv[g], face_material, view * npix + g, tri_id, mat_id, depth);
-#endif
-}
-
-/* Keys -> triangle id, material id (= face material + 1, 0 background), depth (+inf background). */
-kernel void resolve_maps(global const ulong *keys, global const ushort *face_material,
-                         global uint *tri_id, global ushort *mat_id, global float *depth, uint n) {
-    uint g = get_global_id(0);
-    if (g >= n) return;
-    resolve_key(keys[g], face_material, g, tri_id, mat_id, depth);
-}

@@ -1,0 +1,47 @@
+"""Helpers the catalogue commands share (``status``/``show``/``export`` and ``parts --catalog``);
+not a sub-command itself (no ``register``)."""
+from __future__ import annotations
+
+import sys
+
+
+def open_reader(path):
+    """A CatalogReader for ``path``, or None after printing why it cannot be opened."""
+    from ucad_catalog._db import CatalogError
+    from ucad_catalog.reader import CatalogReader
+    try:
+        return CatalogReader(path)
+    except CatalogError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return None
+
+
+def match_meshes(reader, key: str) -> list:
+    """Catalogued meshes that ``key`` names (``CatalogReader.find``: id, id prefix of >= 8 hex
+    digits, path in any spelling, file name)."""
+    return reader.find(key)
+
+
+def format_rows(rows, indent: str = "") -> str:
+    """Material -> part rows (anything with name, part, score, iou, view, decision, pixels:
+    a fresh ``MaterialPart`` or a catalogue ``PartRow``) as an aligned text table. ``prob`` is
+    the labeller's probability of the part (``-`` without a labeller: the score of self-painted
+    masks is 1.00 by construction and says nothing); ``split`` lists a shared material's parts
+    per component group with their area shares."""
+    lines = [f"{indent}{'material':32s} {'part':9s} {'prob':>5s} {'score':>5s} {'iou':>5s} "
+             f"{'view':>4s} {'decision':15s} {'pixels':>8s}  split"]
+    for r in rows:
+        prob, split = _prob_split(r)
+        p = f"{prob:5.2f}" if prob is not None else f"{'-':>5s}"
+        sp = " ".join(f"{g['part']}:{g['area_share']:.2f}" for g in split or [])
+        lines.append(f"{indent}{r.name[:32]:32s} {r.part:9s} {p} {r.score:5.2f} {r.iou:5.2f} "
+                     f"{r.view:4d} {r.decision:15s} {r.pixels:8d}  {sp}".rstrip())
+    return "\n".join(lines)
+
+
+def _prob_split(r):
+    """(prob, split) of a ``MaterialPart`` (fields) or a catalogue row (its ``props``)."""
+    if hasattr(r, "prob"):
+        return r.prob, r.split
+    props = getattr(r, "props", None) or {}
+    return props.get("prob"), props.get("split")
