@@ -101,7 +101,7 @@ def main():
           f"{'+RSS MB':>8} {'render s':>8} {'mat dis %':>9} {'sil dis %':>9}")
     for size in args.sizes:
         mesh = make_vehicle(args.seed, target_triangles=size).mesh()
-        full, t_full = timed(lambda: render_views(mesh, ring), args.runs)
+        full, t_full = timed(lambda m=mesh: render_views(m, ring), args.runs)
         fg = full.mat_id > 0
         print(f"{mesh.n_faces:>9} {'full':>7} {'-':>7} {mesh.n_faces:>8} {0.0:>8.2f} "
               f"{0.0:>8.0f} {t_full:>8.2f} {0.0:>9.3f} {0.0:>9.3f}")
@@ -109,9 +109,9 @@ def main():
             if budget <= 0 or budget >= mesh.n_faces:
                 continue
             for name, kw in VARIANTS.items():
-                out, t_dec = timed(lambda: decimate(mesh, budget, **kw), args.runs)
+                out, t_dec = timed(lambda m=mesh, b=budget, k=kw: decimate(m, b, **k), args.runs)
                 peak = peak_extra_mb(mesh, budget, kw)
-                views, t_render = timed(lambda: render_views(out, ring), args.runs)
+                views, t_render = timed(lambda o=out: render_views(o, ring), args.runs)
                 union = fg | (views.mat_id > 0)
                 mat_dis = 100.0 * np.mean(views.mat_id[union] != full.mat_id[union])
                 sil_dis = 100.0 * np.mean((views.mat_id > 0)[union] != fg[union])

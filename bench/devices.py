@@ -78,7 +78,7 @@ def side_by_side(runs: list[tuple[object, dict]], unit: str) -> None:
           f"median of its runs; load average now {os.getloadavg()[0]:.1f}):")
     print(f"{'case':40s} " + " ".join(f"{n:>12s}" for n in names)
           + " " + " ".join(f"{names[0] + '/' + n:>12s}" for n in names[1:]))
-    for case, values in runs[0][1].items():
+    for case in runs[0][1]:
         row = [float(np.median(r[case])) if r.get(case) else None for _, r in runs]
         first = row[0]
         cells = " ".join(f"{v:12.0f}" if v else f"{'-':>12s}" for v in row)

@@ -101,11 +101,11 @@ def main() -> None:
             ours = canny(imgs, LOW, HIGH)
             first = time.perf_counter() - t
             diff = int(np.count_nonzero(ours != ref))
-            t_ours = median_time(lambda: canny(imgs, LOW, HIGH), args.runs)
-            t_cpu = median_time(lambda: [cv2.Canny(im, LOW, HIGH) for im in imgs], args.runs)
+            t_ours = median_time(lambda x=imgs: canny(x, LOW, HIGH), args.runs)
+            t_cpu = median_time(lambda x=imgs: [cv2.Canny(im, LOW, HIGH) for im in x], args.runs)
 
-            def ocl():
-                return [cv2.Canny(cv2.UMat(im), LOW, HIGH).get() for im in imgs]
+            def ocl(x=imgs):
+                return [cv2.Canny(cv2.UMat(im), LOW, HIGH).get() for im in x]
             t = time.perf_counter()
             out_ocl = np.stack(ocl())
             first_ocl = time.perf_counter() - t

@@ -197,7 +197,7 @@ def main() -> None:
     exact = results.get("ucad f32")
     print(f"\n{'method':34s} {'build s':>8s} {'first s':>8s} {'median ms':>10s} {'q/s':>8s} "
           f"{'peak MiB':>9s} {'top1=f32':>9s} {'R@1':>6s} {'R@10':>6s}")
-    for name, (_, build, first, times, peak, idx, dist) in results.items():
+    for name, (_, build, first, times, peak, idx, _dist) in results.items():
         med = float(np.median(times))
         row = (f"{name:34s} {build:8.2f} {first:8.3f} {med * 1e3:10.1f} {len(q) / med:8.0f} "
                f"{peak / 2**20:9.0f}")

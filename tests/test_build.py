@@ -61,7 +61,7 @@ def test_build_labels_rejections_and_skip(library, tmp_path, runtime):
     assert s.reasons == {"too_few_materials": 1, "unreadable": 1}
     content = catalogue_content(cat)
     ok = total = 0
-    for sha, rec in content.items():
+    for rec in content.values():
         if rec["state"] != "accepted":
             continue
         truth = json.loads((library / rec["path"]).with_suffix(".json").read_text())["materials"]
@@ -108,7 +108,7 @@ def test_sigkill_resume_equals_uninterrupted_build(library, tmp_path, runtime):
     cat = tmp_path / "killed"
     rng = random.Random(5)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    for attempt in range(5):
+    for _attempt in range(5):
         proc = subprocess.Popen(_build_cmd(library, cat), env=env, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL, start_new_session=True)
         time.sleep(rng.uniform(0.5, 4.0))
@@ -240,6 +240,14 @@ def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
     best = lines[1].split()
     assert best[-2] == str(target) and float(best[1]) in (90.0, 120.0), lines
     assert (tmp_path / "ref_pose.png").exists()
+    assert main(["pose", str(ref), "--box", *box, "--catalog", str(cat), "--top", "3",
+                 "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [c["rank"] for c in doc["candidates"]] == [1, 2, 3]
+    c0 = doc["candidates"][0]
+    assert c0["mesh"] == str(target) and c0["azimuth"] == float(best[1])
+    assert np.asarray(c0["K"]).shape == (3, 3) and np.asarray(c0["w2c"]).shape == (4, 4)
+    assert c0["distance"] > 0 and c0["score"] >= 0
     assert main(["pose", str(ref), "--box", *box]) == 2           # neither MESH nor --catalog
 
 

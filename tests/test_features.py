@@ -6,6 +6,8 @@ import pytest
 
 from ucad_cl.features import HogExtractor, OnnxExtractor, box_mask, crop_square, l2_rows
 
+pytestmark = pytest.mark.every_device      # tests/conftest.py: UCAD_TEST_DEVICES
+
 
 # ----------------------------------------------------------------------------- NumPy reference
 
@@ -77,7 +79,7 @@ def _random_crops(rng, B, S):
 ])
 def test_hog_kernel_matches_numpy_reference(runtime, cfg):
     rng = np.random.default_rng(1)
-    ex = HogExtractor(**cfg)
+    ex = HogExtractor(**cfg, runtime=runtime)
     crops = _random_crops(rng, 5, ex.size)
     masks = (rng.random((5, ex.size, ex.size)) > 0.5).astype(np.float32)
     got = ex.describe(crops, masks)
@@ -95,24 +97,24 @@ def test_hog_kernel_matches_numpy_reference(runtime, cfg):
 
 def test_hog_is_deterministic_and_independent_of_work_group_size(runtime):
     crops = _random_crops(np.random.default_rng(2), 7, 64)
-    a = HogExtractor().describe(crops)
+    a = HogExtractor(runtime=runtime).describe(crops)
     for lp, lc in ((64, None), (16, 16), (256, 64)):
-        b = HogExtractor(local_pixels=lp, local_cells=lc).describe(crops)
+        b = HogExtractor(local_pixels=lp, local_cells=lc, runtime=runtime).describe(crops)
         assert np.array_equal(a, b)
 
 
 def test_hog_ignores_colour_inversion(runtime):
     """Unsigned orientations: a negative image has the same descriptor (paint colour robustness)."""
     crops = _random_crops(np.random.default_rng(3), 3, 64)
-    a = HogExtractor().describe(crops)
-    b = HogExtractor().describe(255 - crops)
+    a = HogExtractor(runtime=runtime).describe(crops)
+    b = HogExtractor(runtime=runtime).describe(255 - crops)
     np.testing.assert_allclose(a, b, atol=1e-5)
 
 
 def test_flat_image_gives_all_zero_row(runtime):
     crops = np.full((2, 64, 64, 3), 90, np.uint8)
     crops[1, 20:40, 10:50] = 200
-    f = HogExtractor().describe(crops)
+    f = HogExtractor(runtime=runtime).describe(crops)
     assert np.all(f[0] == 0.0)
     assert abs(np.linalg.norm(f[1]) - 1.0) < 1e-5
 
@@ -163,7 +165,7 @@ def test_crop_square_equals_index_gather_reference_at_every_border():
     assert no_masks[1] is None and np.array_equal(no_masks[0], crop_square(images, masks, 16)[0])
 
 
-def test_crop_errors_name_the_problem():
+def test_crop_errors_name_the_problem(runtime):
     img = np.zeros((2, 8, 8, 3), np.uint8)
     mask = np.zeros((2, 8, 8), bool)
     mask[0, 2:4, 2:4] = True
@@ -176,7 +178,7 @@ def test_crop_errors_name_the_problem():
     with pytest.raises(ValueError, match="box .* is empty"):
         box_mask((8, 8), (5, 5, 5, 7))
     with pytest.raises(ValueError, match="multiple of cell"):
-        HogExtractor(size=60, cell=8)
+        HogExtractor(size=60, cell=8, runtime=runtime)
 
 
 def test_l2_rows_huge_and_zero():

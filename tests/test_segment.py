@@ -49,7 +49,7 @@ def test_part_masks_bits_and_masks_round_trip():
     none = PartMasks.from_bits(parts, np.zeros((0, H, W), np.uint16), np.zeros((0, P)))
     assert none.nonempty().shape == (0, P) and none.masks.shape == (0, P, H, W)
     with pytest.raises(ValueError, match="P <= 16"):
-        PartMasks(parts + ["x"], np.zeros((1, 17, 2, 2), bool), np.zeros((1, 17))).bits
+        _ = PartMasks(parts + ["x"], np.zeros((1, 17, 2, 2), bool), np.zeros((1, 17))).bits
 
 
 def test_masks_from_labels_paints_each_material_with_its_part():

@@ -18,23 +18,27 @@ Extractors:
   colour-channel gradient, linear orientation voting, 2x2-cell L2-Hys blocks, global L2), with an
   optional coarse silhouette channel (mask resized to ``silhouette x silhouette``). Defaults (64 px
   crop, 8 px cells, 9 unsigned bins, eps 1, no silhouette) were chosen by the azimuth error
-  measured with ``bench/pose.py`` (table in its docstring): signed bins lose badly because a
-  repainted car flips the gradient sign; more bins, a gradient threshold or a larger eps did not
-  help; the silhouette needs a true reference mask and did not change the refined result.
+  measured with the pose benchmark before issue 12 (10 generated vehicles x 8 box references,
+  median error / share within 15 deg, coarse 10 deg ring and with refinement): 9 unsigned bins
+  3.07 / 95.0 % and 1.56 / 95.0 %; 12 signed 6.18 / 67.5 % and 4.92 / 66.2 % (a repainted car
+  flips the gradient sign); 18 unsigned 3.26 / 95.0 % and 1.45 / 95.0 % (2x longer, no gain);
+  min_grad 0.03-0.1 and eps 4 no better; the silhouette channel 1.61 / 95.0 % refined with true
+  masks (pose search now compares silhouettes as its own cue, ``ucad_cl.cues``).
 * ``OnnxExtractor``: any image encoder exported to ONNX (e.g. DINOv2), run with onnxruntime; its
   patch-feature map (B, C, h, w) or tokens (B, N, C) are flattened and L2-normalised.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
-import cv2
+import cv2  # noqa: TID253  # OpenCV throughout (crops, resizes)
 import numpy as np
 
 from .abi import HOG_PARAMS, MAX_BINS
 from .artifacts import Features, ViewSet
+from .runtime import Runtime, get_runtime
 
 BATCH = 512             # images per kernel launch (bounds device memory: ~BATCH * 70 KiB)
 
@@ -69,34 +73,49 @@ def crop_square(images: np.ndarray, masks: np.ndarray, size: int, pad: float = 0
     images, masks = _check_batch(images, masks)
     if size < 1:
         raise ValueError(f"crop size must be >= 1, got {size}")
-    if pad < 0:
-        raise ValueError(f"pad must be >= 0, got {pad}")
-    B, H, W = masks.shape
+    B = masks.shape[0]
+    windows = square_windows(masks, pad)
     crops = np.empty((B, size, size, 3), np.uint8)
     mcrops = np.empty((B, size, size), np.float32) if with_masks else None
     for b in range(B):
-        rows = np.flatnonzero(masks[b].any(axis=1))
-        cols = np.flatnonzero(masks[b].any(axis=0))
+        crops[b] = crop_window(images[b], windows[b], size)
+        if with_masks:
+            mcrops[b] = crop_window(masks[b].astype(np.float32), windows[b], size)
+    return crops, mcrops
+
+
+def square_windows(masks: np.ndarray, pad: float = 0.1) -> list[tuple[int, int, int]]:
+    """(top, left, side) in pixels of the square crop of each (B, H, W) bool mask (the crop rule
+    of the module docstring). ValueError for an empty mask."""
+    if pad < 0:
+        raise ValueError(f"pad must be >= 0, got {pad}")
+    out = []
+    for b, m in enumerate(masks):
+        rows = np.flatnonzero(m.any(axis=1))
+        cols = np.flatnonzero(m.any(axis=0))
         if rows.size == 0:
             raise ValueError(f"image {b}: mask is empty (no object to crop)")
         y0, y1, x0, x1 = rows[0], rows[-1], cols[0], cols[-1]
         side = int(math.ceil(max(y1 - y0 + 1, x1 - x0 + 1) * (1.0 + 2.0 * pad)))
         top = int(math.floor((y0 + y1 + 1) / 2.0 - side / 2.0))
         left = int(math.floor((x0 + x1 + 1) / 2.0 - side / 2.0))
-        # the part of the square inside the image, edge pixels repeated outside it
-        r0, r1 = max(top, 0), min(top + side, H)
-        c0, c1 = max(left, 0), min(left + side, W)
-        border = (r0 - top, top + side - r1, c0 - left, left + side - c1)
+        out.append((top, left, side))
+    return out
 
-        def square(a):
-            a = a[r0:r1, c0:c1]
-            return cv2.copyMakeBorder(a, *border, cv2.BORDER_REPLICATE) if any(border) else a
 
-        crops[b] = cv2.resize(square(images[b]), (size, size), interpolation=cv2.INTER_AREA)
-        if with_masks:
-            mcrops[b] = cv2.resize(square(masks[b].view(np.uint8)).astype(np.float32),
-                                   (size, size), interpolation=cv2.INTER_AREA)
-    return crops, mcrops
+def crop_window(image: np.ndarray, window: tuple[int, int, int], size: int,
+                interpolation: int = cv2.INTER_AREA) -> np.ndarray:
+    """The square ``window`` (top, left, side) of one (H, W[, C]) image, resized to ``size``;
+    pixels outside the image repeat the nearest edge pixel."""
+    top, left, side = window
+    H, W = image.shape[:2]
+    r0, r1 = max(top, 0), min(top + side, H)
+    c0, c1 = max(left, 0), min(left + side, W)
+    border = (r0 - top, top + side - r1, c0 - left, left + side - c1)
+    a = image[r0:r1, c0:c1]
+    if any(border):
+        a = cv2.copyMakeBorder(a, *border, cv2.BORDER_REPLICATE)
+    return cv2.resize(a, (size, size), interpolation=interpolation)
 
 
 def box_mask(shape: tuple[int, int], box) -> np.ndarray:
@@ -133,7 +152,8 @@ class HogExtractor:
     signed: orientations over 360 deg instead of 180; eps, clip: L2-Hys block normalisation;
     min_grad: soft threshold subtracted from each pixel's gradient magnitude (max 1.41);
     silhouette: side of the resized mask appended (0 = none), weighted to norm ``sil_weight``
-    relative to the HOG part; pad: crop padding (fraction of the box side on each side).
+    relative to the HOG part; pad: crop padding (fraction of the box side on each side);
+    runtime: the OpenCL runtime it runs on (None: ``get_runtime()``), like ``FeatureIndex``'s.
     """
 
     size: int = 64
@@ -149,6 +169,7 @@ class HogExtractor:
     local_cells: int | None = None      # work-group size of the cell kernel (None: PoCL picks)
     local_pixels: int = 64              # work-group size of the per-pixel gradient kernel
     kind: str = "hog"
+    runtime: Runtime | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self):
         if self.size < 2 * self.cell or self.size % self.cell:
@@ -158,7 +179,6 @@ class HogExtractor:
             raise ValueError(f"bins={self.bins} must be in 1..{MAX_BINS}")
         if min(self.silhouette, self.eps, self.sil_weight, self.min_grad) < 0 or self.clip <= 0:
             raise ValueError("silhouette, eps, sil_weight, min_grad must be >= 0 and clip > 0")
-        self._kernels = None
 
     @property
     def n_cells(self) -> int:
@@ -201,15 +221,9 @@ class HogExtractor:
     def _run(self, crops: np.ndarray, sil: np.ndarray) -> np.ndarray:
         import pyopencl as cl
 
-        from .runtime import get_runtime
-
-        rt = get_runtime()
-        if self._kernels is None:
-            prg = rt.program("features")
-            self._kernels = {n: cl.Kernel(prg, n) for n in
-                             ("hog_pixel_gradients", "hog_cell_histograms",
-                              "hog_block_normalise", "hog_finalise")}
-        k = self._kernels
+        rt = self.runtime or get_runtime()
+        k = {n: rt.kernel("features", n) for n in ("hog_pixel_gradients", "hog_cell_histograms",
+                                                   "hog_block_normalise", "hog_finalise")}
         B = crops.shape[0]
         nc, nb = self.n_cells, self.n_cells - 1
         prm = self.params()

@@ -470,7 +470,7 @@ def _gltf_json(path: Path, raw: bytes) -> dict:
     return gltf
 
 
-def _gltf_check(src: _Source, budgets: Budgets, check: bool) -> None:
+def _gltf_check(src: _Source, budgets: Budgets, check: bool) -> None:  # noqa: C901  a flat list of structural checks
     """Validate the parts of the glTF JSON that size or locate data, read external buffers, and
     check the budgets (see module doc). Types are checked before use, so a hostile JSON gives an
     ``unreadable`` naming the field, never a TypeError."""

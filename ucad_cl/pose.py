@@ -1,127 +1,221 @@
 """Pose search: which camera around a mesh best explains a reference photo of it.
 
-``estimate_pose(image, mesh, box=...)`` follows UrbanCAD: crop the vehicle in the reference and in
-renders of the mesh on a camera ring, resize both to one resolution, compute features
-(``ucad_cl.features``), take the views with the smallest L2 distance. Then coarse-to-fine: around
-the best coarse views, extra views are rendered on demand at a finer azimuth step (and at
-elevations half-way to the neighbouring coarse ones), so catalogues need not store fine rings.
+``estimate_pose(image, mesh, box=... | mask=...)`` follows UrbanCAD (pick the rendering whose
+features are nearest to the photo's), made robust to what a real photo does to a car:
 
-Conventions (``ucad_cl/artifacts.py``): azimuth/elevation in degrees (azimuth 0 looks from +X, grows
-counter-clockwise seen from +Y), distance in canonical units (bbox diagonal 1). Azimuths are
-reported in [0, 360).
+1. **The object, not the box** (``ucad_cl.foreground``): with a mask, the photo's background is
+   replaced by the renders' flat grey; with a box, GrabCut estimates the object inside it first
+   (``PoseMethod.refine_mask`` reruns it seeded by the best render's silhouette and searches
+   again: measured no gain at twice the time, off). The photo is then turned
+   virtually so the object sits on the optical axis (``centre_on_axis``, assuming a field of view
+   of ``fov_prior``), as the renders see the vehicle.
+2. **Appearance-invariant cues** (``ucad_cl.cues``): HOG of the object, silhouette IoU, edge
+   chamfer against the render's geometric and material edges, and how well the render's material
+   regions explain the photo's colours, combined with the weights of ``PoseMethod`` (chosen with
+   ``bench/pose.py --split tuning`` on the tuning split only).
+3. **Coarse to fine**: every view of a coarse ring (``pose_ring``: rendered once, reusable for
+   many photos, e.g. from a catalogue) is scored; the ``seeds`` best distinct views and the best
+   view's twins are refined on a grid rendered on demand (+-0.6 coarse step in azimuth, +-1/4
+   of the elevation spacing, at the camera distance estimated from the object's size); the best
+   and its best twin then try the distance (which sets the perspective) x0.8 and x1.25 and two
+   finer grids (+-0.15 step and +-1/8 spacing, then +-0.075 and +-1/16).
+4. **Front/back and left/right as an explicit decision**: the best candidate is compared with its
+   twins, refined alike: ``mirror`` (azimuth -a: the other side), ``opposite`` (a + 180) and
+   ``front-back`` (180 - a: same side, the other end; the outline is the same, only the lamps,
+   glazing and cab tell them apart). The best twin is reported second (``flipped=True``, its
+   ``twin`` kind and ``gap`` = its score minus the best score); ``PoseEstimate.ambiguous`` says
+   when the gap is below ``AMBIGUOUS_GAP``.
 
-* score: squared L2 distance between L2-normalised feature rows (0 best, 4 worst; an all-zero
-  row, e.g. a textureless crop, is at distance |other|^2). Computed in float64.
-* Ties: equal scores are ordered by the lower view index (coarse views before fine ones, in
-  the order they were rendered); ``rank_features`` documents the rule, tests pin it.
-* Front/back ambiguity: near-symmetric vehicles look alike from opposite sides. The best
-  candidate at least ``FLIP_MIN_DEG`` away in azimuth from the best one is reported as the second
-  candidate with ``flipped=True`` (refined like the best), instead of being hidden.
-* distance: estimated from the box size, assuming the reference camera has the ring's field of
-  view over its narrower image side: ``d = ring_distance * (s_render / n_render) / (s_ref /
-  n_ref)`` with s the longer box side and n the narrower image side, in pixels.
+Conventions (``docs/CONVENTIONS.md``): azimuth/elevation in degrees in the mesh's canonical frame
+(azimuth 0 looks from +X, the vehicle's front, and grows counter-clockwise seen from +Y), reported
+in [0, 360); distance in canonical units (bbox diagonal 1). Each candidate carries a full camera
+for the reference image: ``K`` (3x3: the focal length that makes the render at that distance as
+large as the object in the photo; principal point at the image centre) and ``w2c`` (4x4
+canonical -> OpenCV camera: the camera at (azimuth, elevation, distance) looking at the
+vehicle's centre, turned so that the centre projects onto the centre of the object's box).
 
-``search_catalog`` is the catalogue-wide variant: one query against stored features of many
-(mesh, view) rows.
+* score: the weighted sum of cue distances (``ucad_cl.cues.combine``), lower is better; computed
+  in float64.
+* Ties: equal scores go to the view rendered first (coarse views by index, then each refinement
+  grid in elevation-major order); every stage keeps its seed on ties.
+
+``search_catalog`` is the catalogue-wide variant: one query feature against stored features of
+many (mesh, view) rows, exact float64 re-ranking of an OpenCL float32 preselection.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
-from .cameras import make_ring
-from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows, view_features
-from .render import render_views
-from .shade import shade_views
 from .artifacts import CameraRing, Mesh
+from .cameras import look_at_w2c, make_ring
+from .cues import Cues, combine, cue_distances, hog_distance, query_cues, view_cues
+from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
+from .foreground import (RENDER_BACKGROUND, ObjectMask, axis_turn, centre_on_axis, composite,
+                         mask_box, object_mask, refine_with_silhouette)
+from .render import render_views
+from .search import search as knn_search
+from .shade import face_normals, shade_views
 
-FLIP_MIN_DEG = 135.0
+FOV_PRIOR = 45.0            # assumed field of view of a photo over its narrower side, degrees
+#: score gap below which the best twin is called a close call; tuning split, 360 references per
+#: mode: with a box it flags 10 % of the answers, half of the wrong ones (47 % of the flagged are
+#: wrong, 10 % of all); with a mask 1.4 % of the answers, none wrong
+AMBIGUOUS_GAP = 0.03
+TWINS = ("mirror", "opposite", "front-back")
+FLIP_MIN_DEG = 135.0        # legacy flip rule (``twins=False``): best candidate this far away
 EXACT_ROWS = 50_000         # search_catalog ranks up to this many rows exactly on the host
 PRESELECT = 64              # rows taken from the OpenCL search for the exact re-rank (k <= 64)
-RENDER_BACKGROUND = (128, 128, 128)
+RERANK_BATCH = 32           # queries re-ranked together (bounds the float64 scratch to ~30 MB)
+MIN_DISTANCE = 0.55         # renders keep the camera outside the bounding sphere (radius 0.5)
+
+
+@dataclass(frozen=True)
+class PoseMethod:
+    """How ``estimate_pose`` searches. ``ROBUST`` (the default) is this module's method,
+    ``LEGACY`` the one before it (``bench/pose.py`` compares them).
+
+    weights / box_weights: cue weights (``ucad_cl.cues``) for a given mask / an object estimated
+    inside a box. isolate: replace the photo's background by the renders' (False: the crop of
+    the box, background included). fov_prior: centre the object on the optical axis assuming
+    this field of view (None: no centring, renders at the ring's distance). twins: decide
+    between the best candidate and its twins (False: report the best candidate >=
+    FLIP_MIN_DEG away). seeds: coarse views refined besides the twins. stages: refinement grids,
+    each (azimuth offsets x the coarse step, elevation offsets x the coarse elevation spacing);
+    the first for every hypothesis, the others for the best and its runner-up.
+    distance_factors: camera distances tried around the estimate (perspective) last.
+    refine_mask: with a box, rerun GrabCut seeded by the best render's silhouette and search
+    again (measured: no gain at twice the time, see bench/pose.py; off). box_frame: with a box,
+    crop, centre and size the photo by the box rather than by GrabCut's mask (GrabCut then only
+    decides which pixels keep their colours) when a side of the mask's box is more than
+    ``box_frame`` x the box's size away from the box's side (0: always; None: never).
+    """
+
+    weights: tuple = (("hog", 1.0), ("silhouette", 1.0), ("chamfer", 1.0), ("region", 1.0))
+    box_weights: tuple = (("hog", 1.0), ("chamfer", 1.0))
+    isolate: bool = True
+    fov_prior: float | None = FOV_PRIOR
+    twins: bool = True
+    seeds: int = 2
+    stages: tuple = (((-0.6, -0.3, 0.0, 0.3, 0.6), (-0.25, 0.0, 0.25)),
+                     ((-0.15, 0.0, 0.15), (-0.125, 0.0, 0.125)),
+                     ((-0.075, 0.0, 0.075), (-0.0625, 0.0, 0.0625)))
+    distance_factors: tuple = (0.8, 1.25)
+    refine_mask: bool = False
+    box_frame: float | None = 0.08
+
+
+ROBUST = PoseMethod()
+#: before issue 12: HOG of the box crop (background included); the best coarse view and the best
+#: one >= FLIP_MIN_DEG away refined on one grid of +-1 step at 2 deg (10 deg steps) and half the
+#: elevation spacing, at the ring's distance (what the old search did with top=2)
+LEGACY = PoseMethod(weights=(("hog", 1.0),), box_weights=(("hog", 1.0),), isolate=False,
+                    fov_prior=None, twins=False, seeds=1,
+                    stages=((tuple(np.round(np.arange(-1.0, 1.0001, 0.2), 6)), (-0.5, 0.0, 0.5)),),
+                    distance_factors=())
 
 
 @dataclass
 class PoseCandidate:
-    """One pose hypothesis. ``view``: index of the coarse-ring view it came from (its seed)."""
+    """One pose hypothesis. ``view``: index of the coarse-ring view it grew from."""
 
     azimuth: float
     elevation: float
     distance: float
     score: float
     view: int
-    refined: bool = False       # found on a fine ring around the seed view
-    flipped: bool = False       # ~180 deg from the best candidate (front/back ambiguity)
+    refined: bool = False       # found on a fine grid around the seed view
+    flipped: bool = False       # the best twin of the best candidate (see ``twin``)
+    twin: str = ""              # 'mirror' | 'opposite' | 'front-back' relation to the best
+    gap: float = 0.0            # score minus the best candidate's score
+    cues: dict = field(default_factory=dict)     # cue -> distance (the cues the score weighs)
+    K: np.ndarray | None = field(default=None, repr=False, compare=False)
+    w2c: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+
+@dataclass
+class PoseEstimate:
+    """What ``estimate_pose`` found: ``candidates`` best first (the best twin second), the
+    object it matched (``object``: mask source and the share of the box kept), ``ambiguous``
+    when the best twin is within AMBIGUOUS_GAP of the best."""
+
+    candidates: list[PoseCandidate]
+    object: ObjectMask
+    ambiguous: bool = False
+
+    @property
+    def best(self) -> PoseCandidate:
+        return self.candidates[0]
+
+    @property
+    def runner_up(self) -> PoseCandidate | None:
+        """The best twin of the best candidate, when one was reported."""
+        return next((c for c in self.candidates if c.flipped), None)
+
+
+@dataclass
+class PoseRing:
+    """A coarse ring of one mesh, described once for many queries.
+
+    feats: (V, D) float32 descriptor rows, sides: (V,) longer side of each view's object box in
+    pixels; cues: every cue map (``ucad_cl.cues``), None when only features are known (e.g.
+    from a catalogue): the coarse stage then ranks by the HOG cue alone.
+    """
+
+    ring: CameraRing
+    feats: np.ndarray
+    sides: np.ndarray
+    extractor: FeatureExtractor
+    azimuth_step: float
+    cues: Cues | None = None
 
 
 def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None = None,
                   mask: np.ndarray | None = None, extractor: FeatureExtractor | None = None,
                   azimuth_step: float = 10.0, elevations: Sequence[float] = (0.0, 15.0, 30.0),
                   fov_deg: float = 40.0, size: int = 128, top: int = 5, refine: bool = True,
-                  fine_step: float = 2.0, seeds: int = 3,
-                  coarse: "PoseRing | None" = None) -> list[PoseCandidate]:
-    """Best ``top`` poses of ``mesh`` for the object in ``image`` (H, W, 3) uint8 RGB.
+                  coarse: PoseRing | None = None, method: PoseMethod = ROBUST) -> PoseEstimate:
+    """Best ``top`` poses of ``mesh`` for the object in ``image`` ((H, W, 3) uint8 RGB).
 
-    The object is given by ``box`` (x0, y0, x1, y1) pixels or ``mask`` (H, W) bool. The coarse
-    ring has ``azimuth_step`` and ``elevations`` (or is ``coarse``, precomputed by
-    ``pose_ring``, e.g. from a catalogue; its parameters then win). Hypotheses are the ``seeds``
-    best coarse views at least ``azimuth_step`` apart, plus the best flipped one (second). With
-    ``refine`` each hypothesis is replaced by the best view of a fine ring around it
-    (``fine_step`` within +-azimuth_step, elevations half-way to the neighbouring coarse ones)
-    and the refined hypotheses are re-ranked by score. Only the ``top`` first hypotheses are
-    refined (so ``top=1`` refines the best coarse view only). Output: the best candidate, the best
-    one at least FLIP_MIN_DEG away (``flipped``), then others, best first, at least
-    ``azimuth_step`` apart in azimuth from those already chosen.
+    The object is ``box`` (x0, y0, x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W) bool).
+    The coarse ring has ``azimuth_step`` and ``elevations`` (or is ``coarse``, from
+    ``pose_ring``; its parameters then win). ``refine=False``: coarse views only.
+    ValueError naming the problem for a bad image, an empty or tiny mask or box.
     """
-    qmask = reference_mask(image, box=box, mask=mask)
+    obj = object_mask(image, box=box, mask=mask, grabcut=method.isolate)
     if top < 1:
         raise ValueError(f"top={top} must be >= 1")
+    image = np.asarray(image)
     if coarse is None:
         coarse = pose_ring(mesh, extractor or HogExtractor(), azimuth_step=azimuth_step,
                            elevations=elevations, fov_deg=fov_deg, size=size)
-    extractor = coarse.extractor
-    query = extractor.extract(np.asarray(image)[None], qmask[None]).feats[0]
-    q_side = _box_side(qmask) / min(qmask.shape)
-    ring = coarse.ring
-    step = coarse.azimuth_step
-    pool = _candidates(query, ring, coarse.feats, coarse.sides, seed=None, q_side=q_side)
-    ranked = sorted(pool, key=lambda c: c.score)          # stable: ties -> lower view index
-    flip = _flip_of(ranked, ranked[0])
-    hyps = _distinct(ranked, seeds if refine else 1, step)
-    if flip is not None and all(h.view != flip.view for h in hyps):
-        hyps.insert(1, flip)
-    hyps = hyps[:top]                                     # refine only what is reported
-    if refine:
-        el_step = _elevation_step(ring.elevation)
-        fov = float(np.degrees(2 * np.arctan(0.5 * min(ring.width, ring.height) / ring.K[0, 0])))
-        hyps = [_refine(query, mesh, extractor, ring, h, step, fine_step, el_step, fov, q_side)
-                for h in hyps]
-        hyps.sort(key=lambda c: c.score)                  # stable: ties keep the coarse order
-    best = hyps[0]
-    out = [best]
-    flip = _flip_of(hyps + ranked, best)
-    if flip is not None and top > 1:
-        flip.flipped = True
-        out.append(flip)
-    for c in hyps + ranked:
-        if len(out) >= top:
-            break
-        if all(_az_diff(c.azimuth, o.azimuth) >= step for o in out):
-            out.append(c)
-    return out
-
-
-@dataclass
-class PoseRing:
-    """Features of a coarse ring of one mesh: what a catalogue stores for pose search."""
-
-    ring: CameraRing
-    feats: np.ndarray           # (V, D) float32
-    sides: np.ndarray           # (V,) longer side of each view's object box, pixels
-    extractor: FeatureExtractor
-    azimuth_step: float
+    if not method.isolate:                  # the box, background included (before issue 12)
+        obj = ObjectMask(mask=box_mask(obj.mask.shape, obj.box), source="box", box=obj.box,
+                         kept=1.0)
+    weights = dict(method.weights if obj.source == "mask" else method.box_weights)
+    search = _Search(mesh, coarse, weights, method, refine)
+    frame = None
+    if method.box_frame is not None and obj.source != "mask":
+        b, m = np.array(obj.box, float), np.array(mask_box(obj.mask), float)
+        size = np.array([b[2] - b[0], b[3] - b[1]] * 2)
+        if np.any(np.abs(m - b) > method.box_frame * size):
+            frame = box_mask(obj.mask.shape, obj.box)
+    search.set_photo(image, obj.mask, frame)
+    found = search.run()
+    if method.refine_mask and refine and obj.source == "grabcut":
+        fg = refine_with_silhouette(image, search.silhouette_in_photo(found[0]))
+        if fg.sum() >= 0.5 * obj.mask.sum():
+            x0, y0, x1, y1 = obj.box
+            obj = ObjectMask(mask=fg, source="grabcut+render", box=obj.box,
+                             kept=float(fg[y0:y1, x0:x1].mean()))
+            search.set_photo(image, obj.mask, frame)
+            found = search.run()
+    cands = search.report(found, top)
+    runner = next((c for c in cands if c.flipped), None)
+    ambiguous = bool(method.twins) and runner is not None and runner.gap < AMBIGUOUS_GAP
+    return PoseEstimate(candidates=cands, object=obj, ambiguous=ambiguous)
 
 
 def pose_ring(mesh: Mesh, extractor: FeatureExtractor, *, azimuth_step: float = 10.0,
@@ -129,43 +223,33 @@ def pose_ring(mesh: Mesh, extractor: FeatureExtractor, *, azimuth_step: float = 
               size: int = 128) -> PoseRing:
     """Render, shade and describe the coarse ring of ``mesh`` once (reuse for many queries)."""
     ring = make_ring(azimuth_step, elevations, fov_deg=fov_deg, size=size)
-    feats, sides = render_features(mesh, ring, extractor)
-    return PoseRing(ring=ring, feats=feats, sides=sides, extractor=extractor,
-                    azimuth_step=float(azimuth_step))
+    cues = render_cues(mesh, ring, extractor)
+    return PoseRing(ring=ring, feats=cues.hog, sides=cues.sides * min(ring.width, ring.height),
+                    extractor=extractor, azimuth_step=float(azimuth_step), cues=cues)
 
 
-def reference_mask(image: np.ndarray, *, box=None, mask=None) -> np.ndarray:
-    """(H, W) bool object mask of a reference image from a box or a mask (exactly one)."""
-    image = np.asarray(image)
-    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"reference image must be (H, W, 3) uint8 RGB, got {image.shape} "
-                         f"{image.dtype}")
-    if (box is None) == (mask is None):
-        raise ValueError("give exactly one of box=(x0, y0, x1, y1) or mask=(H, W) bool")
-    if box is not None:
-        return box_mask(image.shape[:2], box)
-    m = np.asarray(mask)
-    if m.shape != image.shape[:2]:
-        raise ValueError(f"mask shape {m.shape} differs from the image's {image.shape[:2]}")
-    m = m.astype(bool) if m.dtype != np.bool_ else m
-    if not m.any():
-        raise ValueError("mask is empty: the reference image has no object to match")
-    return m
-
-
-def render_features(mesh: Mesh, ring: CameraRing, extractor: FeatureExtractor,
-                    **shade_kwargs) -> tuple[np.ndarray, np.ndarray]:
-    """Features (V, D) of shaded renders of ``ring`` and each view's longer box side (pixels)."""
-    shade_kwargs.setdefault("background", RENDER_BACKGROUND)
+def render_cues(mesh: Mesh, ring: CameraRing, extractor: FeatureExtractor,
+                normals: np.ndarray | None = None) -> Cues:
+    """Cues (``ucad_cl.cues``) of shaded renders of every view of ``ring`` (``normals``: the
+    mesh's ``shade.face_normals`` when the caller has them)."""
     views = render_views(mesh, ring)
-    masks = np.isfinite(views.depth)
-    empty = np.flatnonzero(~masks.any(axis=(1, 2)))
+    empty = np.flatnonzero(~np.isfinite(views.depth).any(axis=(1, 2)))
     if empty.size:
         raise ValueError(f"mesh {mesh.path!r}: nothing visible in view(s) {empty.tolist()}")
-    images = shade_views(mesh, views, **shade_kwargs)
-    feats = view_features(extractor, images, views).feats
-    sides = np.array([_box_side(m) for m in masks], np.float64)
-    return feats, sides
+    if normals is None:
+        normals = face_normals(mesh)
+    images = shade_views(mesh, views, background=RENDER_BACKGROUND, normals=normals)
+    return view_cues(mesh, views, images, extractor, normals=normals)
+
+
+def query_features(image: np.ndarray, extractor: FeatureExtractor | None = None, *, box=None,
+                   mask=None, isolate: bool = True) -> tuple[np.ndarray, ObjectMask]:
+    """(D,) descriptor of the object in a photo, as the renders' features are computed (the
+    background replaced unless ``isolate`` is False), and the object it used."""
+    obj = object_mask(image, box=box, mask=mask, grabcut=isolate)
+    m = obj.mask if isolate else box_mask(obj.mask.shape, obj.box)
+    img = composite(image, m) if isolate else np.asarray(image)
+    return (extractor or HogExtractor()).extract(img[None], m[None]).feats[0], obj
 
 
 def rank_features(query: np.ndarray, db: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -212,8 +296,24 @@ def search_catalog(query: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
     float64 (``rank_features``). Larger databases, or a given ``index`` (a
     ``ucad_cl.search.FeatureIndex`` over ``feats`` without ids, built once for many queries),
     take the ``PRESELECT`` nearest rows from the OpenCL float32 search and re-rank those exactly;
-    ties go to the lower row either way. Hook for the catalogue: pass its stored arrays.
+    ties go to the lower row either way. Azimuths are canonical (azimuth 0 = the front of every
+    mesh), so matches of different meshes are comparable.
     """
+    q = np.asarray(query)
+    if q.ndim != 1:
+        raise ValueError(f"query must be (D,), got {q.shape} (search_catalog_batch takes (Q, D))")
+    return search_catalog_batch(q[None], feats, mesh_ids, views, azimuth, elevation, top,
+                                index=index)[0]
+
+
+def search_catalog_batch(queries: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
+                         views: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
+                         top: int = 5, *, index=None,
+                         exact: bool = True) -> list[list[CatalogMatch]]:
+    """``search_catalog`` for (Q, D) queries: one OpenCL preselection for the whole batch (the
+    way to many queries per second), then the exact float64 re-rank of each query's PRESELECT
+    rows; ``exact=False`` keeps the index's own float32 order and squared distances (with an
+    ``index``; an f32 index, or a pca index with rerank, gives exact float32 distances)."""
     feats = np.asarray(feats)
     n = feats.shape[0] if feats.ndim == 2 else -1
     cols = [np.asarray(a) for a in (mesh_ids, views, azimuth, elevation)]
@@ -221,67 +321,310 @@ def search_catalog(query: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
         raise ValueError(f"mesh_ids, views, azimuth, elevation must all be ({n},)")
     if not 1 <= top <= n:
         raise ValueError(f"top={top} must be in 1..{n} (database rows)")
+    qs = np.asarray(queries)
+    if qs.ndim != 2 or qs.shape[1] != feats.shape[1]:
+        raise ValueError(f"queries must be (Q, {feats.shape[1]}), got {qs.shape}")
     if index is None and n <= EXACT_ROWS:
-        rows, d = rank_features(query, feats)
+        ranked = [rank_features(q, feats) for q in qs]
     else:
-        from .search import search
-
-        k = min(n, max(PRESELECT, top))
-        qn = unit_rows(np.asarray(query)[None])[0].astype(np.float32)
-        cand = (index.search(qn, k) if index is not None else search(qn[None], feats, k))[0][0]
-        order, d_sorted = rank_features(query, feats[cand])
-        d = np.empty_like(d_sorted)
-        d[order] = d_sorted
-        o = np.lexsort((cand, d))
-        rows, d = cand[o], d[o]
-    return [CatalogMatch(row=int(r), mesh=int(cols[0][r]), view=int(cols[1][r]),
-                         azimuth=float(cols[2][r]), elevation=float(cols[3][r]),
-                         score=float(s)) for r, s in zip(rows[:top], d[:top])]
-
-
-# ----------------------------------------------------------------------------- helpers
-
-def _refine(query, mesh, extractor, ring, seed, step, fine_step, el_step, fov, q_side):
-    """Best of the seed and a fine ring around it (+-step azimuth, +-el_step/2 elevation)."""
-    azs = seed.azimuth + np.arange(-step, step + 1e-9, fine_step)
-    els = [e for e in (seed.elevation - el_step / 2, seed.elevation, seed.elevation + el_step / 2)
-           if abs(e) < 89.0]
-    fine = make_ring(azimuths=azs, elevations=els, fov_deg=fov,
-                     size=(ring.width, ring.height), distance=ring.distance)
-    feats, sides = render_features(mesh, fine, extractor)
-    cands = [seed] + _candidates(query, fine, feats, sides, seed=seed.view, q_side=q_side)
-    return min(cands, key=lambda c: c.score)              # first minimum: the seed wins ties
+        k = min(n, max(PRESELECT, top)) if exact else top
+        qn32 = unit_rows(qs)[0].astype(np.float32)
+        cands, d32 = index.search(qn32, k) if index is not None else knn_search(qn32, feats, k)
+        ranked = [] if exact else list(zip(cands, d32.astype(np.float64)))
+        for c0 in range(0, len(qs) if exact else 0, RERANK_BATCH):   # rank_features', batched
+            cand = cands[c0:c0 + RERANK_BATCH]
+            qn, q_nz = unit_rows(qs[c0:c0 + RERANK_BATCH])
+            dn, d_nz = unit_rows(feats[cand.ravel()])
+            dn = dn.reshape(cand.shape + (-1,))
+            d = q_nz[:, None] + d_nz.reshape(cand.shape) - 2.0 * (dn * qn[:, None, :]).sum(axis=2)
+            for c, dd in zip(cand, d):
+                o = np.lexsort((c, dd))
+                ranked.append((c[o], dd[o]))
+    return [[CatalogMatch(row=int(r), mesh=int(cols[0][r]), view=int(cols[1][r]),
+                          azimuth=float(cols[2][r]), elevation=float(cols[3][r]),
+                          score=float(s)) for r, s in zip(rows[:top], d[:top])]
+            for rows, d in ranked]
 
 
-def _candidates(query, ring, feats, sides, *, seed, q_side) -> list[PoseCandidate]:
-    order, d = rank_features(query, feats)
-    score = np.empty_like(d)
-    score[order] = d
-    n_side = min(ring.width, ring.height)
-    return [PoseCandidate(azimuth=float(ring.azimuth[v] % 360.0),
-                          elevation=float(ring.elevation[v]),
-                          distance=float(ring.distance * (sides[v] / n_side) / q_side),
-                          score=float(score[v]), view=v if seed is None else int(seed),
-                          refined=seed is not None)
-            for v in range(ring.n_views)]
+def twin_azimuth(azimuth: float, kind: str) -> float:
+    """The azimuth of a twin view in [0, 360): 'mirror' -a, 'opposite' a + 180, 'front-back'
+    180 - a (for a left/right symmetric vehicle the front-back twin has the same outline)."""
+    a = float(azimuth)
+    if kind == "mirror":
+        return (-a) % 360.0
+    if kind == "opposite":
+        return (a + 180.0) % 360.0
+    if kind == "front-back":
+        return (180.0 - a) % 360.0
+    raise ValueError(f"unknown twin kind {kind!r}; expected one of {TWINS}")
 
 
-def _az_diff(a: float, b: float) -> float:
+def az_diff(a: float, b: float) -> float:
+    """Absolute azimuth difference in degrees, in [0, 180]."""
     d = abs(a - b) % 360.0
     return min(d, 360.0 - d)
 
 
-def _flip_of(ranked: list[PoseCandidate], best: PoseCandidate) -> PoseCandidate | None:
-    return next((c for c in ranked if _az_diff(c.azimuth, best.azimuth) >= FLIP_MIN_DEG), None)
+
+# ----------------------------------------------------------------------------- the search
+
+@dataclass
+class _Pose:
+    """A scored pose: rendered at (azimuth, elevation, distance); ``side`` = the object's box
+    side in that render over the render's focal length (its angular size), ``offset`` = where
+    the box centre is, (x, y) from the principal point over the focal length."""
+
+    azimuth: float
+    elevation: float
+    distance: float
+    score: float
+    view: int
+    side: float
+    offset: tuple
+    cues: dict
+    refined: bool = False
 
 
-def _distinct(ranked: list[PoseCandidate], n: int, min_sep: float) -> list[PoseCandidate]:
-    out: list[PoseCandidate] = []
+class _Search:
+    """One photo against one mesh: scoring, coarse ranking, refinement, twins."""
+
+    def __init__(self, mesh, coarse: PoseRing, weights: dict, method: PoseMethod, refine: bool):
+        self.mesh, self.coarse, self.weights = mesh, coarse, weights
+        self.method, self.refine = method, refine
+        self.twins = method.twins
+        ring = coarse.ring
+        self.f_render = float(ring.K[0, 0])
+        self.size = (ring.width, ring.height)
+        self.el_step = _elevation_step(ring.elevation)
+        self.step = coarse.azimuth_step
+        self.normals = face_normals(mesh)
+
+    # -- the photo
+    def set_photo(self, image, mask, frame=None):
+        """Prepare the photo: background replaced (method.isolate), object centred on the
+        optical axis (method.fov_prior), its cues; ``frame`` (a bool mask, e.g. the box) sets
+        the crop, the centre and the size instead of ``mask``."""
+        m = self.method
+        self.image_shape = mask.shape
+        self.box_photo = mask_box(mask if frame is None else frame)
+        img = composite(image, mask) if m.isolate else image
+        if m.fov_prior is not None:
+            c = centre_on_axis(img, mask, m.fov_prior, frame)
+            img, mask, frame = c.image, c.mask, c.frame
+            self.fov_prior = m.fov_prior
+        else:
+            self.fov_prior = 2.0 * np.degrees(np.arctan(0.5 * min(self.size) / self.f_render))
+        self.query = query_cues(img, mask, self.coarse.extractor, frame=frame)
+        x0, y0, x1, y1 = mask_box(mask if frame is None else frame)
+        self.photo_side = float(max(x1 - x0, y1 - y0))
+
+    def scores(self, cues: Cues) -> tuple[np.ndarray, dict]:
+        d = cue_distances(self.query, cues, [k for k, w in self.weights.items() if w])
+        return combine(d, self.weights), d
+
+    # -- stages
+    def run(self) -> list[_Pose]:
+        """Scored poses: [best, ..., the best's twins when searched]; see report()."""
+        c = self.coarse
+        if c.cues is not None:
+            s, d = self.scores(c.cues)
+        else:
+            s = 0.5 * hog_distance(self.query.hog[0], c.feats)
+            d = {"hog": s}
+        ring = c.ring
+        sides = np.asarray(c.sides, np.float64) / self.f_render
+        offsets = c.cues.offsets if c.cues is not None else np.zeros((ring.n_views, 2))
+        coarse = [_Pose(float(ring.azimuth[v] % 360.0), float(ring.elevation[v]), ring.distance,
+                        float(s[v]), v, float(sides[v]), tuple(offsets[v]),
+                        {k: float(x[v]) for k, x in d.items()})
+                  for v in range(ring.n_views)]
+        self.ranked = sorted(coarse, key=lambda p: p.score)        # stable: lower view first
+        best = self.ranked[0]
+        if not self.refine:
+            return self.ranked
+        self.distance = (self._distance_estimate(best) if self.method.fov_prior is not None
+                         else ring.distance)
+        hyps = _distinct(self.ranked, self.method.seeds, self.step)
+        if self.twins:
+            hyps += [self._coarse_near(twin_azimuth(best.azimuth, k), best.elevation)
+                     for k in TWINS]
+        else:
+            flip = next((p for p in self.ranked
+                         if az_diff(p.azimuth, best.azimuth) >= FLIP_MIN_DEG), None)
+            if flip is not None:
+                hyps.append(flip)
+        done = self._stage(_unique(hyps), 0)
+        best = min(done, key=lambda p: p.score)                      # first minimum on ties
+        if self.twins:
+            more = []
+            for k in TWINS:
+                az = twin_azimuth(best.azimuth, k)
+                if az_diff(az, best.azimuth) >= 2 * self.step and \
+                        not any(az_diff(az, p.azimuth) < self.step for p in done + more):
+                    more.append(self._coarse_near(az, best.elevation))
+            done += self._stage(_unique(more), 0) if more else []
+        runner = self._best_twin(best, done)
+        finals = self._finals([best] + ([runner] if runner is not None else []))
+        finals.sort(key=lambda p: p.score)
+        best = finals[0]
+        runner = finals[1] if len(finals) > 1 else None      # twins are mutual: a twin's twin
+        rest = [p for p in sorted(done, key=lambda p: p.score)
+                if all(az_diff(p.azimuth, q.azimuth) >= self.step for q in finals)]
+        return [best] + ([runner] if runner is not None else []) + rest + self.ranked
+
+    def _stage(self, seeds: list[_Pose], k: int) -> list[_Pose]:
+        """For each seed, the best pose of grid ``k`` of method.stages around it (the seed
+        itself included when it was rendered at the grid's distance; it wins ties)."""
+        az_off, el_off = self.method.stages[k]
+        specs = []
+        for s in seeds:
+            azs = [s.azimuth + a * self.step for a in az_off]
+            els = [e for e in (s.elevation + o * self.el_step for o in el_off) if abs(e) < 89.0]
+            specs.append((azs, els, s.distance if s.refined else self.distance, s.view))
+        out = []
+        for seed, cands in zip(seeds, self._grids(specs)):
+            keep = [seed] if seed.distance == cands[0].distance else []
+            out.append(min(keep + cands, key=lambda p: p.score))
+        return out
+
+    def _finals(self, poses: list[_Pose]) -> list[_Pose]:
+        """The camera distances (perspective) around each pose, then the later stages."""
+        for f in self.method.distance_factors:
+            grids = self._grids([([p.azimuth], [p.elevation], p.distance * f, p.view)
+                                 for p in poses])
+            poses = [min([p] + c, key=lambda q: q.score) for p, c in zip(poses, grids)]
+        for k in range(1, len(self.method.stages)):
+            poses = self._stage(poses, k)
+        return poses
+
+    def _grids(self, specs) -> list[list[_Pose]]:
+        """Scored poses of grids (azimuths, elevations, distance, seed view), elevation-major;
+        grids at the same distance are rendered together (first-seen distance first)."""
+        out: list = [None] * len(specs)
+        groups: dict[float, list[int]] = {}
+        for i, spec in enumerate(specs):
+            groups.setdefault(max(float(spec[2]), MIN_DISTANCE), []).append(i)
+        for distance, idx in groups.items():
+            if distance == self.coarse.ring.distance:          # the ring's own field of view
+                fov = float(np.degrees(2 * np.arctan(0.5 * min(self.size) / self.f_render)))
+            else:                                              # the sphere fills it as in a ring
+                fov = min(2.0 * np.degrees(np.arcsin(min(1.05 * 0.5 / distance, 1.0))), 120.0)
+            rings = [make_ring(azimuths=specs[i][0], elevations=specs[i][1], fov_deg=fov,
+                               size=self.size, distance=distance) for i in idx]
+            r0 = rings[0]
+            ring = CameraRing(K=r0.K, w2c=np.concatenate([r.w2c for r in rings]),
+                              width=r0.width, height=r0.height,
+                              azimuth=np.concatenate([r.azimuth for r in rings]),
+                              elevation=np.concatenate([r.elevation for r in rings]),
+                              distance=distance, near=r0.near)
+            cues = render_cues(self.mesh, ring, self.coarse.extractor, self.normals)
+            s, d = self.scores(cues)
+            side = cues.sides * min(self.size) / float(r0.K[0, 0])
+            poses = [_Pose(float(ring.azimuth[v] % 360.0), float(ring.elevation[v]), distance,
+                           float(s[v]), 0, float(side[v]), tuple(cues.offsets[v]),
+                           {k: float(x[v]) for k, x in d.items()}, refined=True)
+                     for v in range(ring.n_views)]
+            start = 0
+            for i, r in zip(idx, rings):
+                out[i] = poses[start:start + r.n_views]
+                for p in out[i]:
+                    p.view = specs[i][3]
+                start += r.n_views
+        return out
+
+    def _distance_estimate(self, best: _Pose) -> float:
+        """Camera distance at which the best coarse view is as large (in angle) as the object
+        in the photo under the assumed field of view."""
+        f_photo = 0.5 * min(self.image_shape) / np.tan(np.radians(self.fov_prior) / 2.0)
+        angle = self.photo_side / f_photo
+        return max(self.coarse.ring.distance * best.side / angle, MIN_DISTANCE)
+
+    def _coarse_near(self, azimuth: float, elevation: float) -> _Pose:
+        return min(self.ranked, key=lambda p: (az_diff(p.azimuth, azimuth),
+                                               abs(p.elevation - elevation), p.view))
+
+    def _best_twin(self, best: _Pose, poses: list[_Pose]) -> _Pose | None:
+        if not self.twins:
+            return next((p for p in sorted(poses, key=lambda p: p.score)
+                         if az_diff(p.azimuth, best.azimuth) >= FLIP_MIN_DEG), None)
+        near = []
+        for p in poses:
+            if p is best or az_diff(p.azimuth, best.azimuth) < 2 * self.step:
+                continue
+            kind = self.twin_kind(best.azimuth, p.azimuth)
+            if kind:
+                near.append(p)
+        return min(near, key=lambda p: p.score) if near else None
+
+    def twin_kind(self, best_az: float, az: float) -> str:
+        """The twin relation of ``az`` to ``best_az`` (within 1.5 coarse steps), or ''."""
+        diffs = [(az_diff(az, twin_azimuth(best_az, k)), k) for k in TWINS]
+        d, k = min(diffs)
+        return k if d <= 1.5 * self.step else ""
+
+    # -- output
+    def report(self, found: list[_Pose], top: int) -> list[PoseCandidate]:
+        best = found[0]
+        out = [self._candidate(best, best)]
+        runner = self._best_twin(best, found[1:]) if len(found) > 1 else None
+        if top > 1 and runner is not None:
+            c = self._candidate(runner, best)
+            c.flipped = True
+            c.twin = self.twin_kind(best.azimuth, runner.azimuth) if self.twins else "flip"
+            out.append(c)
+        for p in found[1:]:
+            if len(out) >= top:
+                break
+            if all(az_diff(p.azimuth, o.azimuth) >= self.step for o in out):
+                out.append(self._candidate(p, best))
+        return out
+
+    def _candidate(self, p: _Pose, best: _Pose) -> PoseCandidate:
+        K, w2c = self.camera(p)
+        return PoseCandidate(azimuth=p.azimuth, elevation=p.elevation, distance=p.distance,
+                             score=p.score, view=p.view, refined=p.refined,
+                             gap=p.score - best.score, cues=dict(p.cues), K=K, w2c=w2c)
+
+    def camera(self, p: _Pose) -> tuple[np.ndarray, np.ndarray]:
+        """(K, w2c) of the photo for pose ``p`` (see the module docstring)."""
+        H, W = self.image_shape
+        f = self.photo_side / max(p.side, 1e-9)
+        K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+        x0, y0, x1, y1 = self.box_photo
+        # the vehicle's centre projects where the render has it relative to the object's box
+        R = axis_turn(K, ((x0 + x1) / 2.0 - f * p.offset[0], (y0 + y1) / 2.0 - f * p.offset[1]))
+        turn = np.eye(4)
+        turn[:3, :3] = R.T
+        return K, turn @ look_at_w2c(p.azimuth, p.elevation, p.distance)
+
+    def silhouette_in_photo(self, p: _Pose) -> np.ndarray | None:
+        """(H, W) bool silhouette of pose ``p`` rendered with its photo camera."""
+        K, w2c = self.camera(p)
+        H, W = self.image_shape
+        ring = CameraRing(K=K, w2c=w2c[None], width=W, height=H,
+                          azimuth=np.array([p.azimuth]), elevation=np.array([p.elevation]),
+                          distance=p.distance, near=0.01 * p.distance)
+        return np.isfinite(render_views(self.mesh, ring).depth[0])
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _distinct(ranked: list[_Pose], n: int, min_sep: float) -> list[_Pose]:
+    out: list[_Pose] = []
     for c in ranked:
         if len(out) >= n:
             break
-        if all(_az_diff(c.azimuth, o.azimuth) >= min_sep for o in out):
+        if all(az_diff(c.azimuth, o.azimuth) >= min_sep for o in out):
             out.append(c)
+    return out
+
+
+def _unique(poses: list[_Pose]) -> list[_Pose]:
+    seen, out = set(), []
+    for p in poses:
+        if p.view not in seen:
+            seen.add(p.view)
+            out.append(p)
     return out
 
 

@@ -30,6 +30,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 from importlib import resources
 
 from . import abi
@@ -150,6 +152,9 @@ class Runtime:
     _kernels: dict = field(default_factory=dict)
     _scratch: dict = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
+    # held by callers that use kernels and scratch buffers from several threads (``kernel`` and
+    # ``scratch`` are not thread-safe): e.g. every FeatureIndex on this runtime
+    exclusive: threading.RLock = field(default_factory=threading.RLock)
 
     @property
     def is_pocl(self) -> bool:
@@ -277,7 +282,6 @@ def pick_device_info(spec: str | None = None) -> tuple[DeviceInfo, str]:
 
 def _probe(dev) -> tuple[bool, str]:
     """Build and run a one-line kernel on ``dev``; (ok, first line of the error)."""
-    import numpy as np
     import pyopencl as cl
 
     try:

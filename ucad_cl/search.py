@@ -33,10 +33,10 @@ HOG-like features. Device memory: database + one (Q batch x N) float32 distance 
 """
 from __future__ import annotations
 
-import threading
 
 import numpy as np
 
+from .runtime import Runtime, get_runtime
 from .abi import DIST_PARAMS, GATHER_PARAMS, K_MAX, MERGE_PARAMS, TOPK_PARAMS
 
 MODES = ("f32", "f16", "pca")
@@ -69,11 +69,7 @@ class FeatureIndex:
     """
 
     def __init__(self, db: np.ndarray, ids: np.ndarray | None = None, mode: str = "f32",
-                 pca_dims: int = 64, rerank: int = 0, runtime=None):
-        import pyopencl as cl
-
-        from .runtime import get_runtime
-
+                 pca_dims: int = 64, rerank: int = 0, runtime: Runtime | None = None):
         if mode not in MODES:
             raise ValueError(f"unknown search mode {mode!r}; expected one of {MODES}")
         x = _as_matrix(db, "database")
@@ -103,12 +99,9 @@ class FeatureIndex:
             self.rerank = 0
             stored = x
         self.rt = runtime or get_runtime()
-        prg = self.rt.program("search")
-        self._lock = threading.Lock()
-        self._buffers: dict = {}
-        self._kernels = {}
-        for name in ("topk_rows", "topk_merge", "sq_l2_gather"):
-            self._kernels[name] = cl.Kernel(prg, name)
+        # device steps use the runtime's kernels and scratch buffers, shared by every index on
+        # it: calls are serialised per runtime
+        self._lock = self.rt.exclusive
         self.exp = _scale_exponent(stored)
         self.dim_pad = _round_up(stored.shape[1], 16)
         self.rows_pad = _round_up(self.n_rows, 16)      # multiple of RB and of 16
@@ -176,24 +169,15 @@ class FeatureIndex:
         return buf
 
     def _tile_kernel(self, qb: int):
-        """sq_l2_tile built for a QB x RB block and this index's storage type (cached)."""
-        import pyopencl as cl
-
-        name = f"sq_l2_tile_q{qb}"
-        if name not in self._kernels:
-            opts = (f"-DQB={qb}", f"-DRB={RB}") + (("-DDB_HALF",) if self.mode == "f16" else ())
-            self._kernels[name] = cl.Kernel(self.rt.program("search", opts), "sq_l2_tile")
-        return self._kernels[name]
+        """sq_l2_tile built for a QB x RB block and this index's storage type (the runtime
+        caches it)."""
+        opts = (f"-DQB={qb}", f"-DRB={RB}") + (("-DDB_HALF",) if self.mode == "f16" else ())
+        return self.rt.kernel("search", "sq_l2_tile", opts)
 
     def _scratch(self, name: str, nbytes: int):
-        """Device scratch buffer reused across calls (fresh pages cost PoCL page faults)."""
-        import pyopencl as cl
-
-        buf = self._buffers.get(name)
-        if buf is None or buf.size < nbytes:
-            buf = cl.Buffer(self.rt.ctx, cl.mem_flags.READ_WRITE, nbytes)
-            self._buffers[name] = buf
-        return buf
+        """The runtime's scratch buffer ``search.<name>`` (reused across calls: fresh pages cost
+        PoCL page faults)."""
+        return self.rt.scratch(f"search.{name}", nbytes)
 
     # -- device steps ------------------------------------------------------------------------
     def _knn(self, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -221,7 +205,7 @@ class FeatureIndex:
         d_cd = self._scratch("cand_d", 4 * nq * n_chunks * k)
         d_cr = self._scratch("cand_r", 4 * nq * n_chunks * k)
         prm = np.array([(nq, self.n_rows, self.rows_pad, chunk, n_chunks, k)], TOPK_PARAMS)
-        _launch(queue, self._kernels["topk_rows"], (n_chunks, nq), ONE_ITEM, prm, d_dist, d_cd,
+        _launch(queue, self.rt.kernel("search", "topk_rows"), (n_chunks, nq), ONE_ITEM, prm, d_dist, d_cd,
                 d_cr)
         return self._merge(d_cd, d_cr, nq, n_chunks * k, k)
 
@@ -232,7 +216,7 @@ class FeatureIndex:
         d_od = self._scratch("out_d", 4 * nq * k)
         d_or = self._scratch("out_r", 4 * nq * k)
         prm = np.array([(nq, n_cand, k)], MERGE_PARAMS)
-        _launch(queue, self._kernels["topk_merge"], (nq,), (1,), prm, d_cd, d_cr, d_od, d_or)
+        _launch(queue, self.rt.kernel("search", "topk_merge"), (nq,), (1,), prm, d_cd, d_cr, d_od, d_or)
         out_d = np.empty((nq, k), np.float32)
         out_r = np.empty((nq, k), np.int32)
         cl.enqueue_copy(queue, out_d, d_od)
@@ -253,7 +237,7 @@ class FeatureIndex:
                            hostbuf=np.ascontiguousarray(cand, np.int32))
         d_cd = self._scratch("gather_d", 4 * nq * n_cand)
         prm = np.array([(nq, self.full_dim_pad // 16, n_cand)], GATHER_PARAMS)
-        _launch(queue, self._kernels["sq_l2_gather"], (n_cand, nq), ONE_ITEM, prm, d_q,
+        _launch(queue, self.rt.kernel("search", "sq_l2_gather"), (n_cand, nq), ONE_ITEM, prm, d_q,
                 self.d_full, d_rows, d_cd)
         return self._merge(d_cd, d_rows, nq, n_cand, k)
 

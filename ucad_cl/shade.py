@@ -42,9 +42,11 @@ def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | N
                 light_dir: Sequence[float] = DEFAULT_LIGHT, ambient: float = 0.3,
                 specular: float = 0.25, shininess: float = 32.0,
                 background: Sequence[int] | np.ndarray = (0, 0, 0),
-                device: bool = True, runtime: Runtime | None = None) -> np.ndarray:
+                device: bool = True, runtime: Runtime | None = None,
+                normals: np.ndarray | None = None) -> np.ndarray:
     """(V, H, W, 3) uint8 sRGB images of ``views`` (rendered from ``mesh``), on ``runtime``
-    (default ``get_runtime()``) unless ``device`` is False (NumPy)."""
+    (default ``get_runtime()``) unless ``device`` is False (NumPy). ``normals``: the mesh's
+    ``face_normals`` when the caller already has them (shading many view sets)."""
     V, H, W = views.tri_id.shape
     albedo = _albedo(mesh, colors)
     bg = _background(background, V, H, W)
@@ -57,7 +59,8 @@ def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | N
         raise ValueError(f"light_dir must be a finite non-zero 3-vector, got {light_dir!r}")
     light = light / np.linalg.norm(light)
 
-    normals = face_normals(mesh)                                     # (F, 3) canonical frame
+    if normals is None:
+        normals = face_normals(mesh)                                 # (F, 3) canonical frame
     v0 = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)[:, 0]]
     fmat = np.asarray(mesh.face_material, np.int64)
     cam = views.cameras

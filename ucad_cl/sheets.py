@@ -6,18 +6,19 @@ the same material has the same colour in every view and every run.
 """
 from __future__ import annotations
 
+import colorsys
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+
+from .artifacts import PART_NAMES
 
 GOLDEN = 0.6180339887498949
 
 
 def id_palette(n: int) -> np.ndarray:
     """(n, 3) uint8 RGB colours for ids 0..n-1 (0 = black)."""
-    import colorsys
-
     pal = np.zeros((max(n, 1), 3), np.uint8)
     for k in range(1, n):
         h = (k * GOLDEN) % 1.0
@@ -142,8 +143,6 @@ def material_sheet(views, material_names: Sequence[str] | None = None, max_width
 
 def part_sheet(views, table, max_width: int = 2400) -> np.ndarray:
     """Contact sheet of the views coloured by each material's decided part, with a legend."""
-    from .artifacts import PART_NAMES
-
     lut = np.zeros((len(table.rows) + 1, 3), np.uint8)
     for r in table.rows:
         lut[r.material + 1] = PART_COLORS.get(r.part, (110, 110, 110))  # unseen: grey

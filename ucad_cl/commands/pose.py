@@ -1,34 +1,65 @@
 """``ucad-index pose IMAGE MESH``: estimate the camera pose of a vehicle photo against a mesh.
 
-Prints the best candidates (azimuth, elevation in degrees, distance in canonical units, score =
-squared feature distance, lower is better; a ``flipped`` candidate is the best one ~180 deg away)
-and writes a side-by-side PNG: the reference crop | the best render, both at the same size.
+Prints the best candidates (azimuth, elevation in degrees in the mesh's canonical frame: azimuth 0
+= seen from the front, 90 = from the vehicle's left; distance in canonical units; score = the
+weighted cue distance, lower is better), the front/back decision (the best twin of the best
+candidate with its score gap, "close call" below ``pose.AMBIGUOUS_GAP``) and how the object was
+found (the given mask, or GrabCut inside the box with the share of the box it kept); writes a
+PNG: the photo's object with the best pose's outline | the render of the best pose. ``--json``
+prints everything, every candidate's camera (K, world-to-camera) included.
 """
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
+DESCRIPTION = """\
+Find the camera pose of a vehicle photo against a mesh (or every mesh of a catalogue).
+
+The vehicle is given by --box (GrabCut then finds the vehicle inside it) or --mask (exact).
+Its background is replaced by the renders' grey, the photo is turned so the vehicle sits on
+the optical axis, and views of MESH are scored by appearance-invariant cues (gradient
+orientations, silhouette, edges, colour regions), coarse to fine. Front/back and left/right:
+the best pose is compared with its twins (mirror -a, opposite a+180, front-back 180-a); the
+best twin is printed second with its score gap.
+
+Azimuths are in the mesh's canonical frame (azimuth 0 looks at the vehicle's front, 90 at its
+left side, elevation > 0 from above), so answers are comparable across meshes.
+
+examples:
+  ucad-index pose street.jpg car.glb --box 120 80 460 300
+  ucad-index pose street.jpg car.glb --mask street_mask.png --json > pose.json
+  ucad-index pose street.jpg --box 120 80 460 300 --catalog cat/
+"""
+
 
 def register(sub) -> None:
+    import argparse
+
     p = sub.add_parser("pose", help="estimate the pose of a vehicle photo against a mesh",
-                       description="Crop the vehicle (--box or --mask), compare its features with "
-                                   "renders of MESH on a camera ring, refine around the best "
-                                   "views and print the best candidates.")
+                       description=DESCRIPTION,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("image", type=Path, help="reference photo (PNG/JPEG, RGB)")
     p.add_argument("mesh", type=Path, nargs="?", default=None,
                    help="vehicle model (glb/gltf/obj) to match; omit with --catalog")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
-                   help="object box in pixels (x1, y1 exclusive)")
-    g.add_argument("--mask", type=Path, help="object mask image (non-zero = object)")
+                   help="object box in pixels (x1, y1 exclusive), e.g. from a detector")
+    g.add_argument("--mask", type=Path, help="object mask image, same size (non-zero = object)")
     p.add_argument("--top", type=int, default=5, help="candidates to print (default 5)")
     p.add_argument("--step", type=float, default=10.0, help="coarse azimuth step, degrees")
     p.add_argument("--elevations", type=float, nargs="+", default=[0.0, 15.0, 30.0],
                    help="coarse ring elevations, degrees")
     p.add_argument("--no-refine", action="store_true", help="coarse ring only")
+    p.add_argument("--method", choices=("robust", "legacy"), default="robust",
+                   help="robust (default) or legacy: the search before issue 12 (HOG of the box "
+                        "crop with its background), for comparison")
     p.add_argument("--onnx", type=Path, default=None,
-                   help="use this ONNX image encoder instead of the built-in HOG features")
+                   help="use this ONNX image encoder (e.g. DINOv2, see docs/POSE.md) for the "
+                        "feature cue instead of the built-in HOG")
+    p.add_argument("--json", action="store_true",
+                   help="print JSON: object, decision and every candidate with K and w2c")
     p.add_argument("--out", type=Path, default=None,
                    help="side-by-side PNG (default: IMAGE stem + '_pose.png' next to it)")
     p.add_argument("--catalog", type=Path, default=None, metavar="PATH",
@@ -39,27 +70,24 @@ def register(sub) -> None:
 
 def run(args) -> int:
     import cv2
-    import numpy as np
 
-    from ..features import HogExtractor, OnnxExtractor, crop_square
+    from ..features import HogExtractor, OnnxExtractor
     from ..ingest import IngestError, load_mesh
-    from ..pose import estimate_pose
+    from ..pose import LEGACY, ROBUST, estimate_pose
 
     if (args.catalog is None) == (args.mesh is None):
         print("give either MESH or --catalog PATH", file=sys.stderr)
         return 2
-    bgr = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
-    if bgr is None:
-        print(f"{args.image}: cannot read the image", file=sys.stderr)
+    if args.top < 1:
+        print(f"--top {args.top}: must be >= 1", file=sys.stderr)
         return 2
-    image = np.ascontiguousarray(bgr[:, :, ::-1])
-    mask = None
-    if args.mask is not None:
-        m = cv2.imread(str(args.mask), cv2.IMREAD_GRAYSCALE)
-        if m is None:
-            print(f"{args.mask}: cannot read the mask", file=sys.stderr)
-            return 2
-        mask = m > 0
+    if args.catalog is not None and args.onnx is not None:
+        print("--onnx cannot be used with --catalog: the catalogue stores the built-in HOG "
+              "features", file=sys.stderr)
+        return 2
+    image, mask = _read_inputs(args)
+    if image is None:
+        return 2
     if args.catalog is not None:
         return run_catalog(args, image, mask)
     try:
@@ -67,24 +95,73 @@ def run(args) -> int:
     except IngestError as exc:
         print(str(exc), file=sys.stderr)
         return 1
-    extractor = OnnxExtractor(args.onnx) if args.onnx else HogExtractor()
     try:
-        cands = estimate_pose(image, mesh, box=args.box, mask=mask, extractor=extractor,
-                              azimuth_step=args.step, elevations=args.elevations,
-                              top=args.top, refine=not args.no_refine)
+        extractor = OnnxExtractor(args.onnx) if args.onnx else HogExtractor()
+    except ValueError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    method = LEGACY if args.method == "legacy" else ROBUST
+    try:
+        est = estimate_pose(image, mesh, box=args.box, mask=mask, extractor=extractor,
+                            azimuth_step=args.step, elevations=args.elevations,
+                            top=args.top, refine=not args.no_refine, method=method)
     except ValueError as exc:
         print(f"{args.image}: {exc}", file=sys.stderr)
         return 2
-    print(f"{'rank':>4s} {'azimuth':>8s} {'elev':>6s} {'dist':>6s} {'score':>7s}  note")
-    for i, c in enumerate(cands):
-        note = ("flipped " if c.flipped else "") + ("refined" if c.refined else "coarse")
-        print(f"{i + 1:4d} {c.azimuth:8.1f} {c.elevation:6.1f} {c.distance:6.3f} "
-              f"{c.score:7.4f}  {note}")
     out = args.out or args.image.with_name(args.image.stem + "_pose.png")
-    side = side_by_side(image, mask, args.box, mesh, cands[0], crop_square)
-    cv2.imwrite(str(out), side[:, :, ::-1])
+    cv2.imwrite(str(out), side_by_side(image, est.object.mask, mesh, est.best)[:, :, ::-1])
+    if args.json:
+        print(json.dumps(estimate_json(est, args.image, args.mesh, out), indent=1))
+        return 0
+    print(f"{'rank':>4s} {'azimuth':>8s} {'elev':>6s} {'dist':>6s} {'score':>7s} {'gap':>7s}  note")
+    for i, c in enumerate(est.candidates):
+        note = (f"{c.twin} twin " if c.flipped else "") + ("refined" if c.refined else "coarse")
+        print(f"{i + 1:4d} {c.azimuth:8.1f} {c.elevation:6.1f} {c.distance:6.3f} "
+              f"{c.score:7.4f} {c.gap:7.4f}  {note}")
+    print(object_line(est.object))
+    runner = est.runner_up
+    if runner is not None:
+        verdict = "close call" if est.ambiguous else "clear"
+        print(f"front/back/sides: {verdict}: best twin is the {runner.twin} view "
+              f"(azimuth {runner.azimuth:.1f}), score gap {runner.gap:.4f}")
     print(f"wrote {out}")
     return 0
+
+
+def object_line(obj) -> str:
+    x0, y0, x1, y1 = obj.box
+    if obj.source == "mask":
+        return f"object: the given mask ({int(obj.mask.sum())} pixels)"
+    if obj.source == "box":
+        return (f"object: the whole box ({x0} {y0} {x1} {y1}); GrabCut kept only "
+                f"{obj.kept * 100:.0f} % of it, too little to trust")
+    return (f"object: {obj.source} kept {obj.kept * 100:.0f} % of the box "
+            f"({x0} {y0} {x1} {y1})")
+
+
+def estimate_json(est, image_path, mesh_path, png) -> dict:
+    """A JSON-ready dict of a PoseEstimate (angles in degrees, canonical frame)."""
+    o = est.object
+    return {
+        "image": str(image_path), "mesh": str(mesh_path), "png": str(png),
+        "conventions": "azimuth/elevation degrees in the mesh's canonical frame (azimuth 0 = "
+                       "front, counter-clockwise seen from +Y); distance in canonical units "
+                       "(bbox diagonal 1); K (3x3) and w2c (4x4, canonical -> OpenCV camera) "
+                       "of the photo",
+        "object": {"source": o.source, "box": list(o.box), "kept": round(o.kept, 4),
+                   "pixels": int(o.mask.sum())},
+        "ambiguous": bool(est.ambiguous),
+        "candidates": [candidate_json(c, i + 1) for i, c in enumerate(est.candidates)],
+    }
+
+
+def candidate_json(c, rank: int) -> dict:
+    return {"rank": rank, "azimuth": c.azimuth, "elevation": c.elevation,
+            "distance": c.distance, "score": c.score, "gap": c.gap, "refined": c.refined,
+            "flipped": c.flipped, "twin": c.twin, "view": c.view,
+            "cues": {k: float(v) for k, v in c.cues.items()},
+            "K": None if c.K is None else c.K.tolist(),
+            "w2c": None if c.w2c is None else c.w2c.tolist()}
 
 
 def run_catalog(args, image, mask) -> int:
@@ -92,11 +169,12 @@ def run_catalog(args, image, mask) -> int:
     import cv2
     import numpy as np
 
-    from ucad_catalog._db import CatalogError
+    from ucad_catalog import CatalogError
 
-    from ..features import HogExtractor, crop_square
+    from ..features import HogExtractor
     from ..ingest import IngestError, load_mesh
-    from ..pose import PoseCandidate, _box_side, reference_mask, search_catalog
+    from ..foreground import mask_box
+    from ..pose import PoseCandidate, query_features, search_catalog
 
     from .common import open_reader
 
@@ -105,7 +183,7 @@ def run_catalog(args, image, mask) -> int:
         return 2
     with reader as r:
         metas = r.meshes()
-        feats, mesh_ids, views, az, el, sides, dist = [], [], [], [], [], [], []
+        feats, mesh_ids, views, az, el, sides, dist, Ks, w2cs = [], [], [], [], [], [], [], [], []
         for k, m in enumerate(metas):
             try:
                 f = r.features(m.sha256)
@@ -114,57 +192,117 @@ def run_catalog(args, image, mask) -> int:
             rec = r.record(m.sha256)
             for v in rec["views"]:
                 w2c = np.asarray(v["w2c"], np.float64)
+                K = np.asarray(v["K"], np.float64)
                 dist.append(float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3])))
-                sides.append(float(v["stats"].get("box_side", np.nan))
-                             / min(np.asarray(v["K"])[:2, 2] * 2))
+                sides.append(float(v["stats"].get("box_side", np.nan)) / min(K[:2, 2] * 2))
                 az.append(v["azimuth"])
                 el.append(v["elevation"])
                 views.append(v["index"])
                 mesh_ids.append(k)
+                Ks.append(K)
+                w2cs.append(w2c)
             feats.append(f)
     if not feats:
         print(f"{args.catalog}: no accepted mesh with stored features", file=sys.stderr)
         return 2
+    legacy = args.method == "legacy"
     try:
-        qmask = reference_mask(image, box=args.box, mask=mask)
+        query, obj = query_features(image, HogExtractor(), box=args.box, mask=mask,
+                                    isolate=not legacy)
     except ValueError as exc:
         print(f"{args.image}: {exc}", file=sys.stderr)
         return 2
-    query = HogExtractor().extract(image[None], qmask[None]).feats[0]
     db = np.concatenate(feats)
     top = min(args.top, len(db))
     matches = search_catalog(query, db, np.asarray(mesh_ids), np.asarray(views),
                              np.asarray(az), np.asarray(el), top=top)
-    q_side = _box_side(qmask) / min(qmask.shape)
-    print(f"{'rank':>4s} {'azimuth':>8s} {'elev':>6s} {'dist':>6s} {'score':>7s}  mesh (view)")
-    for i, mt in enumerate(matches):
+    x0, y0, x1, y1 = mask_box(obj.mask)
+    q_side = max(x1 - x0, y1 - y0) / min(obj.mask.shape)
+    rows = []
+    for mt in matches:
         d = dist[mt.row] * sides[mt.row] / q_side if q_side > 0 else float("nan")
-        print(f"{i + 1:4d} {mt.azimuth:8.1f} {mt.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
-              f"{metas[mt.mesh].source} ({mt.view})")
+        rows.append((mt, d))
     best = matches[0]
+    out = args.out or args.image.with_name(args.image.stem + "_pose.png")
+    if args.json:
+        print(json.dumps({
+            "image": str(args.image), "catalog": str(args.catalog),
+            "object": {"source": obj.source, "box": list(obj.box), "kept": round(obj.kept, 4)},
+            "conventions": "azimuth/elevation degrees in each mesh's canonical frame (azimuth 0 "
+                           "= front); K and w2c: the stored view's render camera",
+            "candidates": [{"rank": i + 1, "mesh": str(metas[mt.mesh].source),
+                            "sha256": metas[mt.mesh].sha256, "view": mt.view,
+                            "azimuth": mt.azimuth, "elevation": mt.elevation, "distance": d,
+                            "score": mt.score, "K": Ks[mt.row].tolist(),
+                            "w2c": w2cs[mt.row].tolist()} for i, (mt, d) in enumerate(rows)]},
+            indent=1))
+    else:
+        print(f"{'rank':>4s} {'azimuth':>8s} {'elev':>6s} {'dist':>6s} {'score':>7s}  mesh (view)")
+        for i, (mt, d) in enumerate(rows):
+            print(f"{i + 1:4d} {mt.azimuth:8.1f} {mt.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
+                  f"{metas[mt.mesh].source} ({mt.view})")
+        print(object_line(obj))
     try:
         mesh = load_mesh(metas[best.mesh].source)
     except IngestError as exc:
         print(f"(no side-by-side PNG: {exc})", file=sys.stderr)
         return 0
     cand = PoseCandidate(best.azimuth, best.elevation, dist[best.row], best.score, best.view)
-    out = args.out or args.image.with_name(args.image.stem + "_pose.png")
-    cv2.imwrite(str(out), side_by_side(image, mask, args.box, mesh, cand, crop_square)[:, :, ::-1])
-    print(f"wrote {out}")
+    cv2.imwrite(str(out), side_by_side(image, obj.mask, mesh, cand)[:, :, ::-1])
+    if not args.json:
+        print(f"wrote {out}")
     return 0
 
 
-def side_by_side(image, mask, box, mesh, cand, crop_square, size: int = 256):
-    """(size, 2*size, 3) uint8: reference crop | render of ``cand``, same crop rule."""
+def _read_inputs(args):
+    """(RGB image, mask or None), or (None, None) after printing why."""
+    import cv2
+    import numpy as np
+
+    bgr = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
+    if bgr is None:
+        print(f"{args.image}: cannot read the image", file=sys.stderr)
+        return None, None
+    image = np.ascontiguousarray(bgr[:, :, ::-1])
+    mask = None
+    if args.mask is not None:
+        m = cv2.imread(str(args.mask), cv2.IMREAD_GRAYSCALE)
+        if m is None:
+            print(f"{args.mask}: cannot read the mask", file=sys.stderr)
+            return None, None
+        if m.shape != image.shape[:2]:
+            print(f"{args.mask}: mask is {m.shape[1]}x{m.shape[0]} but {args.image} is "
+                  f"{image.shape[1]}x{image.shape[0]}", file=sys.stderr)
+            return None, None
+        mask = m > 0
+    return image, mask
+
+
+def side_by_side(image, mask, mesh, cand, size: int = 256):
+    """(size, 2*size, 3) uint8: the photo around the object with the outline (green) of the
+    candidate's silhouette when it has a camera for the photo | the render of ``cand``, both
+    cropped by the pose features' rule."""
+    import cv2
     import numpy as np
 
     from ..cameras import make_ring
-    from ..pose import RENDER_BACKGROUND, reference_mask
+    from ..artifacts import CameraRing
+    from ..features import crop_square
+    from ..foreground import RENDER_BACKGROUND
     from ..render import render_views
     from ..shade import shade_views
 
-    qmask = reference_mask(image, box=box, mask=mask)
-    ref, _ = crop_square(image[None], qmask[None], size)
+    left = np.ascontiguousarray(image)
+    if cand.K is not None and cand.w2c is not None:
+        H, W = image.shape[:2]
+        ring = CameraRing(K=cand.K, w2c=cand.w2c[None], width=W, height=H,
+                          azimuth=np.array([cand.azimuth]), elevation=np.array([cand.elevation]),
+                          distance=cand.distance, near=0.01 * cand.distance)
+        sil = np.isfinite(render_views(mesh, ring).depth[0]).astype(np.uint8)
+        contours, _ = cv2.findContours(sil, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        left = left.copy()
+        cv2.drawContours(left, contours, -1, (0, 255, 0), max(1, min(H, W) // 200))
+    ref, _ = crop_square(left[None], mask[None], size)
     ring = make_ring(azimuths=[cand.azimuth], elevations=[cand.elevation], size=size)
     views = render_views(mesh, ring)
     rend = shade_views(mesh, views, background=RENDER_BACKGROUND)

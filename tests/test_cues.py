@@ -1,0 +1,169 @@
+"""Pose cues against independent references: silhouette IoU (NumPy sets), edge chamfer (SciPy's
+exact Euclidean distance transform), colour regions (per-label sums in a Python loop), render
+edges (a dense NumPy version of the rule), crop sampling (direct indexing)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from ucad_cl import cues
+from ucad_cl.cameras import make_ring
+from ucad_cl.features import HogExtractor, square_windows
+from ucad_cl.foreground import RENDER_BACKGROUND
+from ucad_cl.render import render_views
+from ucad_cl.shade import face_normals, shade_views
+
+synth = pytest.importorskip("ucad_cl.synth")
+
+
+@pytest.fixture(scope="module")
+def rendered(runtime):
+    mesh = synth.make_vehicle(5, "hatchback").mesh()
+    ring = make_ring(azimuths=[20.0, 95.0, 200.0], elevations=[10.0], size=96)
+    views = render_views(mesh, ring)
+    images = shade_views(mesh, views, background=RENDER_BACKGROUND)
+    return mesh, views, images, cues.view_cues(mesh, views, images, HogExtractor())
+
+
+def _fake_cues(rng, V, S=24, n_labels=5):
+    sil = (rng.random((V, S, S)) > 0.5).astype(np.float32)
+    edges = rng.random((V, S, S)) > 0.9
+    labels = rng.integers(0, n_labels, (V, S, S)).astype(np.int32)
+    return cues.Cues(hog=rng.random((V, 8)).astype(np.float32), sil=sil, edges=edges,
+                     dist=cues._distances(edges), sides=np.ones(V), labels=labels)
+
+
+def test_silhouette_is_one_minus_iou_of_the_masks():
+    rng = np.random.default_rng(0)
+    views = _fake_cues(rng, 4)
+    q = _fake_cues(rng, 1)
+    q.colours = rng.random((1, 24, 24, 3)).astype(np.float32) * 255
+    got = cues.cue_distances(q, views)["silhouette"]
+    a = q.sil[0] > 0.5
+    for v in range(4):
+        b = views.sil[v] > 0.5
+        assert got[v] == pytest.approx(1.0 - (a & b).sum() / (a | b).sum(), abs=1e-12)
+    # soft masks: sum(min) / sum(max)
+    views.sil[1] *= 0.5
+    got = cues.cue_distances(q, views)["silhouette"]
+    ref = 1 - np.minimum(views.sil[1], q.sil[0]).sum() / np.maximum(views.sil[1], q.sil[0]).sum()
+    assert got[1] == pytest.approx(ref, abs=1e-6)
+
+
+def test_chamfer_equals_scipy_distance_transform_reference():
+    rng = np.random.default_rng(1)
+    views = _fake_cues(rng, 5, S=32)
+    views.edges[3] = False                                  # a view without edges
+    views.dist = cues._distances(views.edges)
+    q = _fake_cues(rng, 1, S=32)
+    q.colours = np.zeros((1, 32, 32, 3), np.float32)
+    got = cues.cue_distances(q, views)["chamfer"]
+
+    def capped_edt(e):
+        if not e.any():
+            return np.full(e.shape, cues.TAU)
+        return np.minimum(ndimage.distance_transform_edt(~e), cues.TAU)
+
+    dq = capped_edt(q.edges[0])
+    for v in range(5):
+        dv = capped_edt(views.edges[v])
+        a = dv[q.edges[0]].mean()
+        b = dq[views.edges[v]].mean() if views.edges[v].any() else cues.TAU
+        assert got[v] == pytest.approx((a + b) / (2 * cues.TAU), abs=1e-5), v
+    assert got[3] == pytest.approx((cues.TAU + cues.TAU) / (2 * cues.TAU), abs=1e-6)
+
+
+def test_region_cue_equals_per_label_loop():
+    rng = np.random.default_rng(2)
+    views = _fake_cues(rng, 3, S=16, n_labels=4)
+    q = _fake_cues(rng, 1, S=16)
+    q.colours = rng.random((1, 16, 16, 3)).astype(np.float32) * 255
+    got = cues.cue_distances(q, views)["region"]
+    c = q.colours[0].reshape(-1, 3).astype(np.float64)
+    total = ((c - c.mean(0)) ** 2).sum()
+    for v in range(3):
+        lab = views.labels[v].ravel()
+        within = sum(((c[lab == k] - c[lab == k].mean(0)) ** 2).sum() for k in np.unique(lab))
+        assert got[v] == pytest.approx(within / total, abs=1e-9)
+    # a photo whose colours follow one view's labels exactly: that view explains everything
+    q.colours[0] = rng.random((4, 3))[views.labels[1]] * 255
+    assert cues.cue_distances(q, views)["region"][1] == pytest.approx(0.0, abs=1e-9)
+
+
+def _dense_edges(tri, mat, depth, normals):
+    """The render-edge rule written densely: every neighbour pair, every test."""
+    bg = np.uint32(0xFFFFFFFF)
+    fg = tri != bg
+    n = np.where(fg[..., None], normals[np.where(fg, tri, 0).astype(np.int64)], 0.0)
+    out = np.zeros(tri.shape, bool)
+    cos = np.cos(np.radians(cues.CREASE_DEG))
+    for axis in (1, 2):
+        sl_a = [slice(None)] * 3
+        sl_b = [slice(None)] * 3
+        sl_a[axis], sl_b[axis] = slice(None, -1), slice(1, None)
+        a, b = tuple(sl_a), tuple(sl_b)
+        both = fg[a] & fg[b]
+        e = (fg[a] != fg[b]) | (mat[a] != mat[b])
+        with np.errstate(invalid="ignore"):             # inf - inf off the object
+            jump = np.abs(depth[a] - depth[b]) > cues.DEPTH_JUMP
+        e |= both & (tri[a] != tri[b]) & jump
+        e |= both & (tri[a] != tri[b]) & (np.abs((n[a] * n[b]).sum(-1)) < cos)
+        out[a] |= e
+        out[b] |= e
+    return out
+
+
+def test_map_edges_equal_dense_reference_and_crop_sampling(rendered):
+    mesh, views, images, c = rendered
+    normals = face_normals(mesh).astype(np.float32)
+    got = cues.map_edges(views.tri_id, views.mat_id, views.depth, normals)
+    ref = _dense_edges(views.tri_id, views.mat_id, views.depth, normals)
+    assert np.array_equal(got, ref)
+    assert got.any() and not got.all()
+    # crop sampling: labels are the material ids under each crop pixel's centre
+    masks = np.isfinite(views.depth)
+    for v, (top, left, side) in enumerate(square_windows(masks, cues.PAD)):
+        S = c.labels.shape[1]
+        at = np.floor((np.arange(S) + 0.5) * side / S).astype(int)
+        r = np.clip(top + at, 0, views.mat_id.shape[1] - 1)
+        q = np.clip(left + at, 0, views.mat_id.shape[2] - 1)
+        assert np.array_equal(c.labels[v], views.mat_id[v][np.ix_(r, q)])
+    # the crop's edges are the rule applied to the sampled maps
+    assert c.edges.shape == c.labels.shape and c.edges.any()
+
+
+def test_a_render_is_nearest_to_itself(rendered):
+    """The photo made from render 1 itself (its mask, its image): silhouette 0, HOG 0, and the
+    combined score picks view 1."""
+    mesh, views, images, c = rendered
+    m = np.isfinite(views.depth[1])
+    q = cues.query_cues(images[1], m, HogExtractor())
+    d = cues.cue_distances(q, c)
+    assert d["silhouette"][1] == pytest.approx(0.0, abs=1e-6)
+    assert d["hog"][1] == pytest.approx(0.0, abs=1e-6)
+    assert d["region"][1] < 0.15              # flat shading: faces of one material differ
+    for name in cues.CUES:
+        assert int(np.argmin(d[name])) == 1, name
+    assert int(np.argmin(cues.combine(d, {"hog": 1, "silhouette": 1, "chamfer": 1}))) == 1
+    # asking for some cues gives exactly those, with the same values
+    some = cues.cue_distances(q, c, ("hog", "chamfer"))
+    assert set(some) == {"hog", "chamfer"}
+    for name in some:
+        np.testing.assert_array_equal(some[name], d[name])
+
+
+def test_combine_and_offsets(rendered):
+    mesh, views, images, c = rendered
+    d = {"hog": np.array([1.0, 2.0]), "silhouette": np.array([0.5, 0.0])}
+    np.testing.assert_allclose(cues.combine(d, {"hog": 1.0, "silhouette": 2.0}), [2.0, 2.0])
+    with pytest.raises(ValueError, match="no cue"):
+        cues.combine(d, {"chamfer": 0.0})
+    # offsets: box centre from the principal point over the focal length
+    K = views.cameras.K
+    for v in range(views.n_views):
+        ys, xs = np.nonzero(np.isfinite(views.depth[v]))
+        cx = (xs.min() + xs.max() + 1) / 2.0
+        cy = (ys.min() + ys.max() + 1) / 2.0
+        np.testing.assert_allclose(c.offsets[v], [(cx - K[0, 2]) / K[0, 0],
+                                                  (cy - K[1, 2]) / K[1, 1]])

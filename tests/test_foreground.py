@@ -1,0 +1,172 @@
+"""The object in a reference photo: masks, boxes and their errors, GrabCut against the rendered
+truth, compositing, centring on the optical axis against a render from the turned camera."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from ucad_cl import foreground as fg
+from ucad_cl.artifacts import CameraRing
+from ucad_cl.cameras import camera_position, make_ring
+from ucad_cl.render import render_views
+from ucad_cl.shade import shade_views
+
+synth = pytest.importorskip("ucad_cl.synth")
+
+
+@pytest.fixture(scope="module")
+def car():
+    return synth.make_vehicle(11, "sedan").mesh()
+
+
+def _stripes(H, W):
+    yy, xx = np.mgrid[0:H, 0:W]
+    on = ((xx + 2 * yy) // 9) % 2 == 1
+    img = np.empty((H, W, 3), np.uint8)
+    img[on] = (30, 160, 60)
+    img[~on] = (200, 60, 170)
+    return img
+
+
+def test_mask_and_box_errors_name_the_problem():
+    img = np.zeros((40, 60, 3), np.uint8)
+    with pytest.raises(ValueError, match="mask is empty"):
+        fg.object_mask(img, mask=np.zeros((40, 60), bool))
+    tiny = np.zeros((40, 60), bool)
+    tiny[3:5, 3:6] = True                                     # 6 pixels
+    with pytest.raises(ValueError, match="6 pixel.*fewer than 8"):
+        fg.object_mask(img, mask=tiny)
+    with pytest.raises(ValueError, match="is empty inside the 60x40 image"):
+        fg.object_mask(img, box=(70, 0, 90, 10))
+    with pytest.raises(ValueError, match="is empty inside"):
+        fg.object_mask(img, box=(10, 10, 10, 30))             # zero width
+    with pytest.raises(ValueError, match="too small"):
+        fg.object_mask(img, box=(10, 10, 11, 30))             # one pixel wide
+    with pytest.raises(ValueError, match="4 finite numbers"):
+        fg.object_mask(img, box=(0, 0, np.nan, 5))
+    with pytest.raises(ValueError, match="4 numbers"):
+        fg.object_mask(img, box="abc")
+    with pytest.raises(ValueError, match="exactly one of box"):
+        fg.object_mask(img)
+    with pytest.raises(ValueError, match="exactly one of box"):
+        fg.object_mask(img, box=(0, 0, 5, 5), mask=np.ones((40, 60), bool))
+    with pytest.raises(ValueError, match="uint8 RGB"):
+        fg.object_mask(img.astype(float), box=(0, 0, 5, 5))
+    with pytest.raises(ValueError, match="differs from the image"):
+        fg.object_mask(img, mask=np.ones((10, 10), bool))
+
+
+def test_given_mask_and_plain_box():
+    img = np.zeros((40, 60, 3), np.uint8)
+    m = np.zeros((40, 60), bool)
+    m[0:9, 50:60] = True                                      # touches two borders
+    o = fg.object_mask(img, mask=m)
+    assert o.source == "mask" and o.kept == 1.0 and o.box == (50, 0, 60, 9)
+    assert o.mask is m or np.array_equal(o.mask, m)
+    b = fg.object_mask(img, box=(-5.4, 2.6, 20.2, 70), grabcut=False)
+    assert b.source == "box" and b.box == (0, 3, 20, 40) and b.mask.sum() == 20 * 37
+
+
+def test_grabcut_finds_the_vehicle_in_the_box(car, runtime):
+    """A sedan over stripes of other colours: GrabCut's mask against the rendered truth."""
+    ring = make_ring(azimuths=[35.0], elevations=[12.0], size=(200, 150))
+    views = render_views(car, ring)
+    truth = np.isfinite(views.depth[0])
+    img = shade_views(car, views, background=_stripes(150, 200))[0]
+    ys, xs = np.nonzero(truth)
+    box = (xs.min() - 3, ys.min() - 2, xs.max() + 4, ys.max() + 3)
+    o = fg.object_mask(img, box=box)
+    assert o.source == "grabcut"
+    iou = (o.mask & truth).sum() / (o.mask | truth).sum()
+    assert iou > 0.85, iou
+    x0, y0, x1, y1 = o.box
+    assert o.kept == pytest.approx(o.mask[y0:y1, x0:x1].mean())
+    # deterministic, also with one OpenCV thread
+    again = fg.object_mask(img, box=box)
+    n = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        single = fg.object_mask(img, box=box)
+    finally:
+        cv2.setNumThreads(n)
+    assert np.array_equal(o.mask, again.mask) and np.array_equal(o.mask, single.mask)
+    # seeded by the true silhouette, GrabCut keeps it (refinement against a render)
+    ref = fg.refine_with_silhouette(img, truth)
+    assert (ref & truth).sum() / (ref | truth).sum() > 0.9
+
+
+def test_grabcut_that_keeps_too_little_falls_back_to_the_box():
+    """A flat image has no object: whatever GrabCut answers, the result is a usable mask."""
+    img = np.full((60, 80, 3), 90, np.uint8)
+    o = fg.object_mask(img, box=(20, 10, 60, 50))
+    assert o.source in ("grabcut", "box")
+    if o.kept < fg.MIN_KEPT:
+        assert o.source == "box" and o.mask.sum() == 40 * 40
+    assert o.mask.any()
+
+
+def test_composite_replaces_the_background():
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    m = rng.random((20, 30)) > 0.5
+    out = fg.composite(img, m)
+    ref = np.where(m[..., None], img, np.array(fg.RENDER_BACKGROUND, np.uint8))
+    assert np.array_equal(out, ref) and out.dtype == np.uint8
+
+
+def _level_camera(az, el, dist, fov, W, H, heading) -> CameraRing:
+    """An upright, level camera (no tilt) at (az, el, dist) whose heading is ``heading`` radians
+    away from the vehicle's centre; heading=None: the look-at camera of the renders."""
+    f = 0.5 * min(W, H) / np.tan(np.radians(fov) / 2)
+    K = np.array([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]])
+    pos = camera_position(az, el, dist)
+    to = -pos / np.linalg.norm(pos)
+    if heading is None:
+        fwd = to
+    else:
+        h = np.arctan2(to[2], to[0]) + heading
+        fwd = np.array([np.cos(h), 0.0, np.sin(h)])
+    right = np.cross(fwd, [0, 1.0, 0])
+    right /= np.linalg.norm(right)
+    R = np.stack([right, np.cross(fwd, right), fwd])
+    w2c = np.eye(4)
+    w2c[:3, :3], w2c[:3, 3] = R, -R @ pos
+    return CameraRing(K=K, w2c=w2c[None], width=W, height=H, azimuth=np.array([az]),
+                      elevation=np.array([el]), distance=dist, near=0.01 * dist)
+
+
+def test_centre_on_axis_undoes_a_turned_camera(car, runtime):
+    """A vehicle seen near the image corner by a level camera (the vehicle below the horizon and
+    to the side), centred with the true field of view, has the outline the look-at camera of the
+    renders sees (compared in the crop frame)."""
+    from ucad_cl.features import crop_square
+
+    W, H, fov, dist = 320, 240, 50.0, 3.0
+    turned = render_views(car, _level_camera(60.0, 14.0, dist, fov, W, H, 0.3))
+    straight = render_views(car, _level_camera(60.0, 14.0, dist, fov, W, H, None))
+    m_turned = np.isfinite(turned.depth[0])
+    m_straight = np.isfinite(straight.depth[0])
+    c = fg.centre_on_axis(np.zeros((H, W, 3), np.uint8), m_turned, fov)
+    # the turn found is the one applied (box centre vs projected centre: within a few pixels)
+    assert c.R.shape == (3, 3) and np.allclose(c.R @ c.R.T, np.eye(3), atol=1e-12)
+    a = crop_square(np.zeros((1,) + c.mask.shape + (3,), np.uint8), c.mask[None], 64)[1][0]
+    b = crop_square(np.zeros((1, H, W, 3), np.uint8), m_straight[None], 64)[1][0]
+    c0 = crop_square(np.zeros((1, H, W, 3), np.uint8), m_turned[None], 64)[1][0]
+
+    def iou(x, y):
+        return np.minimum(x, y).sum() / np.maximum(x, y).sum()
+
+    assert iou(a, b) > 0.95, iou(a, b)
+    assert iou(a, b) > iou(c0, b) + 0.02                      # the turn mattered
+
+
+def test_axis_turn_puts_the_point_on_the_axis():
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    for pt in ((10.0, 20.0), (300.0, 200.0), (160.0, 120.0)):
+        R = fg.axis_turn(K, pt)
+        ray = np.linalg.solve(K, [pt[0], pt[1], 1.0])
+        r = R @ ray
+        assert abs(r[0]) < 1e-12 and abs(r[1]) < 1e-12 and r[2] > 0
+        assert np.allclose(R @ R.T, np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
+        assert abs(R[0, 1]) < 1e-12            # yaw, then pitch: the new x axis stays level

@@ -1,0 +1,256 @@
+"""Appearance-invariant pose cues: how well a rendered view explains the object in a photo.
+
+``view_cues(views, images, extractor)`` describes rendered views, ``query_cues(image, mask,
+extractor)`` a reference photo whose background was replaced by the renders' (see
+``ucad_cl.foreground``), and ``cue_distances(query, views)`` compares them, one distance per cue
+and view, 0 = perfect agreement. Everything is computed in the square crop frame of
+``ucad_cl.features`` (the mask's box, padded, resized to ``size`` x ``size``), so a render and a
+photo are compared at the same scale and position whatever their image size.
+
+Cues (all in [0, ~1], lower is better):
+
+* ``hog``: squared L2 distance between the HOG rows of the composited photo and of the render
+  (``ucad_cl.features``; max-channel gradients, unsigned orientations: a repainted car keeps its
+  edges' orientations). Halved, so it lies in [0, 2].
+* ``silhouette``: 1 - soft IoU of the two masks in the crop frame (area-resized masks in [0, 1];
+  IoU = sum(min) / sum(max)). Colour-invariant; cannot tell a view from its front/back twin
+  (azimuth a and 180 - a have the same outline in orthographic projection).
+* ``chamfer``: symmetric truncated edge chamfer: the mean distance (crop pixels, capped at
+  ``TAU``) from each photo edge pixel to the nearest render edge pixel and from each render edge
+  pixel to the nearest photo edge pixel, averaged and divided by ``TAU``. Photo edges: OpenCV
+  Canny of the composited crop (thresholds ``CANNY``, L2 gradient); render edges: the geometric
+  and material discontinuities of the rendered maps (``map_edges``): silhouette, depth jumps,
+  creases (face normals more than ``CREASE_DEG`` apart) and material boundaries. Distances by
+  ``cv2.distanceTransform`` (exact Euclidean, DIST_MASK_PRECISE). An image without edges is at
+  distance 1 from everything.
+* ``region``: how much of the photo's colour variance the render's regions leave unexplained:
+  the crop is partitioned by the render's material ids (background one more region) and the
+  score is the within-region sum of squared colour deviations over the total sum of squared
+  deviations. A repainted car has one colour per part, so the right view's regions are
+  near-uniform whatever the colours.
+
+``combine(distances, weights)`` is the weighted sum. Ties are not broken here: pose search orders
+equal scores by view index.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2  # noqa: TID253  # OpenCV throughout (Canny, distance transforms)
+import numpy as np
+
+from .artifacts import BACKGROUND_TRI, Mesh, ViewSet
+from .features import FeatureExtractor, crop_window, square_windows, unit_rows
+from .shade import face_normals
+
+CUES = ("hog", "silhouette", "chamfer", "region")
+SIZE = 64               # crop side of the cue maps (pixels)
+TAU = 6.0               # chamfer distance cap (crop pixels)
+CANNY = (60, 120)       # photo edge thresholds (cv2.Canny, L2 gradient)
+CREASE_DEG = 35.0       # face normals further apart than this make a render edge
+DEPTH_JUMP = 0.03       # depth step (canonical units, bbox diagonal 1) that makes a render edge
+PAD = 0.1               # crop padding (the features' crop rule)
+
+
+@dataclass
+class Cues:
+    """Cue maps of B images in the crop frame (B = 1 for a photo).
+
+    hog: (B, D) float32 rows of the extractor. sil: (B, S, S) float32 mask coverage in [0, 1].
+    edges: (B, S, S) bool. dist: (B, S, S) float32 distance to the nearest edge pixel, capped at
+    TAU. labels: (B, S, S) int32 region ids (0 = background; renders only, else None). colours:
+    (B, S, S, 3) float32 RGB (photos only, else None). sides: (B,) longer side of the object box
+    in pixels, over the narrower image side. offsets: (B, 2) where the centre of the object's
+    box lies, (x, y) from the principal point over the focal length (renders only, else None).
+    """
+
+    hog: np.ndarray
+    sil: np.ndarray
+    edges: np.ndarray
+    dist: np.ndarray
+    sides: np.ndarray
+    labels: np.ndarray | None = None
+    colours: np.ndarray | None = None
+    offsets: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.sil.shape[0])
+
+
+def view_cues(mesh: Mesh, views: ViewSet, images: np.ndarray, extractor: FeatureExtractor,
+              size: int = SIZE, normals: np.ndarray | None = None) -> Cues:
+    """Cues of shaded renders ``images`` (V, H, W, 3) uint8 of ``views`` (rendered from
+    ``mesh``; ``normals``: its ``shade.face_normals`` when the caller has them).
+
+    The silhouette is area-resized into the crop frame; triangle ids, material ids and depth are
+    sampled there at the nearest pixel (the source pixel under each crop pixel's centre, indices
+    clamped to the image), and the render edges (``map_edges``) found on those samples."""
+    if normals is None:
+        normals = face_normals(mesh)
+    masks = np.isfinite(views.depth)
+    windows = square_windows(masks, PAD)
+    V, H, W = masks.shape
+    sil = np.empty((V, size, size), np.float32)
+    rows = np.empty((V, size, 1), np.int64)
+    cols = np.empty((V, 1, size), np.int64)
+    for v, (top, left, side) in enumerate(windows):
+        sil[v] = crop_window(masks[v].astype(np.float32), windows[v], size)
+        at = np.floor((np.arange(size) + 0.5) * (side / size)).astype(np.int64)
+        rows[v, :, 0] = np.clip(top + at, 0, H - 1)
+        cols[v, 0, :] = np.clip(left + at, 0, W - 1)
+    vi = np.arange(V)[:, None, None]
+    tri = np.asarray(views.tri_id)[vi, rows, cols]
+    mat = np.asarray(views.mat_id)[vi, rows, cols]
+    depth = np.asarray(views.depth)[vi, rows, cols]
+    e = map_edges(tri, mat, depth, normals)
+    hog = extractor.extract(images, masks).feats
+    sides = np.array([_side(m) for m in masks]) / min(H, W)
+    K = views.cameras.K
+    offsets = np.array([[(t[1] + t[3]) / 2.0, (t[0] + t[2]) / 2.0] for t in map(_box, masks)])
+    offsets = (offsets - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+    return Cues(hog=hog, sil=sil, edges=e, dist=_distances(e), sides=sides,
+                labels=mat.astype(np.int32), offsets=offsets)
+
+
+def query_cues(image: np.ndarray, mask: np.ndarray, extractor: FeatureExtractor,
+               size: int = SIZE, frame: np.ndarray | None = None) -> Cues:
+    """Cues of one photo ``image`` (H, W, 3) uint8 (background already replaced) with its
+    object ``mask`` (H, W) bool; the crop window is the mask's (``frame``'s, another (H, W)
+    bool mask, when given: e.g. a detector's box when the mask is only an estimate)."""
+    frame = mask if frame is None else frame
+    window = square_windows(frame[None], PAD)[0]
+    crop = crop_window(image, window, size)
+    sil = crop_window(mask.astype(np.float32), window, size)
+    edges = cv2.Canny(crop, CANNY[0], CANNY[1], L2gradient=True) > 0
+    hog = extractor.extract(image[None], frame[None]).feats
+    return Cues(hog=hog, sil=sil[None], edges=edges[None], dist=_distances(edges[None]),
+                sides=np.array([_side(frame) / min(frame.shape)]),
+                colours=crop.astype(np.float32)[None])
+
+
+def cue_distances(query: Cues, views: Cues, names=CUES) -> dict[str, np.ndarray]:
+    """{cue: (V,) float64} distances of the photo ``query`` to every view (see module doc), for
+    the cues in ``names`` (default all; pose search asks only for the cues it weighs)."""
+    out = {}
+    if "hog" in names:
+        out["hog"] = 0.5 * hog_distance(query.hog[0], views.hog)
+    if "silhouette" in names:
+        q = query.sil[0].astype(np.float64).ravel()
+        s = views.sil.reshape(len(views), -1).astype(np.float64)
+        inter = np.minimum(s, q).sum(1)
+        union = np.maximum(s, q).sum(1)
+        out["silhouette"] = 1.0 - np.divide(inter, union, out=np.zeros_like(inter),
+                                            where=union > 0)
+    if "chamfer" in names:
+        out["chamfer"] = _chamfer(query, views)
+    if "region" in names:
+        out["region"] = _region(query, views)
+    return out
+
+
+def combine(distances: dict[str, np.ndarray], weights: dict[str, float]) -> np.ndarray:
+    """Weighted sum of the cue distances (cues with weight 0 or absent are skipped)."""
+    total = None
+    for name in CUES:
+        w = float(weights.get(name, 0.0))
+        if w:
+            total = w * distances[name] if total is None else total + w * distances[name]
+    if total is None:
+        raise ValueError(f"no cue has a non-zero weight in {weights!r}")
+    return total
+
+
+# ----------------------------------------------------------------------------- render edges
+
+def map_edges(tri: np.ndarray, mat: np.ndarray, depth: np.ndarray,
+              normals: np.ndarray) -> np.ndarray:
+    """(V, H, W) bool geometric and material edges of rendered maps (triangle ids, material ids,
+    depth; ``normals`` (F, 3) the mesh's face normals): a pixel is an edge when a 4-neighbour
+    (right or below; both pixels are marked) differs in coverage (silhouette), in material id,
+    in depth by more than DEPTH_JUMP, or shows another face whose normal is more than CREASE_DEG
+    away (two-sided faces: normals compared up to sign)."""
+    normals = np.asarray(normals, np.float32)
+    fg = tri != BACKGROUND_TRI
+    cos = np.float32(np.cos(np.radians(CREASE_DEG)))
+    out = np.zeros(tri.shape, bool)
+    for axis in (1, 2):
+        a = [slice(None)] * 3
+        b = [slice(None)] * 3
+        a[axis], b[axis] = slice(None, -1), slice(1, None)
+        a, b = tuple(a), tuple(b)
+        diff = (fg[a] != fg[b]) | (mat[a] != mat[b])
+        # pairs inside one material that show two faces: a depth jump or a crease
+        two = np.nonzero(fg[a] & fg[b] & (tri[a] != tri[b]) & ~diff)
+        ta, tb = tri[a][two].astype(np.int64), tri[b][two].astype(np.int64)
+        jump = np.abs(depth[a][two] - depth[b][two]) > DEPTH_JUMP
+        jump |= np.abs(np.einsum("nk,nk->n", normals[ta], normals[tb])) < cos
+        diff[tuple(i[jump] for i in two)] = True
+        out[a] |= diff
+        out[b] |= diff
+    return out
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(y0, x0, y1, x1), y1/x1 exclusive, of a non-empty mask."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return int(rows[0]), int(cols[0]), int(rows[-1]) + 1, int(cols[-1]) + 1
+
+
+def _side(mask: np.ndarray) -> float:
+    y0, x0, y1, x1 = _box(mask)
+    return float(max(y1 - y0, x1 - x0))
+
+
+def _distances(edges: np.ndarray) -> np.ndarray:
+    """(B, S, S) float32 Euclidean distance to the nearest edge pixel, capped at TAU (TAU
+    everywhere for an image without edges)."""
+    out = np.full(edges.shape, TAU, np.float32)
+    for b in range(edges.shape[0]):
+        if edges[b].any():
+            d = cv2.distanceTransform((~edges[b]).astype(np.uint8), cv2.DIST_L2,
+                                      cv2.DIST_MASK_PRECISE)
+            out[b] = np.minimum(d, TAU)
+    return out
+
+
+def hog_distance(q: np.ndarray, db: np.ndarray) -> np.ndarray:
+    """(N,) float64 squared L2 distance of the unit row of ``q`` (D,) to each unit row of ``db``
+    (zero rows stay zero: distance 1 to any unit row)."""
+    qn, q_nz = unit_rows(np.asarray(q)[None])
+    dn, d_nz = unit_rows(db)
+    return q_nz[0] + d_nz - 2.0 * (dn @ qn[0])
+
+
+def _chamfer(query: Cues, views: Cues) -> np.ndarray:
+    qe = query.edges[0].ravel()
+    ve = views.edges.reshape(len(views), -1)
+    n_q = int(qe.sum())
+    n_v = ve.sum(1)
+    # photo edges -> nearest render edge; render edges -> nearest photo edge
+    a = views.dist.reshape(len(views), -1)[:, qe].astype(np.float64).sum(1) / max(n_q, 1)
+    b = (ve @ query.dist[0].ravel().astype(np.float64)) / np.maximum(n_v, 1)
+    a = np.where(n_q > 0, a, TAU)
+    b = np.where(n_v > 0, b, TAU)
+    return (a + b) / (2.0 * TAU)
+
+
+def _region(query: Cues, views: Cues) -> np.ndarray:
+    c = query.colours[0].reshape(-1, 3).astype(np.float64)
+    total = float(((c - c.mean(0)) ** 2).sum())
+    if total <= 0:
+        return np.zeros(len(views))
+    V = len(views)
+    lab = views.labels.reshape(V, -1).astype(np.int64)
+    n_lab = int(lab.max()) + 1
+    idx = (lab + n_lab * np.arange(V)[:, None]).ravel()
+    count = np.bincount(idx, minlength=V * n_lab).reshape(V, n_lab)
+    explained = np.zeros(V)
+    for k in range(3):
+        ch = np.tile(c[:, k], V)
+        s = np.bincount(idx, weights=ch, minlength=V * n_lab).reshape(V, n_lab)
+        explained += np.divide(s * s, count, out=np.zeros_like(s), where=count > 0).sum(1)
+    sq = float((c * c).sum())
+    return np.clip((sq - explained) / total, 0.0, None)

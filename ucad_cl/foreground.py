@@ -1,0 +1,293 @@
+"""The object in a reference photo: its mask from a given mask or a box, and the photo with the
+background replaced by the renders' background.
+
+``object_mask(image, box=..., mask=...)`` is the query-side step of pose search
+(``ucad_cl.pose``): renders of a mesh have a flat background (``RENDER_BACKGROUND``), a photo has
+a street behind the car, so pose cues are computed on ``composite(image, mask)``: the object's
+pixels over the renders' background, exactly as the renders have it.
+
+* With a mask, it is the object (``source='mask'``).
+* With a box only, the foreground inside it is estimated with OpenCV's GrabCut
+  (``grabcut_box``), seeded by the box: the box grown by ``GROW`` of its size on every side is
+  "probably background" around a "probably foreground" box, everything farther out is
+  background (a detector's box may cut a few pixels of the car). GrabCut runs on the region
+  reduced to at most ``GRABCUT_SIDE`` pixels (speed; the mask is scaled back with nearest
+  neighbour). ``kept`` reports the share of the box's pixels it kept. When it keeps less than
+  ``MIN_KEPT`` of the box (it lost the object in clutter of the object's colours), the whole box
+  is used instead (``source='box'``).
+* ``refine_with_silhouette`` reruns GrabCut seeded by a render's silhouette placed over the
+  object (pose search does this with its best candidate): "probably foreground" inside the
+  silhouette, "probably background" in a band around it, background beyond.
+
+Determinism: GrabCut initialises its colour models with k-means seeded from OpenCV's global
+random generator; it is reseeded (``cv2.setRNGSeed(0)``) before every call, so the same input
+gives the same mask.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2  # noqa: TID253  # OpenCV throughout (GrabCut, warps)
+import numpy as np
+
+RENDER_BACKGROUND = (128, 128, 128)     # the flat background of the renders pose search compares
+GROW = 0.1              # box margin treated as "probably background" (fraction of the box side)
+GRABCUT_SIDE = 96       # GrabCut runs on the region reduced to this longer side (pixels)
+GRABCUT_ITERS = 5
+MIN_KEPT = 0.15         # below this share of the box, GrabCut's answer is not used
+MIN_PIXELS = 8          # objects with fewer mask pixels are refused
+
+
+@dataclass
+class ObjectMask:
+    """The object in a reference image.
+
+    mask: (H, W) bool. source: 'mask' (given), 'grabcut' (estimated inside the box), 'box' (the
+    whole box: GrabCut kept less than MIN_KEPT). box: the integer pixel box (x0, y0, x1, y1,
+    x1/y1 exclusive) when one was given, else the mask's box. kept: share of the box's pixels
+    in the mask (1.0 for a given mask).
+    """
+
+    mask: np.ndarray
+    source: str
+    box: tuple[int, int, int, int]
+    kept: float = 1.0
+
+
+def object_mask(image: np.ndarray, *, box=None, mask=None, grabcut: bool = True) -> ObjectMask:
+    """The object of ``image`` ((H, W, 3) uint8 RGB) given by exactly one of ``box`` (x0, y0,
+    x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W), non-zero = object). With a box and
+    ``grabcut=False`` the object is the whole box. ValueError naming the problem for a bad
+    image, an empty or tiny mask or box, or both/neither given."""
+    image = check_image(image)
+    if (box is None) == (mask is None):
+        raise ValueError("give exactly one of box=(x0, y0, x1, y1) or mask=(H, W) bool")
+    H, W = image.shape[:2]
+    if mask is not None:
+        m = np.asarray(mask)
+        if m.shape != (H, W):
+            raise ValueError(f"mask shape {m.shape} differs from the image's {(H, W)}")
+        m = m.astype(bool) if m.dtype != np.bool_ else m
+        n = int(m.sum())
+        if n == 0:
+            raise ValueError("mask is empty: the reference image has no object to match")
+        if n < MIN_PIXELS:
+            raise ValueError(f"mask has {n} pixel(s), fewer than {MIN_PIXELS}: too small to "
+                             "match a pose")
+        return ObjectMask(mask=m, source="mask", box=mask_box(m), kept=1.0)
+    b = pixel_box((H, W), box)
+    x0, y0, x1, y1 = b
+    if (x1 - x0) * (y1 - y0) < MIN_PIXELS or min(x1 - x0, y1 - y0) < 2:
+        raise ValueError(f"box {tuple(box)} covers {x1 - x0}x{y1 - y0} pixels of the {W}x{H} "
+                         f"image: too small to match a pose (at least {MIN_PIXELS} pixels, "
+                         "2 per side)")
+    whole = np.zeros((H, W), bool)
+    whole[y0:y1, x0:x1] = True
+    if not grabcut:
+        return ObjectMask(mask=whole, source="box", box=b, kept=1.0)
+    fg = grabcut_box(image, b)
+    kept = float(fg[y0:y1, x0:x1].mean())
+    if kept < MIN_KEPT:
+        return ObjectMask(mask=whole, source="box", box=b, kept=kept)
+    return ObjectMask(mask=fg, source="grabcut", box=b, kept=kept)
+
+
+def composite(image: np.ndarray, mask: np.ndarray,
+              background=RENDER_BACKGROUND) -> np.ndarray:
+    """(H, W, 3) uint8: ``image`` inside ``mask``, ``background`` (RGB) outside."""
+    out = np.empty_like(np.asarray(image))
+    out[...] = np.asarray(background, np.uint8)
+    np.copyto(out, image, where=np.asarray(mask, bool)[..., None])
+    return out
+
+
+def check_image(image) -> np.ndarray:
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"reference image must be (H, W, 3) uint8 RGB, got {image.shape} "
+                         f"{image.dtype}")
+    if min(image.shape[:2]) < 1:
+        raise ValueError(f"reference image is empty ({image.shape[1]}x{image.shape[0]})")
+    return image
+
+
+def pixel_box(shape: tuple[int, int], box) -> tuple[int, int, int, int]:
+    """Integer (x0, y0, x1, y1) of a pixel box (coordinates rounded, clipped to the image);
+    ValueError when it is malformed or empty inside the image."""
+    H, W = shape
+    try:
+        c = [float(v) for v in box]
+    except (TypeError, ValueError):
+        raise ValueError(f"box must be 4 numbers (x0, y0, x1, y1), got {box!r}") from None
+    if len(c) != 4 or not all(np.isfinite(c)):
+        raise ValueError(f"box must be 4 finite numbers (x0, y0, x1, y1), got {box!r}")
+    x0, y0, x1, y1 = (int(round(v)) for v in c)
+    x0, x1 = max(x0, 0), min(x1, W)
+    y0, y1 = max(y0, 0), min(y1, H)
+    if x1 <= x0 or y1 <= y0:
+        raise ValueError(f"box {tuple(box)} is empty inside the {W}x{H} image")
+    return x0, y0, x1, y1
+
+
+def mask_box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1), x1/y1 exclusive, of a non-empty (H, W) mask."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+
+
+# ----------------------------------------------------------------------------- GrabCut
+
+def grabcut_box(image: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+    """(H, W) bool foreground estimated by GrabCut inside the integer pixel ``box``."""
+    x0, y0, x1, y1 = box
+    g = GROW * max(x1 - x0, y1 - y0)
+    seeds = _Seeds(image.shape[:2], (x0 - 2 * g, y0 - 2 * g, x1 + 2 * g, y1 + 2 * g))
+    seeds.fill((x0 - g, y0 - g, x1 + g, y1 + g), cv2.GC_PR_BGD)
+    seeds.fill((x0, y0, x1, y1), cv2.GC_PR_FGD)
+    return seeds.run(image)
+
+
+def refine_with_silhouette(image: np.ndarray, silhouette: np.ndarray,
+                           band: float = 0.06) -> np.ndarray:
+    """(H, W) bool foreground from GrabCut seeded by ``silhouette`` ((H, W) bool, a render's
+    mask placed over the object): "probably foreground" inside it, "probably background" in a
+    band of ``band`` x its box side around it, background beyond."""
+    x0, y0, x1, y1 = mask_box(silhouette)
+    g = max(band * max(x1 - x0, y1 - y0), 1.0)
+    seeds = _Seeds(image.shape[:2], (x0 - 2 * g, y0 - 2 * g, x1 + 2 * g, y1 + 2 * g))
+    k = 2 * int(np.ceil(g * seeds.scale)) + 1
+    sil = seeds.crop(silhouette.astype(np.uint8))
+    near = cv2.dilate(sil, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+    seeds.labels[near] = cv2.GC_PR_BGD
+    seeds.labels[sil > 0] = cv2.GC_PR_FGD
+    return seeds.run(image)
+
+
+class _Seeds:
+    """GrabCut labels of a region of the image reduced to at most GRABCUT_SIDE pixels."""
+
+    def __init__(self, shape, region):
+        H, W = shape
+        self.shape = shape
+        rx0, ry0 = max(int(np.floor(region[0])), 0), max(int(np.floor(region[1])), 0)
+        rx1, ry1 = min(int(np.ceil(region[2])), W), min(int(np.ceil(region[3])), H)
+        self.region = (rx0, ry0, rx1, ry1)
+        self.scale = min(1.0, GRABCUT_SIDE / max(rx1 - rx0, ry1 - ry0))
+        self.size = (max(int(round((rx1 - rx0) * self.scale)), 1),
+                     max(int(round((ry1 - ry0) * self.scale)), 1))
+        self.labels = np.full(self.size[::-1], cv2.GC_BGD, np.uint8)
+
+    def fill(self, rect, label):
+        rx0, ry0 = self.region[:2]
+        s = self.scale
+        c0 = max(int(np.floor((rect[0] - rx0) * s)), 0)
+        r0 = max(int(np.floor((rect[1] - ry0) * s)), 0)
+        c1 = int(np.ceil((rect[2] - rx0) * s))
+        r1 = int(np.ceil((rect[3] - ry0) * s))
+        self.labels[r0:r1, c0:c1] = label
+
+    def crop(self, img):
+        rx0, ry0, rx1, ry1 = self.region
+        return cv2.resize(img[ry0:ry1, rx0:rx1], self.size, interpolation=cv2.INTER_NEAREST)
+
+    def run(self, image) -> np.ndarray:
+        rx0, ry0, rx1, ry1 = self.region
+        out = np.zeros(self.shape, bool)
+        lab = self.labels
+        fg_seed = (lab == cv2.GC_PR_FGD) | (lab == cv2.GC_FGD)
+        bg_seed = (lab == cv2.GC_PR_BGD) | (lab == cv2.GC_BGD)
+        if not fg_seed.any():
+            return out
+        if not bg_seed.any():                   # the object fills the image: nothing to cut
+            out[ry0:ry1, rx0:rx1] = cv2.resize(fg_seed.astype(np.uint8), (rx1 - rx0, ry1 - ry0),
+                                               interpolation=cv2.INTER_NEAREST) > 0
+            return out
+        small = cv2.resize(np.ascontiguousarray(image[ry0:ry1, rx0:rx1]), self.size,
+                           interpolation=cv2.INTER_AREA)
+        bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+        cv2.setRNGSeed(0)
+        try:
+            cv2.grabCut(small, lab, None, bgd, fgd, GRABCUT_ITERS, cv2.GC_INIT_WITH_MASK)
+        except cv2.error:                       # too few samples for a colour model
+            return out
+        fg = ((lab == cv2.GC_FGD) | (lab == cv2.GC_PR_FGD)).astype(np.uint8)
+        out[ry0:ry1, rx0:rx1] = cv2.resize(fg, (rx1 - rx0, ry1 - ry0),
+                                           interpolation=cv2.INTER_NEAREST) > 0
+        return out
+
+
+# ----------------------------------------------------------------------------- centring
+
+@dataclass
+class CentredPhoto:
+    """A reference photo turned (virtually) so that its object lies on the optical axis.
+
+    image: (h, w, 3) uint8, mask: (h, w) bool: what a camera with the photo's centre and focal
+    length ``f`` (pixels), turned by ``R`` (3x3, photo camera -> centred camera frame), sees
+    around the object. ``K``: the photo's assumed intrinsics (3x3).
+    """
+
+    image: np.ndarray
+    mask: np.ndarray
+    R: np.ndarray
+    K: np.ndarray
+    f: float
+    frame: np.ndarray | None = None
+
+
+def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
+                   frame: np.ndarray | None = None) -> CentredPhoto:
+    """Warp ``image``/``mask`` so that the centre of the mask's box (of ``frame``'s box when
+    given: another (H, W) bool mask, e.g. the detector's box, warped alike into
+    ``CentredPhoto.frame``) is on the optical axis.
+
+    A vehicle seen away from the image centre is seen obliquely by the image plane: its image is
+    that of a camera looking at it, warped by the homography ``K R^T K^-1`` of the camera's turn
+    ``R``. Renders always look at the vehicle's centre, so the photo is warped back by
+    ``K R K^-1``. The photo's intrinsics are not known: ``K`` assumes a field of view of
+    ``fov_deg`` over the narrower image side and the principal point at the image centre (an
+    error there only leaves part of the obliquity). The turn is a yaw about the camera's y axis
+    then a pitch about the new x axis (an upright camera stays upright). The output is the
+    warped box grown by 25 % on each side (bilinear image, nearest-neighbour masks, edge pixels
+    repeated)."""
+    H, W = mask.shape
+    f = 0.5 * min(H, W) / np.tan(np.radians(fov_deg) / 2.0)
+    K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+    x0, y0, x1, y1 = mask_box(mask if frame is None else frame)
+    R = axis_turn(K, ((x0 + x1) / 2.0, (y0 + y1) / 2.0))
+    Hm = K @ R @ np.linalg.inv(K)
+    corners = np.array([[x0, y0, 1.0], [x1, y0, 1.0], [x0, y1, 1.0], [x1, y1, 1.0]]) @ Hm.T
+    corners = corners[:, :2] / corners[:, 2:]
+    lo, hi = corners.min(0), corners.max(0)
+    g = 0.25 * (hi - lo).max()
+    lo, hi = np.floor(lo - g), np.ceil(hi + g)
+    w, h = int(hi[0] - lo[0]), int(hi[1] - lo[1])
+    T = np.array([[1.0, 0.0, -lo[0]], [0.0, 1.0, -lo[1]], [0.0, 0.0, 1.0]])
+    M = T @ Hm
+    out = cv2.warpPerspective(image, M, (w, h), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE)
+
+    def warp(a):
+        return cv2.warpPerspective(a.view(np.uint8), M, (w, h), flags=cv2.INTER_NEAREST) > 0
+
+    m = warp(mask)
+    fr = warp(frame) if frame is not None else None
+    if not m.any() or (fr is not None and not fr.any()):   # degenerate: keep the photo
+        return CentredPhoto(image=image, mask=mask, R=np.eye(3), K=K, f=float(f), frame=frame)
+    return CentredPhoto(image=out, mask=m, R=R, K=K, f=float(f), frame=fr)
+
+
+def axis_turn(K: np.ndarray, point) -> np.ndarray:
+    """(3, 3) rotation R (camera -> turned camera) that brings the ray through image ``point``
+    (x, y pixels) of a camera with intrinsics ``K`` onto the optical axis: a yaw about the
+    camera's y axis, then a pitch about the new x axis."""
+    ray = np.linalg.solve(K, np.array([point[0], point[1], 1.0]))
+    yaw = np.arctan2(ray[0], ray[2])
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    Ry = np.array([[cy, 0.0, -sy], [0.0, 1.0, 0.0], [sy, 0.0, cy]])
+    r = Ry @ ray
+    pitch = np.arctan2(r[1], r[2])
+    cp, sp = np.cos(pitch), np.sin(pitch)
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
+    return Rx @ Ry
