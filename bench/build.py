@@ -43,6 +43,19 @@ def tree_rss_mb(pid: int) -> float:
     return total / 2**20
 
 
+def per_mesh_ms(catalog: Path, stage: str) -> tuple[float, float, int]:
+    """(median, 90th percentile, count) of a stage's recorded seconds per mesh, in ms."""
+    import numpy as np
+
+    from ucad_catalog.reader import CatalogReader
+
+    with CatalogReader(catalog) as r:
+        t = [m.timings[stage] for m in r.meshes(state=None) if stage in (m.timings or {})]
+    if not t:
+        return float("nan"), float("nan"), 0
+    return 1000 * float(np.median(t)), 1000 * float(np.quantile(t, 0.9)), len(t)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--count", type=int, default=1000)
@@ -71,7 +84,7 @@ def main() -> None:
         label_row(lib, args)
     opts = BuildOptions(azimuth_step=args.azimuth_step, size=args.size,
                         segmenter=args.segmenter)
-    rows = []
+    rows, orient_ms = [], []
     for w in args.workers:
         cat = args.catalog / f"w{w}"
         shutil.rmtree(cat, ignore_errors=True)
@@ -99,12 +112,19 @@ def main() -> None:
         stage = {k: v / n for k, v in sorted(s.stage_seconds.items(), key=lambda kv: -kv[1])}
         print("  seconds per mesh by stage (summed over workers): "
               + ", ".join(f"{k} {v:.3f}" for k, v in stage.items()))
+        orient_ms.append(per_mesh_ms(cat, "orient"))
     print()
     print(f"{'workers':>7} {'meshes':>6} {'meshes/s':>9} {'peak tree MB':>12} "
           f"{'RSS@25%':>8} {'RSS@50%':>8} {'RSS@95%':>8} {'disk/mesh MB':>12}")
     for w, s, dpm, peak, r25, r50, r95 in rows:
         print(f"{w:>7} {s.processed:>6} {s.meshes_per_s:>9.2f} {peak:>12.0f} {r25:>8.0f} {r50:>8.0f} "
               f"{r95:>8.0f} {dpm / 2**20:>12.2f}")
+    print()
+    print("orientation stage (ucad_cl.orient, in the loader thread; wall ms per mesh as the "
+          "catalogue's timings record them)")
+    print(f"{'workers':>7} {'meshes':>6} {'median ms':>10} {'p90 ms':>8} {'triangles':>10}")
+    for (w, *_), (med, p90, k) in zip(rows, orient_ms):
+        print(f"{w:>7} {k:>6} {med:>10.1f} {p90:>8.1f} {args.triangles:>10}")
 
 
 def label_row(lib: Path, args) -> None:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
 import shutil
@@ -285,6 +286,15 @@ def test_demo_command_builds_and_shows_where_to_look(tmp_path, runtime, capsys):
     assert len(sheets) >= 4
     assert main(["status", "--catalog", str(tmp_path / "demo" / "catalog")]) == 0
     assert "accepted: 4" in capsys.readouterr().out
+    # every sheet shows its vehicle upright, the first view (azimuth 0) facing its front
+    from ucad_catalog.reader import CatalogReader
+    with CatalogReader(tmp_path / "demo" / "catalog") as r:
+        for m in r.meshes():
+            truth = json.loads(m.source.with_suffix(".json").read_text())["orientation"]
+            R = np.asarray(m.orientation["rotation"])
+            assert np.dot(R @ truth["up"], [0, 1, 0]) > math.cos(math.radians(10)), m.path
+            assert np.dot(R @ truth["front"], [1, 0, 0]) > math.cos(math.radians(15)), m.path
+            assert r.views(m.sha256)[0].azimuth == 0.0
 
 
 def test_bad_segmenter_specs_fail_before_any_work(library, tmp_path):

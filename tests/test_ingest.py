@@ -12,13 +12,20 @@ import numpy as np
 import pytest
 
 from ucad_cl import ingest
-from ucad_cl.ingest import IngestError, load_mesh, load_mesh_isolated
+from ucad_cl.ingest import IngestError, load_mesh_isolated
 from ucad_cl.artifacts import IngestReport
 
 from .conftest import VEHICLES
 
 MANIFEST = VEHICLES / "manifest.json"
 MODELS = json.loads(MANIFEST.read_text())["models"] if MANIFEST.exists() else []
+
+
+def load_mesh(path, **kw):
+    """Ingest in the file frame (orientation "file"): the tests here check ingest's own
+    normalisation contract; tests/test_orient.py checks the orientation stage on top of it."""
+    kw.setdefault("orientation", "file")
+    return ingest.load_mesh(path, **kw)
 
 
 def _vehicle(rel: str):
@@ -438,7 +445,7 @@ def _raising_loader(path, clean=True):
 def test_isolated_matches_in_process():
     """Same bits in a fresh interpreter (another str hash seed): no set/hash order leaks in."""
     path = _vehicle("openmaterial_truck/truck_example.gltf")
-    a, b = load_mesh_isolated(path, timeout=60), load_mesh(path)
+    a, b = load_mesh_isolated(path, timeout=60), ingest.load_mesh(path)
     for field in ("vertices", "faces", "face_material", "face_node", "file_to_norm"):
         assert getattr(a, field).tobytes() == getattr(b, field).tobytes(), field
     assert a.materials == b.materials and a.node_names == b.node_names

@@ -360,9 +360,8 @@ def test_show_prints_the_probability():
 
 def test_same_labels_in_all_24_axis_aligned_poses(tmp_path, runtime):
     """Acceptance: the same model in any of the 24 axis-aligned poses gets the same labels for
-    >= 99 % of its materials. Needs the orientation stage (issue 10) at load time: skipped
-    until ``ucad_cl.orient`` exists."""
-    pytest.importorskip("ucad_cl.orient")
+    >= 99 % of its materials (the orientation stage at load gives every pose one canonical
+    frame)."""
     import itertools
 
     from ucad_cl.classify import classify_parts

@@ -320,7 +320,9 @@ def test_real_vehicle_pose(vehicles_dir, runtime):
     path = vehicles_dir / "o3dv_car.glb"
     if not path.exists():
         pytest.skip(f"{path} not found")
-    mesh = load_mesh(path)
+    # the view (azimuth 61.7) was chosen in the file frame, where this car's nose is at +Z; in
+    # the canonical frame (nose +X) the same azimuth is another side, estimated 5.45 deg off
+    mesh = load_mesh(path, orientation="file")
     img, box, _, _ = _reference(mesh, {}, 61.7, 14.0, seed=2)
     best = estimate_pose(img, mesh, box=box, top=2).best
     assert az_diff(best.azimuth, 61.7) <= 5.0

@@ -107,7 +107,7 @@ def test_far_tiny_huge_models_normalise_and_render(runtime, tmp_path, offset, sc
     scene.add_geometry(tm, transform=T)
     path = tmp_path / "moved.glb"
     scene.export(path)
-    mesh = ingest.load_mesh(path)
+    mesh = ingest.load_mesh(path, orientation="file")       # the normalisation, not the frame
     assert np.allclose(mesh.vertices, base.vertices, atol=1e-6)
     ring = make_ring(azimuth_step=90, size=96)
     a = render_views(mesh, ring, runtime=runtime).mat_id > 0

@@ -262,13 +262,19 @@ def printable(text: str) -> str:
 
 
 def catalog_status(conn: sqlite3.Connection, root: Path) -> dict:
-    """Counts by state and by rejection reason, object totals, and the last run (one snapshot)."""
+    """Counts by state and by rejection reason, accepted meshes flagged by reason
+    (``uncertain_orientation``), object totals, and the last run (one snapshot)."""
     conn.execute("BEGIN")
     try:
         by_state = {"accepted": 0, "rejected": 0}
         by_state.update(dict(conn.execute("SELECT state, count(*) FROM meshes GROUP BY state")))
         by_reason = dict(conn.execute("SELECT reason, count(*) FROM meshes WHERE "
                                       "state='rejected' GROUP BY reason ORDER BY reason"))
+        # accepted meshes with a note: an orientation estimate under the confidence threshold
+        # (the record is canonical JSON, so the key and value are written without spaces)
+        flagged = {"uncertain_orientation": conn.execute(
+            "SELECT count(*) FROM meshes WHERE state='accepted' AND orientation IS NOT NULL "
+            "AND instr(orientation, '\"uncertain\":true') > 0").fetchone()[0]}
         n_obj, n_bytes = conn.execute("SELECT count(*), coalesce(sum(bytes), 0) FROM "
                                       "(SELECT DISTINCT sha256, bytes FROM artifacts)").fetchone()
         last = conn.execute("SELECT id, started, finished, engine, options_hash, counts, "
@@ -282,8 +288,8 @@ def catalog_status(conn: sqlite3.Connection, root: Path) -> dict:
         "meshes_per_s": last[6]}
     return {"root": str(root), "schema_version": SCHEMA_VERSION,
             "meshes": sum(by_state.values()), "by_state": by_state,
-            "by_reason": by_reason, "objects": n_obj, "object_bytes": n_bytes,
-            "runs": n_runs, "last_run": last_run}
+            "by_reason": by_reason, "flagged": flagged, "objects": n_obj,
+            "object_bytes": n_bytes, "runs": n_runs, "last_run": last_run}
 
 
 def remove_stale_exports(out: Path) -> None:

@@ -107,7 +107,8 @@ class CatalogEntry:
                                  else np.eye(4)),
                    materials=mats, views=views, artifacts=dict(artifacts or {}),
                    timings=dict(timings or {}),
-                   orientation=None if orientation is None else _plain(orientation))
+                   orientation=None if orientation is None else _plain(
+                       orientation.as_dict() if hasattr(orientation, "as_dict") else orientation))
 
     def validate(self) -> None:
         """Raise CatalogError naming the first problem (the entry's path is in the message)."""

@@ -47,9 +47,10 @@ from .views import CameraRing, ViewSet, nonzero_box
 
 FORMAT_VERSION = 2
 BACKGROUND = {"tri": np.uint32(0xFFFFFFFF), "mat": np.uint32(0), "Z": np.float32(np.inf)}
-CONVENTIONS = ("canonical frame: right-handed, +Y up, bbox centred, bbox diagonal 1; "
+CONVENTIONS = ("canonical frame: right-handed, +Y up, front +X, right side +Z, bbox centred "
+               "(z on the mirror plane when symmetric), bbox diagonal 1; "
                "camera: OpenCV (x right, y down, z forward), pixel (i,j) centre at (j+0.5,i+0.5); "
-               "azimuth 0 looks from +X, counter-clockwise seen from +Y; "
+               "azimuth 0 looks from +X (the front view), counter-clockwise seen from +Y; "
                "mat = material index + 1 (0 background), tri = face index (0xFFFFFFFF background), "
                "Z = linear camera depth (+inf background)")
 

@@ -2,14 +2,17 @@
 
 Conventions (written once, used everywhere; see docs/CONVENTIONS.md):
 
-* Canonical frame: right-handed, +Y up (glTF), model centred at its bounding-box centre and
-  scaled so that the bounding-box diagonal is 1. ``Mesh.file_to_norm`` maps homogeneous file
-  coordinates (after the scene graph is flattened) to it.
+* Canonical vehicle frame: right-handed, +Y up, the vehicle's front toward +X, its right side
+  toward +Z; bounding box centred in x and y (ground contact at y = -height / 2), centred in z
+  on the left/right mirror plane when the model is symmetric (on the box otherwise), scaled so
+  that the bounding-box diagonal is 1. ``Mesh.file_to_norm`` maps homogeneous file coordinates
+  (after the scene graph is flattened) to it, rotation included; ``Mesh.orientation`` says how
+  the rotation was found (``ucad_cl.orient``).
 * Camera: OpenCV style, x right, y down, z forward. Pixel (i, j) = (row, column) has its centre
   at image coordinates (j + 0.5, i + 0.5). ``K`` is the 3x3 intrinsic matrix, ``w2c`` the 4x4
   world(canonical)-to-camera matrix of each view.
-* Azimuth 0 looks from +X toward the origin; azimuth grows counter-clockwise seen from +Y
-  (from +X toward -Z). Elevation > 0 puts the camera above the model. Degrees.
+* Azimuth 0 looks from +X toward the origin (the front view); azimuth grows counter-clockwise
+  seen from +Y (from +X toward -Z). Elevation > 0 puts the camera above the model. Degrees.
 * View order: elevation-major, ``view = elevation_index * n_azimuths + azimuth_index``.
 * Ids: material id = material index + 1, 0 = background; triangle id = face index,
   0xFFFFFFFF = background. Depth is linear camera-space z (same unit as the canonical frame),
@@ -60,12 +63,56 @@ class IngestReport:
 
 
 @dataclass
+class Orientation:
+    """How a mesh was turned into the canonical vehicle frame (``ucad_cl.orient``).
+
+    rotation: (3, 3) float64, file-frame directions -> canonical directions (its rows are the
+    file-frame front, up and right directions); it is part of ``Mesh.file_to_norm``.
+    up_confidence / front_confidence: in [0, 1] (1 for an override, 0 for ``file``).
+    source: ``auto`` (estimated), ``file`` (the file's frame trusted, no rotation) or
+    ``override`` (given by the user). cues: ``{"up.NAME" | "front.NAME": score}``, each score
+    in [-1, 1], positive = the cue agrees with the decision. flags: from ``orient.FLAGS``
+    (``multiple_vehicles``, ``no_wheels``, ``front_ambiguous``, ``up_ambiguous``,
+    ``asymmetric``). symmetry: share of surface samples whose mirror image across the x-y
+    plane lands on the surface, in [0, 1]. mirror_z: z of that mirror plane in the canonical
+    frame (0 when the model was centred on it).
+    """
+
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    up_confidence: float = 0.0
+    front_confidence: float = 0.0
+    source: str = "file"
+    cues: dict = field(default_factory=dict)
+    flags: tuple = ()
+    symmetry: float = 0.0
+    mirror_z: float = 0.0
+
+    UNCERTAIN_BELOW = 0.5
+
+    @property
+    def uncertain(self) -> bool:
+        """An estimated orientation with a confidence under UNCERTAIN_BELOW."""
+        return self.source == "auto" and min(self.up_confidence,
+                                             self.front_confidence) < self.UNCERTAIN_BELOW
+
+    def as_dict(self) -> dict:
+        """Plain JSON-ready record (what the catalogue stores)."""
+        return {"rotation": np.asarray(self.rotation, np.float64).tolist(),
+                "up_confidence": float(self.up_confidence),
+                "front_confidence": float(self.front_confidence), "source": self.source,
+                "cues": {k: float(v) for k, v in sorted(self.cues.items())},
+                "flags": list(self.flags), "symmetry": float(self.symmetry),
+                "mirror_z": float(self.mirror_z), "uncertain": bool(self.uncertain)}
+
+
+@dataclass
 class Mesh:
     """A triangle mesh in the canonical frame with one material index per face.
 
     vertices: (N, 3) float64, canonical frame. faces: (F, 3) uint32. face_material: (F,) uint16
     index into ``materials``. face_node: (F,) int32 index into ``node_names`` (-1 unknown).
     file_to_norm: (4, 4) float64 homogeneous transform, file frame -> canonical frame.
+    orientation: how the canonical vehicle frame was found (None: not oriented yet).
     """
 
     path: str
@@ -78,6 +125,7 @@ class Mesh:
     face_node: np.ndarray | None = None
     node_names: list[str] = field(default_factory=list)
     report: IngestReport = field(default_factory=IngestReport)
+    orientation: Orientation | None = None
 
     @property
     def n_faces(self) -> int:

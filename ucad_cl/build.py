@@ -94,10 +94,21 @@ class BuildOptions:
     features: bool = True
     edges: bool = True
     max_input_triangles: int = Budgets.max_triangles   # ingest budget, before allocation
+    orientation: str = "auto"           # 'auto' | 'file' | 'UP,FRONT' (ucad_cl.orient)
+    orientation_overrides: tuple = ()   # ((path or sha256, 'UP,FRONT' | 'auto' | 'file'), ...)
+    reject_uncertain_orientation: bool = False   # reject instead of flag (uncertain_orientation)
+
+    def __post_init__(self):
+        from .orient import parse_mode
+
+        parse_mode(self.orientation)                      # a bad mode fails here
+        object.__setattr__(self, "orientation_overrides",
+                           tuple((str(k), str(v)) for k, v in self.orientation_overrides))
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["elevations"] = list(self.elevations)
+        d["orientation_overrides"] = [list(kv) for kv in self.orientation_overrides]
         return d
 
     def hash(self) -> str:
@@ -414,9 +425,11 @@ class Pipeline:
 
     def __init__(self, options: BuildOptions):
         from .cameras import make_ring
+        from .orient import OrientationOverrides
 
         self.options = options
         self.budgets = options.budgets()
+        self.overrides = OrientationOverrides(dict(options.orientation_overrides))
         self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
                               fov_deg=options.fov_deg, size=options.size)
         self.segmenter = make_segmenter(options.segmenter)
@@ -436,13 +449,18 @@ class Pipeline:
             return sha, rejected_entry(ref, sha, exc.reason, str(exc))
 
     def load(self, ref: MeshRef):
-        """Ingest (may raise IngestError or MemoryError). Returns (mesh, seconds)."""
+        """Ingest, then orient (may raise IngestError or MemoryError). Returns (mesh,
+        {stage: seconds})."""
         from .ingest import load_mesh
+        from .orient import orient_mesh
 
         t0 = time.perf_counter()
         _inject_fault(ref.path)
-        mesh = load_mesh(ref.path, budgets=self.budgets)
-        return mesh, time.perf_counter() - t0
+        mesh = load_mesh(ref.path, budgets=self.budgets, orientation=None)
+        t1 = time.perf_counter()
+        mode = self.overrides.mode_for(ref.path, mesh.sha256, self.options.orientation)
+        mesh = orient_mesh(mesh, mode)
+        return mesh, {"ingest": t1 - t0, "orient": time.perf_counter() - t1}
 
     def load_entry(self, ref: MeshRef, sha: str):
         """``load`` with every input fault turned into a rejected entry: (mesh, secs, None) or
@@ -460,8 +478,9 @@ class Pipeline:
             return None, 0.0, rejected_entry(ref, sha, "unreadable",
                                              f"{ref.path}: {describe_exception(exc)}")
 
-    def process(self, ref: MeshRef, mesh, load_seconds: float, staging: Path):
-        """Everything after ingest; returns a CatalogEntry (accepted or rejected)."""
+    def process(self, ref: MeshRef, mesh, load_seconds: float | dict, staging: Path):
+        """Everything after ingest; returns a CatalogEntry (accepted or rejected).
+        ``load_seconds``: the ingest seconds, or ``{stage: seconds}`` from ``load``."""
         from ucad_catalog.entry import CatalogEntry
         from ucad_catalog.exr import write_viewset_exr
 
@@ -469,7 +488,8 @@ class Pipeline:
         from .artifacts import Verdict
 
         o = self.options
-        timings = {"ingest": load_seconds}
+        timings = (dict(load_seconds) if isinstance(load_seconds, dict)
+                   else {"ingest": load_seconds})
         t = time.perf_counter()
         notes = "; ".join(mesh.report.notes)
 
@@ -486,6 +506,13 @@ class Pipeline:
                                              mtime=ref.mtime, verdict=verdict, mesh=mesh,
                                              timings=timings)
 
+        orient = mesh.orientation
+        if o.reject_uncertain_orientation and orient is not None and orient.uncertain:
+            return rejected(Verdict(False, "uncertain_orientation",
+                                    f"{ref.path}: orientation confidence up "
+                                    f"{orient.up_confidence:.2f}, front "
+                                    f"{orient.front_confidence:.2f} (flags: "
+                                    f"{', '.join(orient.flags) or 'none'})"))
         if o.triangle_budget and mesh.n_faces > o.triangle_budget:
             from .decimate import decimate
             mesh = decimate(mesh, o.triangle_budget)

@@ -33,15 +33,19 @@ Conventions and decisions (see also ``ucad_cl/artifacts.py``):
   Faces of a node whose transform mirrors (det < 0) get their winding flipped so that faces keep
   facing outward. ``face_node`` indexes ``node_names`` (trimesh's unique node names; a PLY, OFF or
   STL file has one node, ``geometry_0``: names never depend on the file's name).
-* **Up axis / units.** glTF is +Y up (spec). OBJ, PLY, OFF and STL carry no convention; we assume
-  +Y up as well and do not rotate them. The file frame is the flattened scene frame (file units).
+* **Up axis / units.** glTF is +Y up (spec); OBJ, PLY, OFF and STL carry no convention. The file
+  frame is the flattened scene frame (file units); which way is up and front is found by the
+  orientation stage (below), not assumed.
 * **Canonical frame.** ``c`` = centre of the axis-aligned bounding box of the returned vertices,
-  ``d`` = its diagonal length; ``canonical = (file - c) / d`` in float64, and
-  ``file_to_norm = [[I/d, -c/d], [0, 1]]``. A mesh whose extent is zero is rejected (``empty``);
-  one whose extent or ``file_to_norm`` overflows float64 (coordinates near 1e308, or a tiny model
-  far from the origin) is ``non_finite``. ``d`` is ``numpy.linalg.norm`` of the extent; only
-  when that under- or overflows (scales beyond 1e+-150) is it computed with the extent divided by
-  its largest component first.
+  ``d`` = its diagonal length; ``(file - c) / d`` in float64, then the orientation stage
+  (``ucad_cl.orient``, ``orientation=``: ``"auto"`` by default) turns it into the canonical
+  vehicle frame and folds its rotation and placement into ``file_to_norm``;
+  ``orientation="file"`` keeps ``file_to_norm = [[I/d, -c/d], [0, 1]]``. A mesh whose extent is
+  zero is rejected (``empty``); one whose extent or ``file_to_norm`` overflows float64
+  (coordinates near 1e308, or a tiny model far from the origin) is ``non_finite``. ``d`` is the
+  square root of the extent's squares summed smallest first (so a re-posed file, its axes
+  permuted or negated, gives the same bits); only when that under- or overflows (scales beyond
+  1e+-150) is it computed with the extent divided by its largest component first.
 * **Materials.** One material index per face, built per geometry (never via trimesh
   concatenate). Material identity = the file's material: for glTF the material index of the
   primitive (two glTF materials with the same name stay two materials), otherwise the material
@@ -148,8 +152,14 @@ class IngestError(ValueError):
 
 
 def load_mesh(path: str | os.PathLike, *, clean: bool = True,
-              budgets: Budgets | None = None) -> Mesh:
-    """Load a CAD file into a canonical-frame Mesh with one material index per face."""
+              budgets: Budgets | None = None, orientation="auto", overrides=None) -> Mesh:
+    """Load a CAD file into a canonical-frame Mesh with one material index per face.
+
+    orientation: ``"auto"`` (estimate the vehicle frame), ``"file"`` (trust the file's +Y up)
+    or ``"UP,FRONT"`` / ``(up, front)`` signed file axes (see ``ucad_cl.orient``); None skips
+    the stage (the bounding-box normalisation only; ``mesh.orientation`` stays None, for a
+    caller that orients it itself). overrides: an ``orient.OrientationOverrides`` whose entry
+    for this file (by path or sha256) replaces ``orientation``."""
     path = Path(path)
     budgets = budgets or Budgets()
     source = _read_source(path, budgets)
@@ -196,10 +206,17 @@ def load_mesh(path: str | os.PathLike, *, clean: bool = True,
         raise IngestError(path, "non_finite",
                           f"the canonical transform overflows float64 (extent {diag:.3g} at "
                           f"{np.abs(centre).max():.3g} from the origin)")
-    return Mesh(path=str(path), sha256=sha, vertices=(vertices - centre) / diag,
+    mesh = Mesh(path=str(path), sha256=sha, vertices=(vertices - centre) / diag,
                 faces=faces.astype(np.uint32), face_material=face_material.astype(np.uint16),
                 materials=materials, file_to_norm=file_to_norm,
                 face_node=face_node.astype(np.int32), node_names=node_names, report=report)
+    if orientation is None:
+        return mesh
+    from .orient import orient_mesh
+
+    if overrides is not None:
+        orientation = overrides.mode_for(path, sha, orientation)
+    return orient_mesh(mesh, orientation)
 
 
 def mesh_identity(path: str | os.PathLike, budgets: Budgets | None = None) -> str:
@@ -1024,10 +1041,10 @@ def _extent(path: Path, vertices: np.ndarray) -> tuple[np.ndarray, float]:
         centre = (lo + hi) / 2.0
         if not np.isfinite(centre).all():
             centre = lo / 2.0 + hi / 2.0
-        diag = float(np.linalg.norm(extent))
+        diag = _fixed_norm(extent)
         top = float(np.max(extent))
         if np.isfinite(top) and top > 0.0 and not (np.isfinite(diag) and diag > 0.0):
-            diag = top * float(np.linalg.norm(extent / top))
+            diag = top * _fixed_norm(extent / top)
     if not np.isfinite(extent).all() or not np.isfinite(diag):
         raise IngestError(path, "non_finite",
                           f"the model's extent overflows float64 (coordinates from "
@@ -1035,6 +1052,12 @@ def _extent(path: Path, vertices: np.ndarray) -> tuple[np.ndarray, float]:
     if diag <= 0.0:
         raise IngestError(path, "empty", f"mesh has zero extent (bbox diagonal {diag})")
     return centre, diag
+
+
+def _fixed_norm(v: np.ndarray) -> float:
+    """Euclidean length with the squares summed smallest first: the same bits for any order
+    or signs of the components (a re-posed file gives the same diagonal)."""
+    return float(np.sqrt(np.sort(v * v).sum()))
 
 
 # ----------------------------------------------------------------------------- cleaning

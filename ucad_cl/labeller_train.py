@@ -160,7 +160,7 @@ def load_real_models(folder: str | Path, *, skip=("ferrari_458.glb",)) -> list[R
     for m in manifest["models"]:
         if m["file"] in skip:
             continue
-        mesh = load_mesh(folder / m["file"])
+        mesh = load_mesh(folder / m["file"], orientation=None)    # the manifest orients it
         up, front = m.get("up") or "+Y", m.get("front")
         if front is None:
             front = "+X" if up[1] != "X" else "+Z"

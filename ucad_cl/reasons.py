@@ -77,6 +77,10 @@ CODES: dict[str, Code] = {
     "dominant_material": Code(REJECTION, False,
                               "one material covers --dominant-fraction or more of the visible "
                               "pixels"),
+    "uncertain_orientation": Code(REJECTION, False,
+                                  "the estimated orientation has an up or front confidence under "
+                                  "0.5 and --reject-uncertain-orientation was given (without it "
+                                  "the mesh is accepted and counted as flagged in `status`)"),
     # -- environment: never a verdict on a mesh
     "disk_full": Code(ENVIRONMENT, False,
                       "no space left (ENOSPC, EDQUOT) writing the catalogue or its staging "

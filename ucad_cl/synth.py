@@ -22,12 +22,17 @@ Frames and units:
 
 Messy traits (``MESSY_TRAITS``) imitate broken real libraries; ``write_library`` gives a share of
 the vehicles one each (and sometimes an extra pose trait), recorded in ``truth["messy"]``.
+Orientation cases (``make_vehicle(pose=...)``, ``POSES``: one of the 24 axis-aligned rotations,
+an arbitrary yaw, a tilt of up to 3 degrees) and body variants (``body=...``, ``BODIES``: a
+trailer, both ends alike, two vehicles side by side); ``truth["orientation"]`` always gives the
+file-frame up and front directions (and whether the body has a front).
 Determinism: everything derives from ``numpy.random.default_rng(seed)``; the same seed gives the
 same GLB bytes. Ties (majority part of a merged material) go to the part earlier in PART_NAMES.
 """
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import math
 import struct
@@ -53,6 +58,13 @@ MESSY_TRAITS: tuple[str, ...] = POSE_TRAITS + (
 REJECT_OF: dict[str, str] = {"single_material": "too_few_materials", "nan_vertex": "non_finite",
                              "empty_file": "empty", "truncated": "unreadable"}
 UNIT_SCALE: dict[str, float] = {"units_mm": 1000.0, "units_cm": 100.0, "units_km": 0.001}
+#: orientation cases (``make_vehicle(pose=...)``): one of the 24 axis-aligned rotations, an
+#: arbitrary yaw about the up axis, a small tilt (up to 3 degrees) then an arbitrary yaw
+POSES: tuple[str, ...] = ("axis", "yaw", "tilt")
+MAX_TILT_DEG = 3.0
+#: body variants (``make_vehicle(body=...)``): a box trailer behind the vehicle, a body whose
+#: two ends are mirror images (no front to find), two vehicles side by side in one file
+BODIES: tuple[str, ...] = ("trailer", "symmetric_ends", "two_vehicles")
 OFFSET = 1.0e5              # size of the 'offset' trait's translation, in file units
 MANY_MATERIALS = 2000       # about how many materials the 'many_materials' trait makes
 HUGE_TRIANGLES = 2_000_000  # default triangle count of the 'huge' trait
@@ -66,7 +78,8 @@ REALISM_TRAITS: tuple[str, ...] = (
 
 def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
                  target_triangles: int | None = None, messy: Sequence[str] = (),
-                 name: str | None = None, realism: Sequence[str] = ()) -> "SynthVehicle":
+                 name: str | None = None, realism: Sequence[str] = (),
+                 pose: str | None = None, body: str | None = None) -> "SynthVehicle":
     """Build one vehicle. kind: one of KINDS (random from the seed when None).
 
     detail: resolution factor (triangles grow ~detail**2; 1 gives ~20-35k triangles).
@@ -74,7 +87,14 @@ def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
     messy: traits from MESSY_TRAITS to apply to the file (see module docstring).
     realism: traits from REALISM_TRAITS (how real libraries assign materials; see
     ``apply_realism``), recorded in ``truth["realism"]``.
+    pose: one of POSES, the file's rotation (drawn from the seed), after the messy pose traits.
+    body: one of BODIES, a body variant. ``truth["orientation"]`` gives the file-frame up and
+    front directions in every case.
     """
+    if pose is not None and pose not in POSES:
+        raise ValueError(f"unknown pose {pose!r}; expected one of {POSES}")
+    if body is not None and body not in BODIES:
+        raise ValueError(f"unknown body variant {body!r}; expected one of {BODIES}")
     seed = int(seed)
     if seed < 0:
         raise ValueError(f"seed must be >= 0, got {seed}")
@@ -110,8 +130,10 @@ def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
             parts = build(res)
     realism = tuple(t for t in REALISM_TRAITS if t in realism)     # fixed application order
     parts = apply_realism(parts, realism, np.random.default_rng([seed, 3]))
+    if body is not None:
+        parts = _body_variant(parts, body, np.random.default_rng([seed, 5]))
     v = _finish(seed, kind, name or f"{kind}_{seed:08d}", parts, messy,
-                np.random.default_rng([seed, 2]))
+                np.random.default_rng([seed, 2]), pose, np.random.default_rng([seed, 4]), body)
     v.truth["realism"] = list(realism)
     return v
 
@@ -756,7 +778,9 @@ def _build_parts(kind: str, r: np.random.Generator, res: float) -> list[_Part]:
 
 
 def _finish(seed: int, kind: str, name: str, parts: list[_Part], messy: Sequence[str],
-            r: np.random.Generator) -> SynthVehicle:
+            r: np.random.Generator, pose: str | None = None,
+            pose_rng: np.random.Generator | None = None, body: str | None = None
+            ) -> SynthVehicle:
     """Round to float32, apply the messy traits, build the trimesh scene and the truth."""
     for q in parts:
         q.vertices = q.vertices.astype(np.float32).astype(np.float64)
@@ -821,6 +845,10 @@ def _finish(seed: int, kind: str, name: str, parts: list[_Part], messy: Sequence
         rot = np.eye(4)
         rot[:3, :3] = _quat_matrix(q)
         bake = rot @ bake
+    if pose is not None:
+        rot = np.eye(4)
+        rot[:3, :3] = _pose_rotation(pose, pose_rng)
+        bake = rot @ bake
     for t, s in UNIT_SCALE.items():
         if t in messy:
             bake = np.diag([s, s, s, 1.0]) @ bake
@@ -858,8 +886,112 @@ def _finish(seed: int, kind: str, name: str, parts: list[_Part], messy: Sequence
         "expected_reject": reject, "messy": list(messy),
         "file_to_canonical": file_to_canonical.tolist(), "n_triangles": n_tri,
         "frame": {"up": "+Y", "front": "+X", "left": "-Z", "unit": "m"},
+        "orientation": _orientation_truth(bake, pose, body),
     }
     return SynthVehicle(name, kind, seed, scene, truth, nodes, canonical)
+
+
+# --------------------------------------------------------------------------------------------
+# orientation cases and body variants
+
+def _pose_rotation(pose: str, r: np.random.Generator) -> np.ndarray:
+    """3x3 rotation of a pose case: 'axis' one of the 24 signed axis permutations with
+    determinant +1 (uniformly), 'yaw' a uniform angle about +Y, 'tilt' a tilt of up to
+    MAX_TILT_DEG about a random horizontal axis followed by a uniform yaw."""
+    if pose == "axis":
+        rots = [m for m in (np.eye(3)[list(p)] * np.array(sg)[:, None]
+                            for p in itertools.permutations(range(3))
+                            for sg in itertools.product((1.0, -1.0), repeat=3))
+                if np.linalg.det(m) > 0]
+        return rots[int(r.integers(len(rots)))]
+    yaw = _axis_angle(np.array([0.0, 1.0, 0.0]), r.uniform(0.0, 2 * math.pi))
+    if pose == "yaw":
+        return yaw
+    phi = r.uniform(0.0, 2 * math.pi)
+    tilt = _axis_angle(np.array([math.cos(phi), 0.0, math.sin(phi)]),
+                       math.radians(r.uniform(-MAX_TILT_DEG, MAX_TILT_DEG)))
+    return yaw @ tilt
+
+
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    k = axis / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
+
+
+def _orientation_truth(bake: np.ndarray, pose: str | None, body: str | None) -> dict:
+    """The car frame's up (+Y) and front (+X) as unit directions in the file frame."""
+    up, front = bake[:3, 1], bake[:3, 0]
+    return {"up": (up / np.linalg.norm(up)).tolist(),
+            "front": (front / np.linalg.norm(front)).tolist(),
+            "pose": pose or "as built", "body": body or "",
+            "front_defined": body != "symmetric_ends"}
+
+
+def _body_variant(parts: list[_Part], body: str, r: np.random.Generator) -> list[_Part]:
+    if body == "trailer":
+        return parts + _trailer(parts, r)
+    if body == "symmetric_ends":
+        return _symmetric_ends(parts)
+    gap = r.uniform(0.3, 1.0)                                  # two_vehicles
+    allv = np.concatenate([q.vertices for q in parts])
+    dz = float(np.ptp(allv[:, 2])) + gap
+    return parts + [_Part(f"{q.node}.2", q.part, q.material, q.vertices + [0.0, 0.0, dz],
+                          q.faces) for q in parts]
+
+
+def _trailer(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
+    """A box trailer on a drawbar behind the vehicle: as wide as the vehicle, 0.8-1.6 of
+    its length, two axles at its back with the vehicle's rear wheels, red tail lamps."""
+    allv = np.concatenate([q.vertices for q in parts])
+    lo, hi = allv.min(axis=0), allv.max(axis=0)
+    L, hw = hi[0] - lo[0], 0.5 * (hi[2] - lo[2]) * 0.95
+    wheels = [q for q in parts if q.part in ("wheel", "rim") and q.node[-2:] in ("RL", "RR")]
+    tyre = [q for q in wheels if q.part == "wheel"]
+    R = 0.5 * float(np.ptp(tyre[0].vertices[:, 1])) if tyre else 0.4
+    gap, Lt = r.uniform(1.0, 1.6), L * r.uniform(0.8, 1.6)
+    x1 = lo[0] - gap
+    x0 = x1 - Lt
+    floor, top = 2.0 * R + 0.1, max(hi[1] * r.uniform(0.85, 1.1), 2.0 * R + 1.0)
+    cell = 0.12
+    out = [_Part("trailer_box", "body", _material("trailer_paint", "paint", (0.8, 0.8, 0.78)),
+                 *_box([x0, floor, -hw], [x1, top, hw], cell)),
+           _Part("trailer_drawbar", "other", _material("trailer_drawbar", "plastic", (0, 0, 0)),
+                 *_box([x1, floor - 0.15, -0.06], [lo[0] + 0.05, floor - 0.03, 0.06], cell))]
+    ax_back = x0 + 0.9 * R + 0.3
+    for k, ax in enumerate((ax_back + 2.2 * R + 0.1, ax_back)):
+        for q in wheels:
+            cx = float(q.vertices[:, 0].mean())
+            kind = "tyre" if q.part == "wheel" else "rim"
+            nm = f"trailer_{kind}_{k + 1}{q.node[-1]}"
+            out.append(_Part(nm, q.part, _material(nm, kind, (0, 0, 0)),
+                             q.vertices + [ax - cx, 0.0, 0.0], q.faces.copy()))
+    for side in (1.0, -1.0):
+        nm = f"trailer_taillight_{'R' if side > 0 else 'L'}"
+        z0, z1 = sorted((side * (hw - 0.35), side * (hw - 0.08)))
+        out.append(_Part(nm, "light", _material(nm, "taillight", (0, 0, 0)),
+                         *_box([x0 - 0.04, floor + 0.1, z0], [x0 + 0.02, floor + 0.3, z1],
+                               cell / 2)))
+    return out
+
+
+def _symmetric_ends(parts: list[_Part]) -> list[_Part]:
+    """The front half of the vehicle and its mirror image across the middle of its length
+    (faces whose centroid is in the front half, mirrored in x with their winding flipped):
+    both ends alike, so nothing tells the front from the back."""
+    allv = np.concatenate([q.vertices for q in parts])
+    mid = 0.5 * (allv[:, 0].min() + allv[:, 0].max())
+    out: list[_Part] = []
+    for q in parts:
+        front = q.vertices[q.faces].mean(axis=1)[:, 0] >= mid
+        if not front.any():
+            continue
+        v, f = _compact(q.vertices, q.faces[front])
+        out.append(_Part(q.node, q.part, q.material, v, f))
+        mv = v.copy()
+        mv[:, 0] = 2.0 * mid - mv[:, 0]
+        out.append(_Part(f"{q.node}_2", q.part, q.material, mv, f[:, ::-1].copy()))
+    return out
 
 
 def _symmetric_pairs(parts: list[_Part]) -> list[tuple[str, str]]:

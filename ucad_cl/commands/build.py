@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .render import add_camera_args
+from .render import add_camera_args, add_orientation_args, orientation_from_args
 
 
 def register(sub) -> None:
@@ -76,12 +76,21 @@ def register(sub) -> None:
                    help="no progress bar and no summary: only warnings and errors (stderr); the "
                         "run log still records everything")
     add_camera_args(p)
+    add_orientation_args(p)
+    p.add_argument("--reject-uncertain-orientation", action="store_true",
+                   help="reject meshes whose estimated orientation has a confidence under 0.5 "
+                        "(reason uncertain_orientation); by default they are accepted and "
+                        "counted as flagged in `status`")
     p.set_defaults(func=run)
 
 
 def options_from_args(args):
     from ..build import BuildOptions
-    return BuildOptions(azimuth_step=args.azimuth_step, elevations=tuple(args.elevations),
+    mode, overrides = orientation_from_args(args)
+    return BuildOptions(orientation=args.orientation,
+                        orientation_overrides=overrides.as_items() if overrides else (),
+                        reject_uncertain_orientation=args.reject_uncertain_orientation,
+                        azimuth_step=args.azimuth_step, elevations=tuple(args.elevations),
                         fov_deg=args.fov, size=args.size, segmenter=args.segmenter,
                         threshold=args.threshold, min_materials=args.min_materials,
                         max_triangles=args.max_triangles, triangle_budget=args.triangle_budget,

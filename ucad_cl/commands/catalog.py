@@ -62,6 +62,9 @@ def run_status(args) -> int:
           f"rejected: {st['by_state'].get('rejected', 0)}")
     for reason, n in st["by_reason"].items():
         print(f"    rejected {reason:<24} {n}")
+    for reason, n in st.get("flagged", {}).items():
+        if n:
+            print(f"    flagged  {reason:<24} {n}  (accepted; ucad-index show ID prints why)")
     print(f"  objects: {st['objects']} ({st['object_bytes'] / 2**20:.1f} MiB)")
     print("  recent runs:")
     print(f"    {'run':>4} {'started':>19} {'engine':>6} {'processed':>9} {'skipped':>7} {'meshes/s':>8}")
@@ -95,8 +98,13 @@ def run_show(args) -> int:
               f"  library {m.library_root or '(not recorded)'}\n  state {m.state}"
               + (f" ({m.reason}: {m.detail})" if m.state == "rejected" else ""))
         print(f"  triangles {m.n_triangles}  materials {m.n_materials}  run {m.run_id}")
-        if m.orientation is not None:
-            print(f"  orientation {json.dumps(m.orientation)}")
+        if m.orientation:
+            from .render import describe_orientation
+            print(f"  {describe_orientation(m.orientation)}")
+            cues = m.orientation.get("cues")
+            if cues:
+                print("    cues (+ agrees with the decision): " + ", ".join(
+                    f"{k} {v:+.2f}" for k, v in sorted(cues.items(), key=lambda kv: -abs(kv[1]))))
         if m.timings:
             print("  seconds: " + ", ".join(f"{k} {v:.3f}" for k, v in m.timings.items()))
         parts = r.parts(m.sha256)

@@ -15,7 +15,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from .common import format_rows, match_meshes, open_reader
-from .render import add_camera_args, ring_from_args
+from .render import add_camera_args, add_orientation_args, orientation_from_args, ring_from_args
 
 COLUMNS = ("material", "name", "part", "score", "iou", "view", "decision", "pixels", "prob",
            "split")
@@ -46,6 +46,7 @@ def register(sub) -> None:
                    help="output folder (default out/parts)")
     p.add_argument("--threshold", type=float, default=0.5, help="score threshold (default 0.5)")
     add_camera_args(p)
+    add_orientation_args(p)
     p.set_defaults(func=run)
 
 
@@ -111,6 +112,7 @@ def run(args) -> int:
 
     try:
         segmenter = make_segmenter(args.segmenter)
+        mode, overrides = orientation_from_args(args)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -127,7 +129,7 @@ def run(args) -> int:
     for path, name in zip(args.meshes, stems):
         stem = args.out / name
         try:
-            mesh = load_mesh(path)
+            mesh = load_mesh(path, orientation=mode, overrides=overrides)
             views = render_views(mesh, ring)
             masks = segmenter.segment(mesh, views)
             table = classify_parts(mesh, views, masks, threshold=args.threshold,

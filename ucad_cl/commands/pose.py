@@ -65,6 +65,8 @@ def register(sub) -> None:
     p.add_argument("--catalog", type=Path, default=None, metavar="PATH",
                    help="search every stored view of every accepted mesh of this catalogue "
                         "(built-in features) instead of rendering one MESH")
+    from .render import add_orientation_args
+    add_orientation_args(p)
     p.set_defaults(func=run, late_positional="mesh")
 
 
@@ -90,8 +92,14 @@ def run(args) -> int:
         return 2
     if args.catalog is not None:
         return run_catalog(args, image, mask)
+    from .render import orientation_from_args
     try:
-        mesh = load_mesh(args.mesh)
+        mode, overrides = orientation_from_args(args)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        mesh = load_mesh(args.mesh, orientation=mode, overrides=overrides)
     except IngestError as exc:
         print(str(exc), file=sys.stderr)
         return 1
@@ -242,9 +250,11 @@ def run_catalog(args, image, mask) -> int:
             print(f"{i + 1:4d} {mt.azimuth:8.1f} {mt.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
                   f"{metas[mt.mesh].source} ({mt.view})")
         print(object_line(obj))
-    try:
-        mesh = load_mesh(metas[best.mesh].source)
-    except IngestError as exc:
+    try:                          # in the frame the catalogue stored (its cameras are in it)
+        from ..orient import in_frame
+        mesh = in_frame(load_mesh(metas[best.mesh].source, orientation=None),
+                        metas[best.mesh].file_to_norm)
+    except (IngestError, ValueError) as exc:
         print(f"(no side-by-side PNG: {exc})", file=sys.stderr)
         return 0
     cand = PoseCandidate(best.azimuth, best.elevation, dist[best.row], best.score, best.view)

@@ -19,6 +19,59 @@ def add_camera_args(p) -> None:
                    help="image width and height in pixels (default 256)")
 
 
+def add_orientation_args(p) -> None:
+    """Orientation options shared by the commands that load meshes."""
+    g = p.add_argument_group(
+        "orientation", "Meshes are turned into the canonical vehicle frame (+Y up, front +X, "
+        "right side +Z; azimuth 0 = the front view) when loaded.")
+    g.add_argument("--orientation", default="auto", metavar="MODE",
+                   help="auto (default: estimate up and front from wheels, symmetry, glazing, "
+                        "lamps, names...), file (trust the file: +Y up, no rotation), or "
+                        "UP,FRONT: the file's up and front axes, e.g. +Z,-Y for a Z-up file "
+                        "whose nose points to -Y (write --orientation=-Z,+X when UP starts "
+                        "with '-')")
+    g.add_argument("--orientation-file", type=Path, default=None, metavar="FILE",
+                   help="per-mesh overrides: JSON {\"PATH or SHA256\": \"+Z,-Y\"} or text lines "
+                        "'PATH_OR_SHA256 UP FRONT' (paths relative to FILE); they win over "
+                        "--orientation for the meshes they name")
+
+
+def orientation_from_args(args):
+    """(mode, overrides or None) from --orientation / --orientation-file; ValueError names
+    the problem."""
+    from ..orient import OrientationOverrides, parse_mode
+
+    mode = parse_mode(args.orientation)
+    overrides = None
+    if getattr(args, "orientation_file", None) is not None:
+        overrides = OrientationOverrides.read(args.orientation_file)
+    return mode, overrides
+
+
+def describe_orientation(o) -> str:
+    """One line: how a mesh was oriented (an Orientation or its ``as_dict()`` record)."""
+    if o is None:
+        return "orientation: none recorded"
+    d = o if isinstance(o, dict) else o.as_dict()
+    if not d:
+        return "orientation: none recorded"
+    import numpy as np
+
+    from ..orient import axis_label
+
+    R = np.asarray(d["rotation"], np.float64)
+    exact = bool(np.all(np.isin(R, (-1.0, 0.0, 1.0))))
+    up = axis_label(R[1]) if exact else np.array2string(R[1], precision=3)
+    front = axis_label(R[0]) if exact else np.array2string(R[0], precision=3)
+    text = f"orientation {d['source']}: file up {up}, front {front}"
+    if d["source"] == "auto":
+        text += (f" (confidence up {d['up_confidence']:.2f}, front "
+                 f"{d['front_confidence']:.2f}{', UNCERTAIN' if d.get('uncertain') else ''})")
+    if d.get("flags"):
+        text += f" flags: {', '.join(d['flags'])}"
+    return text
+
+
 def ring_from_args(args):
     from ..cameras import make_ring
     return make_ring(azimuth_step=args.azimuth_step, elevations=args.elevations,
@@ -55,7 +108,9 @@ def register(sub) -> None:
     p.add_argument("meshes", nargs="+", metavar="MESH", help="mesh files")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     add_camera_args(p)
-    p.add_argument("--no-sheet", action="store_true", help="skip the PNG contact sheets")
+    add_orientation_args(p)
+    p.add_argument("--no-sheet", action="store_true",
+                   help="skip the PNG contact sheets (they start at the front view, azimuth 0)")
     p.add_argument("--edges", action="store_true",
                    help="also write ControlNet conditioning images: Canny edges of the material "
                         "maps, white on black, DIR/NAME.edges/NAME_VVV.png")
@@ -78,13 +133,18 @@ def run(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     ring = ring_from_args(args)
+    try:
+        mode, overrides = orientation_from_args(args)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     args.out.mkdir(parents=True, exist_ok=True)
     failed = 0
     bar = tqdm(args.meshes, unit="mesh", desc="render", disable=None)
     for path in bar:
         stem = stems[path]
         try:
-            mesh = load_mesh(path)
+            mesh = load_mesh(path, orientation=mode, overrides=overrides)
             views = render_views(mesh, ring)
             write_viewset_exr(args.out / f"{stem}.views.exr", views, mesh)
             if args.edges:
@@ -94,7 +154,8 @@ def run(args) -> int:
                 write_png(args.out / f"{stem}.sheet.png",
                           material_sheet(views, [m.name for m in mesh.materials]))
             bar.write(f"ok    {printable(path)}: {mesh.n_faces} triangles, {len(mesh.materials)} materials, "
-                      f"{views.n_views} views -> {args.out / (stem + '.views.exr')}")
+                      f"{views.n_views} views -> {args.out / (stem + '.views.exr')}; "
+                      f"{describe_orientation(mesh.orientation)}")
         except IngestError as exc:                  # every file gets its line, none stops us
             failed += 1
             bar.write(f"FAIL  {printable(str(exc))}", file=sys.stderr)

@@ -1,0 +1,1321 @@
+"""Orientation stage: the rotation from a mesh's file frame to the canonical vehicle frame.
+
+``orient_mesh(mesh, mode)`` returns the mesh in the canonical vehicle frame (+Y up, the
+vehicle's front toward +X, its right side toward +Z; see docs/CONVENTIONS.md) with the
+:class:`~ucad_cl.artifacts.Orientation` record in ``mesh.orientation`` and the rotation folded
+into ``mesh.file_to_norm``. ``mode`` is ``"auto"`` (estimate it), ``"file"`` (trust the file:
++Y up, no rotation, the frame ingest always used) or an ``(up, front)`` pair of signed file axes
+such as ``("+Z", "-Y")`` (a curated library's convention). ``estimate_orientation(mesh)`` is the
+estimator alone.
+
+How ``auto`` decides (every step works on pose-invariant statistics, so a re-posed file gives
+the same decisions; ties go to fixed rules written next to the code):
+
+1. **Samples.** 4,096 area-weighted surface points with their face normals and 4,096 faces
+   drawn by count (finely tessellated parts such as tyres get many), from a fixed random
+   stream. A ground sheet, cloth or display base under the vehicle (one thin material broader
+   than the rest, all of the rest on one side) is left out and says which way is up.
+2. **Mirror plane** (the width axis). Candidate normals (the principal axes, the file axes and
+   in-between directions; not the length axis of an elongated body) are ranked by how many
+   reflected samples land on the surface; the best are refined by a point-to-plane
+   symmetric ICP (converges from ~10 degrees off to ~0.05 degree). Left and right of a vehicle
+   mirror each other; front and back, top and bottom do not.
+3. **Side view.** In the mirror plane, the length axis is the long side of the side view's
+   smallest bounding rectangle (a vehicle stands on its wheels or sills).
+4. **Wheels.** A Hough vote with normals for circles in the side view, checked to be whole,
+   round tyres on both sides of the mirror plane, low on the body, two or more on one line
+   standing on the ground (``_find_wheels``). They give the ground line (up is levelled on the
+   tyres' contacts, so a tilted car comes out level) and the axle pattern.
+5. **Up** (which side is the ground): cues each scoring in [-1, 1], weighted (UP_WEIGHTS) and
+   summed: wheels, ground sheet, glazing high, the side view's long flat edge low, lamps low,
+   names (roof, floor, underbody...), wheel names low, the roof narrower than the body.
+6. **Front** (which end is the nose): names of materials and nodes (front/rear, head/tail,
+   FL/RR..., in several languages), lamp colours (red at the rear; white, yellow or amber at
+   the front), the windscreen (more glazing across the length at the front of the glazed
+   region), glazing only near one end (a cab), side mirrors (spikes of the width in the front
+   half), an axle pattern (a lone steering axle at the front, tandem axles at the rear) and
+   the roof profile (the nose lower than the tail); weights FRONT_WEIGHTS.
+7. **Snap.** Up within SNAP_DEG of a signed file axis (SNAP_DEG_COARSE when no wheels level
+   it) is snapped to it, then front within SNAP_DEG; an axis-aligned file, the common case,
+   gets an exact signed permutation, applied by indexing, so a re-posed file gives
+   bit-identical canonical vertices.
+8. **Flags.** ``multiple_vehicles`` (vehicles side by side: nothing crosses the mirror plane;
+   apart: separate clusters of surface; on top of each other: node groups that each look like
+   a whole vehicle), ``no_wheels``, ``asymmetric`` (a poor mirror plane), ``ground_plane``,
+   ``up_ambiguous`` / ``front_ambiguous`` (confidence under UNCERTAIN_BELOW).
+
+Confidences are in [0, 1]: ``1 - exp(-|score| / scale)`` of the summed cue scores, so one
+strong cue or several weak agreeing ones give a confident answer, and cues that cancel give
+a low one. ``Orientation.uncertain`` is ``min(up, front) < UNCERTAIN_BELOW``. The cues and
+their weights were designed on the generator and on the 20 real models of ``../shared``
+(``bench/orient.py`` says which figures are held out); none of those models is special-cased.
+
+Canonical placement (after the rotation): x and y centred on the bounding box, so the ground
+contact (the lowest point: the tyres' contact for a wheeled vehicle) is at y = -height / 2;
+z centred on the mirror plane when the model is mirror-symmetric (``symmetry`` >= 0.5) and
+the plane is 0.2 % to 2 % of the diagonal off the box centre, on the box otherwise (for a
+symmetric model they coincide); scale: the bounding-box diagonal is 1.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from dataclasses import replace
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .artifacts import Mesh, Orientation
+
+AXES: dict[str, np.ndarray] = {f"{s}{a}": (1.0 if s == "+" else -1.0) * np.eye(3)[i]
+                               for i, a in enumerate("XYZ") for s in "+-"}
+N_SAMPLES = 4096                # area-weighted surface samples
+MIRROR_STRIDE = 4               # every 4th sample (1,024) builds the mirror plane
+SAMPLE_SEED = 0x0DE7            # fixed random stream: the same mesh gives the same samples
+SNAP_DEG = 1.5                  # snap front, and up levelled on wheels, within this angle
+SNAP_DEG_COARSE = 6.0           # snap up within this angle when no wheels level it
+UNCERTAIN_BELOW = Orientation.UNCERTAIN_BELOW   # confidence under which it is flagged
+UP_SCALE = 0.8                  # confidence = 1 - exp(-|summed score| / scale)
+FRONT_SCALE = 0.8
+WHEEL_MIN_VOTES = 10            # Hough votes a wheel circle needs (3 x 3 cells)
+MIRROR_CENTRE_MAX = 0.02        # z-centre on the mirror plane when it is off the box centre
+MIRROR_MIN_SHIFT = 0.002        # by more than this and at most that (bbox-diagonal units)
+FLAGS = ("multiple_vehicles", "no_wheels", "front_ambiguous", "up_ambiguous", "asymmetric",
+         "ground_plane")
+
+#: weight of each cue in the summed score (see the module docstring and ``bench/orient.py``)
+UP_WEIGHTS: dict[str, float] = {"wheels": 3.0, "ground_plane": 3.0, "glass_high": 1.5,
+                                "hull_base": 1.0, "lamps_low": 0.5, "names_up": 1.5,
+                                "wheel_names_low": 1.0, "roof_narrow": 0.5}
+FRONT_WEIGHTS: dict[str, float] = {"names": 3.0, "lamp_colours": 2.0, "windscreen": 1.5,
+                                   "cab_glass": 1.5, "mirrors": 1.0, "axles": 1.5,
+                                   "profile": 0.5}
+
+
+def orient_mesh(mesh: Mesh, mode: str | tuple[str, str] = "auto", *,
+                disabled: Sequence[str] = ()) -> Mesh:
+    """``mesh`` moved into the canonical vehicle frame, with ``mesh.orientation`` recorded.
+
+    mode: ``"auto"``, ``"file"`` or ``(up, front)`` signed file axes (see :func:`parse_mode`).
+    disabled: cue names left out of the estimate (ablation; see UP_WEIGHTS, FRONT_WEIGHTS).
+    The input mesh is not modified. ``file_to_norm`` of the result maps the file frame to the
+    new canonical frame (the rotation is part of it).
+    """
+    mode = parse_mode(mode)
+    if mode == "auto":
+        orientation, plane = _estimate(mesh, disabled)
+        return _apply(mesh, orientation, plane)
+    if mode == "file":
+        return _apply(mesh, Orientation(rotation=np.eye(3), source="file"))
+    up, front = mode
+    return _apply(mesh, Orientation(rotation=rotation_from_axes(up, front), up_confidence=1.0,
+                                    front_confidence=1.0, source="override"))
+
+
+def estimate_orientation(mesh: Mesh, *, disabled: Sequence[str] = ()) -> Orientation:
+    """The :class:`Orientation` ``orient_mesh(mesh, "auto")`` would apply (rotation only)."""
+    return _estimate(mesh, disabled)[0]
+
+
+def in_frame(mesh: Mesh, file_to_norm: np.ndarray) -> Mesh:
+    """``mesh`` moved into the frame ``file_to_norm`` maps its file to (e.g. the frame a
+    catalogue stored, whose cameras are in it); its orientation record becomes None."""
+    T = np.asarray(file_to_norm, np.float64) @ np.linalg.inv(np.asarray(mesh.file_to_norm))
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"{mesh.path}: file_to_norm must be a finite 4 x 4 matrix")
+    v = np.asarray(mesh.vertices, np.float64) @ T[:3, :3].T + T[:3, 3]
+    return replace(mesh, vertices=v, file_to_norm=np.asarray(file_to_norm, np.float64),
+                   orientation=None)
+
+
+def parse_mode(mode) -> str | tuple[str, str]:
+    """``"auto"`` | ``"file"`` | ``"UP,FRONT"`` (e.g. ``"+Z,-Y"``) | ``(up, front)`` -> the
+    normalised mode; ValueError naming the problem otherwise. Axes: ``+X -X +Y -Y +Z -Z``
+    (a missing sign means +); up and front must be perpendicular."""
+    if isinstance(mode, str):
+        text = mode.strip()
+        if text.lower() in ("auto", "file"):
+            return text.lower()
+        parts = [p.strip() for p in text.split(",")]
+        if len(parts) != 2:
+            raise ValueError(f"orientation {mode!r}: expected 'auto', 'file' or 'UP,FRONT' "
+                             f"with signed axes such as '+Z,-Y'")
+        mode = tuple(parts)
+    try:
+        up, front = (_axis_name(a) for a in mode)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"orientation {mode!r}: {exc}") from None
+    if up[1] == front[1]:
+        raise ValueError(f"orientation {mode!r}: up and front must be different axes")
+    return up, front
+
+
+def rotation_from_axes(up: str, front: str) -> np.ndarray:
+    """3x3 rotation (file -> canonical) that sends file axis ``up`` to +Y and ``front`` to +X."""
+    u, f = AXES[_axis_name(up)], AXES[_axis_name(front)]
+    if abs(float(u @ f)) > 0.5:
+        raise ValueError(f"up {up} and front {front} must be perpendicular")
+    return np.stack([f, u, np.cross(f, u)]) + 0.0
+
+
+class OrientationOverrides:
+    """Per-mesh orientations of a curated library: ``{key: (up, front)}``, key = a file's
+    sha256 (as ``Mesh.sha256``) or its path (absolute, or relative to the overrides file).
+
+    ``read(path)`` takes JSON (``{"KEY": "+Z,-Y"}`` or ``{"KEY": {"up": "+Z", "front":
+    "-Y"}}``, also ``"auto"`` / ``"file"``) or text lines ``KEY UP FRONT`` / ``KEY UP,FRONT``
+    (``#`` starts a comment). ValueError names the file, the line and the problem."""
+
+    def __init__(self, entries: dict | None = None):
+        self.entries: dict[str, str | tuple[str, str]] = {}
+        for key, mode in (entries or {}).items():
+            self.entries[str(key)] = parse_mode(mode)
+
+    @classmethod
+    def read(cls, path: str | os.PathLike) -> "OrientationOverrides":
+        p = Path(path)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{p}: cannot read orientation overrides: {exc}") from None
+        raw: dict = {}
+        if p.suffix.lower() == ".json":
+            try:
+                data = json.loads(text)
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"{p}: invalid JSON: {exc}") from None
+            if not isinstance(data, dict):
+                raise ValueError(f"{p}: expected a JSON object {{path or sha256: 'UP,FRONT'}}")
+            for key, val in data.items():
+                raw[key] = (val.get("up"), val.get("front")) if isinstance(val, dict) else val
+        else:
+            for n, line in enumerate(text.splitlines(), 1):
+                words = line.split("#", 1)[0].replace(",", " ").split()
+                if not words:
+                    continue
+                if len(words) not in (2, 3):
+                    raise ValueError(f"{p}:{n}: expected 'KEY UP FRONT' (e.g. 'car.obj +Z -Y'), "
+                                     f"got {line.strip()!r}")
+                raw[words[0]] = words[1] if len(words) == 2 else (words[1], words[2])
+        out = cls()
+        for key, val in raw.items():
+            try:
+                mode = parse_mode(val)
+            except ValueError as exc:
+                raise ValueError(f"{p}: entry {key!r}: {exc}") from None
+            if not _is_sha256(key):
+                kp = Path(key)
+                key = str((kp if kp.is_absolute() else p.parent / kp).resolve())
+            out.entries[key] = mode
+        return out
+
+    def mode_for(self, path: str | os.PathLike, sha256: str, default):
+        """The override for this file (its sha256 first, then its resolved path), or
+        ``default``."""
+        if not self.entries:
+            return default
+        if sha256 in self.entries:
+            return self.entries[sha256]
+        return self.entries.get(str(Path(path).resolve()), default)
+
+    def as_items(self) -> tuple[tuple[str, str], ...]:
+        """Sorted ``(key, "UP,FRONT" | "auto" | "file")`` pairs (what a build hashes)."""
+        return tuple(sorted((k, v if isinstance(v, str) else ",".join(v))
+                            for k, v in self.entries.items()))
+
+
+def _is_sha256(text: str) -> bool:
+    return len(text) == 64 and all(c in "0123456789abcdef" for c in text)
+
+
+def axis_label(v: np.ndarray) -> str:
+    """'+X', '-Z', ... for the signed file axis nearest to the unit vector ``v``."""
+    k = int(np.argmax(np.abs(v)))
+    return ("+" if v[k] >= 0 else "-") + "XYZ"[k]
+
+
+# ----------------------------------------------------------------------------- placement
+
+def _axis_name(a) -> str:
+    s = str(a).strip().upper()
+    if len(s) == 1:
+        s = "+" + s
+    if s not in AXES:
+        raise ValueError(f"{a!r} is not a signed axis (one of {', '.join(AXES)})")
+    return s
+
+
+def _apply(mesh: Mesh, orientation: Orientation, plane=None) -> Mesh:
+    """Rotate, centre and scale (see the module docstring); fold it into file_to_norm.
+    ``plane``: the mirror plane (normal, offset, a point on it) in the mesh's frame."""
+    R = np.asarray(orientation.rotation, np.float64)
+    v = _rotate(np.asarray(mesh.vertices, np.float64), R)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre = (lo + hi) / 2.0
+    diag = _diag(lo, hi)
+    if not math.isfinite(diag) or diag <= 0.0:
+        raise ValueError(f"{mesh.path}: mesh has zero extent")
+    mirror_z = centre[2]
+    if plane is not None:
+        mirror_z = float(R[2] @ plane[2])
+        shift = abs(mirror_z - centre[2])
+        if (orientation.symmetry >= 0.5
+                and MIRROR_MIN_SHIFT * diag < shift <= MIRROR_CENTRE_MAX * diag):
+            # on a grid of 2^-20 diagonals, so a re-posed file gives the same bits
+            grid = diag * 2.0 ** -20
+            centre = np.array([centre[0], centre[1], round(mirror_z / grid) * grid])
+    step = np.eye(4)
+    step[:3, :3] = R / diag
+    step[:3, 3] = -centre / diag
+    orientation = replace(orientation, mirror_z=round(float((mirror_z - centre[2]) / diag), 6))
+    return replace(mesh, vertices=(v - centre) / diag,
+                   file_to_norm=step @ np.asarray(mesh.file_to_norm, np.float64),
+                   orientation=orientation)
+
+
+def _diag(lo: np.ndarray, hi: np.ndarray) -> float:
+    """Bounding-box diagonal summed in a fixed order (sorted squares), so a permuted or
+    mirrored box gives the same bits."""
+    return float(np.sqrt(np.sort((hi - lo) ** 2).sum()))
+
+
+def _rotate(v: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``v @ R.T``; an exact signed permutation is applied by indexing (bit-exact)."""
+    if np.all(np.isin(R, (-1.0, 0.0, 1.0))) and np.all(np.abs(R).sum(axis=1) == 1.0):
+        cols = np.argmax(np.abs(R), axis=1)
+        out = v[:, cols]
+        neg = R[np.arange(3), cols] < 0
+        out[:, neg] = -out[:, neg]
+        return out
+    return v @ R.T
+
+
+# ----------------------------------------------------------------------------- samples
+
+class _Samples:
+    """Area-weighted surface samples: points (N, 3), unit face normals (N, 3), face index (N,);
+    and face samples: the centroids and normals of faces drawn uniformly by count (detail:
+    finely tessellated parts such as tyres get many), ``detail_points`` / ``detail_normals``."""
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray, face: np.ndarray,
+                 detail_points: np.ndarray | None = None,
+                 detail_normals: np.ndarray | None = None,
+                 face_centroid: np.ndarray | None = None, face_area: np.ndarray | None = None):
+        self.points, self.normals, self.face = points, normals, face
+        self.detail_points = detail_points if detail_points is not None else points[:0]
+        self.detail_normals = detail_normals if detail_normals is not None else normals[:0]
+        self.face_centroid, self.face_area = face_centroid, face_area   # all faces (F, 3), (F,)
+
+
+def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) -> _Samples:
+    """``n`` points drawn uniformly over the surface (face by area, then a uniform point in
+    it) from a fixed random stream. The stream does not depend on coordinates, so an
+    axis-permuted copy of a mesh gets the same faces and the permuted points. Faces of
+    material ``skip_material`` get none."""
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces)
+    x, y, z = np.ascontiguousarray(v.T)
+    f0, f1, f2 = np.ascontiguousarray(f.T).astype(np.intp)
+    x0, y0, z0 = x[f0], y[f0], z[f0]
+    ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
+    bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    a2 = np.sqrt(cx * cx + cy * cy + cz * cz)             # twice the face areas
+    if skip_material >= 0:
+        a2 = np.where(np.asarray(mesh.face_material) == skip_material, 0.0, a2)
+    cum = np.cumsum(a2)
+    rng = np.random.default_rng(SAMPLE_SEED)
+    u, r1, r2 = rng.random(n), rng.random(n), rng.random(n)
+    total = float(cum[-1]) if cum.size else 0.0
+    fi = (np.minimum(np.searchsorted(cum, u * total, side="right"), len(a2) - 1)
+          if total > 0.0 else np.zeros(n, np.intp))
+    flip = r1 + r2 > 1.0
+    r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
+    p = np.stack([x0[fi] + r1 * ax[fi] + r2 * bx[fi], y0[fi] + r1 * ay[fi] + r2 * by[fi],
+                  z0[fi] + r1 * az[fi] + r2 * bz[fi]], axis=1)
+    nrm = np.stack([cx[fi], cy[fi], cz[fi]], axis=1) / np.maximum(a2[fi], 1e-300)[:, None]
+    live = np.flatnonzero(a2 > 0.0)
+    fd = live[rng.integers(0, live.size, n)] if live.size else np.zeros(0, np.intp)
+    dp = np.stack([x0[fd] + (ax[fd] + bx[fd]) / 3.0, y0[fd] + (ay[fd] + by[fd]) / 3.0,
+                   z0[fd] + (az[fd] + bz[fd]) / 3.0], axis=1)
+    dn = np.stack([cx[fd], cy[fd], cz[fd]], axis=1) / a2[fd][:, None]
+    fc = np.stack([x0 + (ax + bx) / 3.0, y0 + (ay + by) / 3.0, z0 + (az + bz) / 3.0], axis=1)
+    return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
+
+
+def _quantile(x: np.ndarray, f: float) -> float:
+    """The ``f`` quantile of ``x`` (lower order statistic; np.partition, no interpolation)."""
+    k = min(max(int(f * (x.size - 1)), 0), x.size - 1)
+    return float(np.partition(x, k)[k])
+
+
+# ----------------------------------------------------------------------------- estimate
+
+def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tuple | None]:
+    """(orientation, mirror plane (normal, offset, a point on it) or None)."""
+    S = _surface_samples(mesh)
+    p = S.points
+    if not np.isfinite(p).all() or np.ptp(p, axis=0).max() <= 0.0:
+        return Orientation(rotation=np.eye(3), source="auto",
+                           flags=("up_ambiguous", "front_ambiguous")), None
+    flags: list[str] = []
+    base = _ground_sheet(mesh, S)
+    if base is not None:
+        S, base_up = base
+        p = S.points
+        flags.append("ground_plane")
+    mu = p.mean(axis=0)
+    evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
+    pca = evecs[:, ::-1]                                   # columns: major -> minor
+    w, wd, sym = _mirror_plane(p, S.normals, mu, pca, evals[::-1])
+    if sym < 0.35:
+        flags.append("asymmetric")
+    ctx = _Context(mesh, S, w, wd)
+    wheels = _find_wheels(ctx)
+    if wheels is not None:
+        ctx.set_length_axis(wheels.ground_dir)
+    else:
+        flags.append("no_wheels")
+        ctx.level_from_hull()
+    names = _NameTable(mesh, S)
+    up_cues = _up_cues(ctx, wheels, names)
+    if base is not None:
+        up_cues["ground_plane"] = float(np.clip(3.0 * (base_up @ ctx.b), -1, 1))
+    up_cues = {k: v for k, v in up_cues.items() if k not in disabled}
+    up_score = sum(UP_WEIGHTS[k] * v for k, v in up_cues.items())
+    up_sign = 1.0 if up_score >= 0 else -1.0               # tie: +b (a fixed rule)
+    ctx.flip_up(up_sign < 0)
+    snap_up = SNAP_DEG
+    if wheels is not None:
+        ctx.set_length_axis(wheels.settle(ctx))            # level on the tyres' contacts
+    else:
+        snap_up = SNAP_DEG_COARSE
+    front_cues = {k: v for k, v in _front_cues(ctx, wheels, names).items() if k not in disabled}
+    front_score = sum(FRONT_WEIGHTS[k] * v for k, v in front_cues.items())
+    front_sign = 1.0 if front_score >= 0 else -1.0         # tie: +a (a fixed rule)
+    up_conf = 1.0 - math.exp(-abs(up_score) / UP_SCALE)
+    front_conf = 1.0 - math.exp(-abs(front_score) / FRONT_SCALE)
+    if up_conf < UNCERTAIN_BELOW:
+        flags.append("up_ambiguous")
+    if front_conf < UNCERTAIN_BELOW:
+        flags.append("front_ambiguous")
+    if _several_vehicles(ctx) or _overlapping_vehicles(ctx, names):
+        flags.append("multiple_vehicles")
+    R = _snap(ctx.b, front_sign * ctx.a, snap_up)
+    cues = {f"up.{k}": round(float(up_sign * v), 4) for k, v in up_cues.items()}
+    cues.update({f"front.{k}": round(float(front_sign * v), 4) for k, v in front_cues.items()})
+    o = Orientation(rotation=R, up_confidence=round(up_conf, 4),
+                    front_confidence=round(front_conf, 4), source="auto", cues=cues,
+                    flags=tuple(f for f in FLAGS if f in flags), symmetry=round(sym, 4))
+    return o, (ctx.w, ctx.wd, mu - (mu @ ctx.w - ctx.wd) * ctx.w)
+
+
+def _ground_sheet(mesh: Mesh, S: _Samples):
+    """A ground plane, cloth or display base under the vehicle: one material holding at
+    least 25 % of the surface that is flat-ish (its smallest spread under 40 % of its
+    largest: a draped cloth counts), at least 1.3 times as broad as the rest of the model in
+    both of its long directions, with at least 90 % of the rest on one side of it. Returns
+    (new samples of the rest, unit normal toward the rest) or None."""
+    fm = np.asarray(mesh.face_material)[S.face]
+    cnt = np.bincount(fm, minlength=len(mesh.materials))
+    p = S.points
+    for m in np.flatnonzero(cnt >= 0.25 * len(fm)):
+        on = fm == m
+        rest = p[~on]
+        if rest.shape[0] < 0.1 * len(fm):
+            continue
+        c = p[on].mean(axis=0)
+        ev, V = np.linalg.eigh(np.cov((p[on] - c).T))
+        if ev[0] > (0.4 ** 2) * ev[2]:
+            continue                                       # not a sheet
+        span = np.ptp(p[on] @ V[:, 1:], axis=0)
+        if np.any(span < 1.3 * np.ptp(rest @ V[:, 1:], axis=0)):
+            continue                                       # not broader than the vehicle
+        side = (rest - c) @ V[:, 0]
+        above = float(np.mean(side > 0))
+        if max(above, 1.0 - above) < 0.9:
+            continue
+        return (_surface_samples(mesh, skip_material=int(m)),
+                V[:, 0] if above >= 0.5 else -V[:, 0])
+    return None
+
+
+def _snap(up: np.ndarray, front: np.ndarray, snap_up_deg: float) -> np.ndarray:
+    """Rotation rows (front, up, right = front x up). Up is snapped to a signed file axis
+    within ``snap_up_deg``, then front (made perpendicular to up) within SNAP_DEG."""
+    up = up / np.linalg.norm(up)
+    k = int(np.argmax(np.abs(up)))
+    up_axis = abs(up[k]) >= math.cos(math.radians(snap_up_deg))
+    if up_axis:
+        up = np.sign(up[k]) * np.eye(3)[k]
+    front = front - (front @ up) * up
+    front /= np.linalg.norm(front)
+    j = int(np.argmax(np.abs(front)))
+    if up_axis and j != k and abs(front[j]) >= math.cos(math.radians(SNAP_DEG)):
+        R = np.stack([np.sign(front[j]) * np.eye(3)[j], up])
+        return np.vstack([R, np.cross(R[0], R[1])]) + 0.0  # exact signed permutation, no -0
+    right = np.cross(front, up)
+    return np.stack([front, up, right / np.linalg.norm(right)]) + 0.0
+
+
+# ----------------------------------------------------------------------------- mirror plane
+
+def _reflect(p: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
+    return p - 2.0 * (p @ n - d)[:, None] * n
+
+
+def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarray,
+                  evals: np.ndarray | None = None):
+    """(unit normal n, offset d, quality) of the best mirror plane ``x . n = d``.
+
+    Candidates: the principal axes, the file axes and in-between directions (15-degree steps
+    between the two minor axes, whose order is arbitrary when width and height are alike;
+    45 degrees between the major and each minor one), each through the centroid; for a clearly
+    elongated body (``evals``: largest variance twice the next) none within 30 degrees of its
+    length axis. They are ranked by the share of 128 reflected samples landing near a sample
+    (KD tree of every 2 x MIRROR_STRIDE-th sample); the best six get two refinement steps
+    (``_refine_plane``, on the same samples; neighbouring candidates can fall into different
+    basins), and the two best distinct results are refined in full. The winner has the most
+    of every MIRROR_STRIDE-th sample whose reflection lands within one sample spacing of a
+    sample (a tight test: a long box's diagonal planes pass a loose one), except that among
+    planes within 0.05 of the best the one whose normal is the longest extent (1.5 times
+    another's) is dropped: a vehicle is longer than wide, so a front/back-symmetric body keeps
+    its width axis. Quality (returned): the share within 2.5 sample spacings."""
+    from scipy.spatial import cKDTree
+
+    cands = [pca[:, 0], pca[:, 1], pca[:, 2], *np.eye(3)]
+    for i, j, angles in ((1, 2, (15, 30, 45, 60, 75, 105, 120, 135, 150, 165)),
+                         (0, 1, (45, 135)), (0, 2, (45, 135))):
+        for t in angles:
+            r = math.radians(t)
+            cands.append(math.cos(r) * pca[:, i] + math.sin(r) * pca[:, j])
+    distinct: list[np.ndarray] = []
+    for n in cands:                                        # drop repeats (within 10 degrees)
+        if all(abs(float(n @ k)) < math.cos(math.radians(10.0)) for k in distinct):
+            distinct.append(n)
+    if evals is not None and evals[0] >= 2.0 * evals[1]:
+        # clearly elongated: the mirror plane contains the length axis, so its normal is
+        # not within 30 degrees of it (a bus's front/back symmetry is not its mirror plane)
+        cands = [n for n in distinct if abs(float(n @ pca[:, 0])) < math.cos(math.radians(30))]
+    else:
+        cands = distinct
+    sub, sub_n = p[::MIRROR_STRIDE], nrm[::MIRROR_STRIDE]
+    tree = cKDTree(sub)
+    spacing, _ = tree.query(sub[::8], k=2)
+    step = float(_quantile(spacing[:, 1], 0.5)) + 1e-12    # typical sample spacing
+    coarse, coarse_n = sub[::2], sub_n[::2]                # ranking and refining: half of them
+    ctree = cKDTree(coarse)
+    few = coarse[::max(1, len(coarse) // 128)]
+    scores = [float(np.mean(ctree.query(_reflect(few, n, float(mu @ n)), k=1)[0] < 4.0 * step))
+              for n in cands]
+    order = sorted(range(len(cands)), key=lambda i: (-scores[i], i))   # tie: candidate order
+    # two refinement steps for the six best, then the two best distinct results in full
+    rough = []
+    for rank, i in enumerate(order[:6]):
+        n, d = _refine_plane(ctree, coarse, coarse_n, cands[i], float(mu @ cands[i]),
+                             1.4 * step, iters=2)
+        hit = float(np.mean(ctree.query(_reflect(coarse[::2], n, d), k=1)[0] < 1.5 * step))
+        rough.append((hit, rank, n, d))
+    rough.sort(key=lambda r: (-r[0], r[1]))                        # tie: the earlier rank
+    picked: list = []
+    for _, _, n, d in rough:
+        if len(picked) < 2 and all(abs(float(n @ k[0])) < math.cos(math.radians(3.0))
+                                   for k in picked):
+            picked.append((n, d))
+    refined = []
+    for n, d in picked:
+        n, d = _refine_plane(ctree, coarse, coarse_n, n, d, 1.4 * step)
+        dist, _ = tree.query(_reflect(sub, n, d), k=1)
+        refined.append((float(np.mean(dist < step)), float(np.ptp(sub @ n)), n, d,
+                        float(np.mean(dist < 2.5 * step))))
+    top = max(r[0] for r in refined)
+    tied = [r for r in refined if r[0] >= top - 0.05]
+    if len(tied) >= 2 and max(r[1] for r in tied) > 1.5 * min(r[1] for r in tied):
+        # a vehicle is longer than wide: a plane across the length axis (a bus or a van
+        # with both ends alike) is not its mirror plane
+        tied = [r for r in tied if r[1] < max(r_[1] for r_ in tied)]
+    best = max(tied, key=lambda r: r[0])                   # tie: the earlier one
+    return best[2], best[3], best[4]
+
+
+def _refine_plane(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: float,
+                  step: float, iters: int = 8) -> tuple[np.ndarray, float]:
+    """Symmetric ICP, point to plane: each sample x is reflected, paired with the nearest
+    sample y (kept when closer than tau and when the reflected normal of x agrees with the
+    normal of y within 45 degrees), and the plane is moved to minimise the squared distances
+    of the reflected samples to the tangent planes at their partners (Gauss-Newton on the
+    normal's two degrees of freedom and the offset). tau halves from 6 to 1.5 sample
+    spacings (``step``); it stops when the normal moves less than 0.02 degree. Converges from
+    about 10 degrees off to a few hundredths of a degree on a mirror-symmetric surface."""
+    tau, tau_min = 6.0 * step, 1.5 * step
+    for it in range(iters):
+        stride = 2 if it < 2 else 1                       # the first steps on fewer samples
+        half, half_n = p[::stride], nrm[::stride]
+        rx = _reflect(half, n, d)
+        dist, j = tree.query(rx, k=1)
+        m = nrm[j]
+        rn = half_n - 2.0 * (half_n @ n)[:, None] * n
+        ok = (dist < tau) & (np.abs(np.einsum("ij,ij->i", rn, m)) > 0.7)
+        if ok.sum() < 16:
+            break
+        x, mm = half[ok], m[ok]
+        u = np.cross(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
+        u /= np.linalg.norm(u)
+        v = np.cross(n, u)
+        e0 = np.einsum("ij,ij->i", rx[ok] - p[j[ok]], mm)
+        xn, mn = x @ n - d, mm @ n
+        J = np.stack([-2.0 * (x @ u) * mn - 2.0 * xn * (mm @ u),
+                      -2.0 * (x @ v) * mn - 2.0 * xn * (mm @ v), 2.0 * mn], axis=1)
+        step = np.linalg.solve(J.T @ J + 1e-12 * np.eye(3), -(J.T @ e0))
+        n2 = n + step[0] * u + step[1] * v
+        n2 /= np.linalg.norm(n2)
+        moved = float(n2 @ n)
+        n, d = n2, d + float(step[2])
+        if tau <= tau_min and moved > math.cos(math.radians(0.02)):
+            break
+        tau = max(0.5 * tau, tau_min)
+    return n, d
+
+
+# ----------------------------------------------------------------------------- side view
+
+class _Context:
+    """Samples in the vehicle's provisional frame: s along the length axis a, t along the
+    height axis b (both in [-1, 1] over the samples' extent), q across (signed distance from
+    the mirror plane / its largest value). a, b, w are right-handed (w = a x b)."""
+
+    def __init__(self, mesh: Mesh, S: _Samples, w: np.ndarray, wd: float):
+        self.mesh, self.S, self.w, self.wd = mesh, S, w, wd
+        p = S.points
+        side = p - np.outer(p @ w - wd, w)
+        c = side - side.mean(axis=0)
+        P = np.eye(3) - np.outer(w, w)
+        _, V = np.linalg.eigh(P @ (c.T @ c) @ P)
+        self.set_length_axis(V[:, 2])                      # the longer in-plane axis
+        self._level_on_rectangle()
+
+    def set_length_axis(self, a: np.ndarray) -> None:
+        a = a - (a @ self.w) * self.w
+        a = a / np.linalg.norm(a)
+        self._set_axes(a, np.cross(self.w, a))
+
+    def flip_up(self, flip: bool) -> None:
+        """Make -b the height axis (w flips too, keeping a, b, w right-handed)."""
+        if flip:
+            self.w, self.wd = -self.w, -self.wd
+            self._set_axes(self.a, -self.b)
+
+    def _set_axes(self, a: np.ndarray, b: np.ndarray) -> None:
+        p, n = self.S.points, self.S.normals
+        self.a, self.b = a, b
+        s, t, q = p @ a, p @ b, p @ self.w - self.wd
+        self.s0, self.t0 = 0.5 * (s.min() + s.max()), 0.5 * (t.min() + t.max())
+        self.half_len = max(0.5 * float(np.ptp(s)), 1e-12)
+        self.half_h = max(0.5 * float(np.ptp(t)), 1e-12)
+        self.half_w = max(float(np.abs(q).max()), 1e-12)
+        self.s = (s - self.s0) / self.half_len
+        self.t = (t - self.t0) / self.half_h
+        self.q = q / self.half_w
+        self.ns, self.nt, self.nq = n @ a, n @ b, n @ self.w
+
+    def face_s(self) -> np.ndarray:
+        """(F,) every face centroid's position along the length axis, like ``s``."""
+        return (self.S.face_centroid @ self.a - self.s0) / self.half_len
+
+    def side_points(self) -> np.ndarray:
+        """(N, 2) samples in the side view, mesh units, centred on the side view's box."""
+        return np.stack([self.s * self.half_len, self.t * self.half_h], axis=1)
+
+    def side_hull(self) -> np.ndarray | None:
+        """Vertices of the side view's convex hull, in order (None when degenerate). The
+        hull is computed once: changing the in-plane axes only rotates or mirrors it."""
+        if not hasattr(self, "_hull"):
+            from scipy.spatial import ConvexHull, QhullError
+            try:
+                self._hull = ConvexHull(self.side_points()).vertices
+            except (QhullError, ValueError):
+                self._hull = None
+        return None if self._hull is None else self.side_points()[self._hull]
+
+    def _level_on_rectangle(self) -> None:
+        """Turn the length axis onto the longer side of the side view's smallest-area
+        bounding rectangle (one side of it lies on a hull edge): a vehicle's side view is
+        roughly a rectangle standing on its wheels or sills, while the principal axis tilts
+        with the mass (a tall cab, a high tail)."""
+        hull = self.side_hull()
+        if hull is None:
+            return
+        e = np.roll(hull, -1, axis=0) - hull
+        ln = np.hypot(e[:, 0], e[:, 1])
+        ok = ln > 1e-12
+        d = e[ok] / ln[ok, None]
+        along = hull @ d.T                                  # (K, E) projections
+        across = hull @ np.stack([-d[:, 1], d[:, 0]], axis=1).T
+        ext_a, ext_c = np.ptp(along, axis=0), np.ptp(across, axis=0)
+        k = int(np.argmin(ext_a * ext_c + 1e-15 * np.arange(ext_a.size)))   # tie: first edge
+        u = d[k] if ext_a[k] >= ext_c[k] else np.array([-d[k, 1], d[k, 0]])
+        u = u if u[0] >= 0 else -u
+        self.set_length_axis(u[0] * self.a + u[1] * self.b)
+
+    def level_from_hull(self) -> None:
+        """Without wheels: level the length axis on the longest side-view hull edge within
+        8 degrees of it that spans at least 40 % of the length (a floor or sill line)."""
+        hull = self.side_hull()
+        if hull is None:
+            return
+        e = np.roll(hull, -1, axis=0) - hull
+        ln = np.hypot(e[:, 0], e[:, 1])
+        ok = (np.abs(e[:, 1]) < math.tan(math.radians(8.0)) * np.abs(e[:, 0])) & (
+            ln > 0.8 * self.half_len)
+        if ok.any():
+            k = int(np.argmax(np.where(ok, ln, -1.0)))
+            d = e[k] / ln[k] * (1.0 if e[k, 0] >= 0 else -1.0)
+            self.set_length_axis(d[0] * self.a + d[1] * self.b)
+
+
+# ----------------------------------------------------------------------------- wheels
+
+class _Wheels:
+    """Wheel circles: centres (K, 3) in the mesh frame (on the mirror plane), radii (K,),
+    Hough votes (K,), the ground direction (unit, along the line of the centres)."""
+
+    def __init__(self, centres, radii, votes, ground_dir):
+        self.centres, self.radii, self.votes, self.ground_dir = centres, radii, votes, ground_dir
+
+    def side_view(self, ctx: _Context) -> np.ndarray:
+        """(K, 2) centres in the context's current side view, mesh units."""
+        return np.stack([self.centres @ ctx.a - ctx.s0, self.centres @ ctx.b - ctx.t0], axis=1)
+
+    def axles(self, ctx: _Context) -> np.ndarray:
+        """Sorted distinct axle positions along the length axis, in [-1, 1]."""
+        x = np.sort(self.side_view(ctx)[:, 0]) / ctx.half_len
+        return x[np.r_[True, np.diff(x) > 0.05]]
+
+    def settle(self, ctx: _Context) -> np.ndarray:
+        """With b up: keep the wheels that stand on the ground and return the ground
+        direction. Each wheel's contact is the lowest mesh vertex under its centre (the
+        detected circle may be a rim inside the tyre); the ground is the longest edge of the
+        lower convex hull of the contacts, and wheels more than a third of their radius above
+        it (a spare wheel on the tailgate) are dropped."""
+        c = self.side_view(ctx)
+        v = np.asarray(ctx.mesh.vertices, np.float64)
+        vs, vt = v @ ctx.a - ctx.s0, v @ ctx.b - ctx.t0
+        bottom = np.empty(len(c))
+        for k, ((cs, ct), r) in enumerate(zip(c, self.radii)):
+            near = (np.abs(vs - cs) < 0.35 * r) & (vt < ct) & (vt > ct - 2.0 * r)
+            bottom[k] = float(vt[near].min()) if near.any() else ct - r
+        order = np.argsort(c[:, 0], kind="stable")
+        pts = np.stack([c[order, 0], bottom[order]], axis=1)
+        lower = [0]                                        # lower hull, left to right
+        for k in range(1, len(pts)):
+            while len(lower) >= 2 and _cross2(pts[lower[-2]], pts[lower[-1]], pts[k]) <= 0:
+                lower.pop()
+            lower.append(k)
+        seg = max(range(len(lower) - 1), key=lambda i: pts[lower[i + 1], 0] - pts[lower[i], 0])
+        p0, p1 = pts[lower[seg]], pts[lower[seg + 1]]
+        g = (p1 - p0) / np.hypot(*(p1 - p0))
+        height = (pts - p0) @ np.array([-g[1], g[0]])      # above the ground line
+        keep = np.zeros(len(c), bool)
+        keep[order] = height <= self.radii[order] / 3.0
+        self.centres, self.radii, self.votes = (self.centres[keep], self.radii[keep],
+                                                self.votes[keep])
+        return g[0] * ctx.a + g[1] * ctx.b
+
+
+def _cross2(o, a, b) -> float:
+    return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
+
+def _find_wheels(ctx: _Context) -> _Wheels | None:
+    """Road wheels in the side view, or None. Tyre treads: samples (area and face samples)
+    away from the mirror plane whose normals are perpendicular to the width axis vote, for
+    each of 8 radii from 2.5 % to 13 % of the length, for the circle centre p - r n (a Hough
+    transform with normals; cells of 0.15 r summed over 3 x 3). The 5 highest peaks per radius
+    that are not at mid-height are checked (``_check_circle``: a whole, round tyre pair); of
+    concentric circles (tyre, rim, hub) the outermost is kept; the wheels are the best group
+    standing on the ground (``_wheel_group``), on a line within 30 degrees of the length axis."""
+    L, H = ctx.half_len, ctx.half_h
+    S = ctx.S
+    pts = np.r_[S.points, S.detail_points]                 # area samples and face samples
+    nrm = np.r_[S.normals, S.detail_normals]
+    q = (pts @ ctx.w - ctx.wd) / ctx.half_w
+    nq = nrm @ ctx.w
+    sel = (np.abs(nq) < 0.35) & (np.abs(q) > 0.3)
+    if sel.sum() < 12:
+        return None
+    x, y = pts[sel] @ ctx.a - ctx.s0, pts[sel] @ ctx.b - ctx.t0
+    m = np.stack([nrm[sel] @ ctx.a, nrm[sel] @ ctx.b], axis=1)
+    m /= np.maximum(np.hypot(m[:, 0], m[:, 1]), 1e-12)[:, None]
+    left, aq = q[sel] > 0, np.abs(q[sel])
+    found, tried = [], []
+    for r in 2 * L * np.geomspace(0.025, 0.13, 8):
+        h = 0.15 * r
+        cx, cy = x - r * m[:, 0], y - r * m[:, 1]
+        ix = np.floor((cx + L) / h).astype(np.intp)
+        iy = np.floor((cy + H + r) / h).astype(np.intp)
+        nx, ny = int(2 * L / h) + 2, int((2 * H + 2 * r) / h) + 2
+        ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        cnt = np.bincount(ix[ok] * ny + iy[ok], minlength=nx * ny).reshape(nx, ny)
+        box = _box3(cnt)
+        peak = np.flatnonzero(((box >= WHEEL_MIN_VOTES) & (box == _max3(box))).ravel())
+        if peak.size == 0:
+            continue
+        peak = peak[np.argsort(-box.ravel()[peak], kind="stable")[:5]]
+        for i, j in zip(*np.unravel_index(peak, box.shape)):
+            centre = np.array([(i + 1.0) * h - L, (j + 1.0) * h - H - r])    # 3 x 3 middle
+            if abs(centre[1]) < 0.25 * H or r > 0.32 * L:
+                continue                                  # mid-height or too big: a body arc
+            if any(abs(r / r_ - 1.0) < 0.3 and np.hypot(*(centre - c_)) < 0.3 * r
+                   for r_, c_ in tried):
+                continue                                  # the same circle, one step apart
+            tried.append((r, centre))
+            mem = np.flatnonzero(ok & (np.abs(ix - i) <= 1) & (np.abs(iy - j) <= 1))
+            c0 = np.array([cx[mem].mean(), cy[mem].mean()])
+            box_ = np.flatnonzero((np.abs(x - c0[0]) < 1.5 * r) & (np.abs(y - c0[1]) < 1.5 * r))
+            wheel = _check_circle(x[box_], y[box_], m[box_], left[box_], aq[box_], c0, r, L, H)
+            if wheel is not None:
+                found.append(wheel)
+    if not found:
+        return None
+    found.sort(key=lambda f: (-f[0], f[1], f[2][0], f[2][1]))     # ties: smaller, then position
+    kept: list = []
+    for c in found:
+        near = [i for i, k in enumerate(kept)
+                if np.hypot(*(c[2] - k[2])) < 0.6 * max(c[1], k[1])]
+        if not near:
+            kept.append(c)
+            continue
+        k = kept[near[0]]
+        # the same wheel: concentric circles are tyre, rim, hub; the tyre is the outermost
+        if (np.hypot(*(c[2] - k[2])) < 0.3 * min(c[1], k[1]) and c[1] > k[1]
+                and c[0] >= 0.3 * k[0]):
+            kept[near[0]] = c
+    wheels = _wheel_group(kept, ctx.side_points(), L)
+    if wheels is None:
+        return None
+    centres = np.array([k[2] for k in wheels])
+    votes = np.array([k[0] for k in wheels], float)
+    _, _, vt = np.linalg.svd((centres - centres.mean(axis=0)) * np.sqrt(votes)[:, None],
+                             full_matrices=False)
+    g = vt[0] if vt[0][0] >= 0 else -vt[0]
+    if abs(g[1]) > math.sin(math.radians(30)):
+        return None                                       # on a steep line: not road wheels
+    c3 = (np.outer(centres[:, 0] + ctx.s0, ctx.a) + np.outer(centres[:, 1] + ctx.t0, ctx.b)
+          + ctx.wd * ctx.w)
+    return _Wheels(c3, np.array([k[1] for k in wheels]), votes, g[0] * ctx.a + g[1] * ctx.b)
+
+
+def _wheel_group(circles: list, side: np.ndarray, half_len: float) -> list | None:
+    """The road wheels among verified circles [(score, radius, centre)]: the group with the
+    highest total score of at least two circles of radii within 0.6-1.67 of each other, two
+    radii or more apart along the length, on the same side of the middle, on a line within
+    20 degrees of the length axis, that stands on
+    the ground: for one of the two height directions, the line through the undersides of
+    its first and last circle has less than 1 % of the side-view samples ``side`` beyond it
+    (a rounded body seen from the side, or wheel arches, have the sills or the tyres below
+    them). A lone circle is never a wheel set. None when no group qualifies."""
+    best, best_score = None, 0.0
+    for k in circles:
+        group = [c for c in circles if 0.6 <= c[1] / k[1] <= 1.67
+                 and c[2][1] * k[2][1] > 0 and (
+                     c is k or abs(c[2][1] - k[2][1]) <= math.tan(math.radians(20)) * abs(
+                         c[2][0] - k[2][0]))]
+        if len(group) < 2:
+            continue
+        group.sort(key=lambda c: c[2][0])
+        if group[-1][2][0] - group[0][2][0] < 2.0 * max(c[1] for c in group):
+            continue
+        score = sum(c[0] for c in group)
+        if score > best_score and _stands(group, side, half_len):
+            best, best_score = group, score
+    return best
+
+
+def _stands(group: list, side: np.ndarray, half_len: float) -> bool:
+    """True when, for b up or for b down, no more than 1 % of the side-view samples lie
+    beyond the line touching the first and the last circle of ``group`` on that side."""
+    (_, r0, c0), (_, r1, c1) = group[0], group[-1]
+    for sgn in (1.0, -1.0):
+        p0 = np.array([c0[0], c0[1] - sgn * r0])
+        p1 = np.array([c1[0], c1[1] - sgn * r1])
+        d = (p1 - p0) / np.hypot(*(p1 - p0))
+        normal = sgn * np.array([-d[1], d[0]]) * np.sign(d[0])       # toward +-b
+        beyond = (side - p0) @ normal < -0.02 * half_len
+        if beyond.mean() < 0.01:
+            return True
+    return False
+
+
+def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
+    """(score, radius, centre) of the wheel pair around a Hough peak (centre ``c``, radius
+    ``r``), or None. Its support: the voters within 15 % of r from the circle whose normal
+    points along the radius (either sign); centre and radius are refitted to it (algebraic
+    circle fit, twice). A wheel pair: a radius at most 15 % of the length; a centre in the
+    lower or upper 32.5 % of the height (wheels sit low); support from both sides of the mirror
+    plane, 60 % of it within a quarter of the half-width across (a tyre, not a body arc),
+    all around the circle (no gap wider than 90 degrees; sector entropy at least 0.8 of the
+    maximum), with normals in at least 6 of 16 directions (an octagonal wheel has 8; a box
+    that a circle touches on four sides has 4) and at least WHEEL_MIN_VOTES samples.
+    Score = support x evenness."""
+    for _ in range(2):
+        dx, dy = x - c[0], y - c[1]
+        d = np.hypot(dx, dy)
+        near = (np.abs(d - r) < 0.15 * r) & (np.abs(dx * m[:, 0] + dy * m[:, 1])
+                                              > 0.9 * np.maximum(d, 1e-12))
+        if near.sum() < WHEEL_MIN_VOTES:
+            return None
+        X, Y = x[near], y[near]
+        c, r = _fit_circle(X, Y)
+        if r is None:
+            return None
+    if r > 0.3 * half_len or abs(c[1]) < 0.35 * half_h:
+        return None                                       # too big, or not low: a body arc
+    if left[near].all() or not left[near].any():
+        return None                                       # one side only: not a wheel pair
+    if _band_share(aq[near], 0.25) < 0.6:
+        return None                                       # spread across: a body arc
+    a = np.sort(np.arctan2(Y - c[1], X - c[0]))
+    if np.max(np.diff(np.r_[a, a[0] + 2 * math.pi])) > math.radians(90):
+        return None                                       # an arc (a wheel arch), not a circle
+    hist = np.bincount((np.floor((a + math.pi) / (2 * math.pi) * 8) % 8).astype(np.intp),
+                       minlength=8)
+    share = hist[hist > 0] / hist.sum()
+    even = float(-(share * np.log(share)).sum() / math.log(8))
+    if even < 0.8:
+        return None                                       # not supported around a circle
+    mn = m[near] * np.sign((X - c[0]) * m[near, 0] + (Y - c[1]) * m[near, 1])[:, None]
+    turns = np.floor((np.arctan2(mn[:, 1], mn[:, 0]) + math.pi) / (2 * math.pi) * 16) % 16
+    if np.unique(turns).size < 6:
+        return None                                       # a few flat faces (a box), not round
+    return float(near.sum()) * even, r, c
+
+
+def _fit_circle(X: np.ndarray, Y: np.ndarray):
+    """Algebraic (Kasa) least-squares circle through points: (centre, radius), or (None,
+    None) when they are collinear. Centred normal equations, 2 x 2."""
+    mx, my = X.mean(), Y.mean()
+    u, v = X - mx, Y - my
+    suu, svv, suv = u @ u, v @ v, u @ v
+    det = suu * svv - suv * suv
+    if not abs(det) > 1e-30:
+        return None, None
+    rhs_u = 0.5 * (u @ (u * u) + u @ (v * v))
+    rhs_v = 0.5 * (v @ (v * v) + v @ (u * u))
+    uc = (rhs_u * svv - rhs_v * suv) / det
+    vc = (rhs_v * suu - rhs_u * suv) / det
+    r2 = uc * uc + vc * vc + (suu + svv) / X.size
+    return np.array([uc + mx, vc + my]), math.sqrt(r2)
+
+
+def _band_share(v: np.ndarray, width: float) -> float:
+    """Largest share of the values inside one window [x, x + width]."""
+    v = np.sort(v)
+    return float((np.searchsorted(v, v + width, side="right") - np.arange(v.size)).max()
+                 / v.size)
+
+
+def _box3(a: np.ndarray) -> np.ndarray:
+    """Sum over each 3 x 3 neighbourhood (zero outside)."""
+    c = a.copy()
+    c[1:] += a[:-1]
+    c[:-1] += a[1:]
+    out = c.copy()
+    out[:, 1:] += c[:, :-1]
+    out[:, :-1] += c[:, 1:]
+    return out
+
+
+def _max3(a: np.ndarray) -> np.ndarray:
+    """Maximum over each 3 x 3 neighbourhood."""
+    c = a.copy()
+    np.maximum(c[1:], a[:-1], out=c[1:])
+    np.maximum(c[:-1], a[1:], out=c[:-1])
+    out = c.copy()
+    np.maximum(out[:, 1:], c[:, :-1], out=out[:, 1:])
+    np.maximum(out[:, :-1], c[:, 1:], out=out[:, :-1])
+    return out
+
+
+# ----------------------------------------------------------------------------- names
+
+def _keyword_matcher(words: Sequence[str], tokens: Sequence[str] = (),
+                     exclude: Sequence[str] = ()):
+    """A test on a name's words (``_words``): an ASCII keyword starts one of its words, a
+    non-ASCII one appears anywhere in it (CJK has no spaces), or one of its words is one of
+    ``tokens``. Words starting with one of ``exclude`` are dropped first (``headrest`` is
+    not a head lamp)."""
+    rx = re.compile(r"(?<![a-z])(?:" + "|".join(re.escape(w) for w in words if w.isascii())
+                    + ")")
+    other = [w for w in words if not w.isascii()]
+    tok = frozenset(tokens)
+    excl = tuple(exclude)
+
+    def match(ws: tuple[str, ...]) -> bool:
+        if excl:
+            ws = tuple(w for w in ws if not w.startswith(excl))
+        joined = " ".join(ws)
+        return (rx.search(joined) is not None or not tok.isdisjoint(ws)
+                or (not joined.isascii() and any(w in joined for w in other)))
+    return match
+
+
+def _words(name: str) -> tuple[str, ...]:
+    """Lower-case words of a name: camelCase split; digits and punctuation separate words."""
+    spaced = re.sub(r"([a-z])([A-Z])", r"\1 \2", str(name))
+    return tuple(w.lower() for w in re.findall(r"[^\W\d_]+", spaced))
+
+
+_NOT_DIRECTION = ("headrest", "headliner", "headlining", "backrest", "background", "rearview",
+                  "backplate", "backface", "backside", "headphone")
+_IS_FRONT = _keyword_matcher(
+    ("front", "head", "hood", "bonnet", "windshield", "windscreen", "grill", "nose", "avant",
+     "phare", "capot", "vorn", "vorder", "scheinwerfer", "motorhaube", "frontscheibe",
+     "delanter", "faro", "capo", "parabris", "anterior", "cofano", "передн", "фара", "капот",
+     "前", "フロント", "ヘッド", "ボンネット"), ("f", "fl", "fr", "av", "fwd"), _NOT_DIRECTION)
+_IS_REAR = _keyword_matcher(
+    ("rear", "back", "tail", "brake", "trunk", "boot", "exhaust", "muffler", "reverse",
+     "arriere", "arrière", "coffre", "hinten", "heck", "rück", "rueck", "kofferraum",
+     "auspuff", "traser", "malet", "posterior", "bagagli", "задн", "багаж", "后", "後",
+     "テール", "ブレーキ", "マフラー"), ("rl", "rr", "bl", "br", "ar", "bk"), _NOT_DIRECTION)
+_IS_LAMP = _keyword_matcher(
+    ("light", "lamp", "lens", "blinker", "indicator", "signal", "licht", "leuchte", "phare",
+     "feu", "faro", "luz", "luce", "fanale", "projector", "led", "brakelight", "taillight",
+     "headlight", "ライト", "ランプ", "灯", "燈", "фар", "фонар"))
+_IS_GLASS = _keyword_matcher(
+    ("glass", "window", "windshield", "windscreen", "glazing", "scheibe", "glas", "fenster",
+     "vitre", "verre", "ventana", "vidrio", "cristal", "vetro", "finestrin", "стекл", "окн",
+     "ガラス", "窓", "玻璃", "车窗"))
+_IS_ROOF = _keyword_matcher(("roof", "top", "dach", "toit", "techo", "tetto", "крыш", "ルーフ",
+                             "车顶"))
+_IS_FLOOR = _keyword_matcher(
+    ("floor", "underbody", "under", "bottom", "chassis", "dessous", "boden", "unterboden",
+     "piso", "suelo", "pavimento", "fondo", "днище", "床", "底"), ("sol",))
+_IS_WHEEL = _keyword_matcher(
+    ("tyre", "tire", "wheel", "reifen", "pneu", "neumatic", "neumátic", "rueda", "ruota",
+     "roue", "gomma", "колес", "шин", "タイヤ", "ホイール", "轮", "輪"), ("rad",),
+    ("steering", "lenkrad", "volant", "spare", "wheelhouse", "wheelwell"))
+
+
+class _NameTable:
+    """Materials and nodes as named groups of faces (``groupings``: per-face labels and the
+    names) and of samples (the material of each sample); each distinct name is split into
+    words once and tested against a keyword set once."""
+
+    def __init__(self, mesh: Mesh, S: _Samples):
+        self.mesh = mesh
+        self.material_of_sample = np.asarray(mesh.face_material)[S.face].astype(np.intp)
+        self.area = S.face_area
+        fm = np.asarray(mesh.face_material).astype(np.intp)
+        self.groupings = [(fm, [m.name for m in mesh.materials])]
+        if mesh.face_node is not None and len(mesh.node_names):
+            fn = np.asarray(mesh.face_node).astype(np.intp)
+            if fn.size and fn.min() >= 0 and fn.max() < len(mesh.node_names):
+                self.groupings.append((fn, list(mesh.node_names)))
+        self.total_area = total = max(float(self.area.sum()), 1e-300)
+        self.share = [np.bincount(lab, weights=self.area, minlength=len(names)) / total
+                      for lab, names in self.groupings]      # surface share of each group
+        self._words: dict[str, tuple[str, ...]] = {}
+        self._tests: dict = {}
+        self._means: dict = {}          # (grouping, id(value)) -> (value kept alive, means)
+        self.glass, self.lamp, self.colour = _material_kinds(self)
+
+    def words(self, name: str) -> tuple[str, ...]:
+        if name not in self._words:
+            self._words[name] = _words(name)
+        return self._words[name]
+
+    def matches(self, match, g: int) -> np.ndarray:
+        """(K,) bool: the names of grouping ``g`` (with surface) that ``match``."""
+        key = (match, g)
+        if key not in self._tests:
+            names, share = self.groupings[g][1], self.share[g]
+            out = np.zeros(len(names), bool)
+            for i in np.flatnonzero(share > 0):
+                name = names[i]
+                if (match, name) not in self._tests:
+                    self._tests[match, name] = match(self.words(name))
+                out[i] = self._tests[match, name]
+            self._tests[key] = out
+        return self._tests[key]
+
+    def means(self, g: int, value: np.ndarray) -> np.ndarray:
+        """(K,) area-weighted mean of a per-face ``value`` over each group of grouping g
+        (the last few are remembered: the cues ask for the same value several times)."""
+        key = (g, id(value))
+        if key not in self._means:
+            lab = self.groupings[g][0]
+            tot = np.maximum(self.share[g] * self.total_area, 1e-300)
+            self._means[key] = (value, np.bincount(lab, weights=self.area * value,
+                                                   minlength=tot.size) / tot)
+        return self._means[key][1]
+
+    def votes(self, match, value: np.ndarray) -> list[tuple[float, float]]:
+        """(weight, area-weighted mean of the per-face ``value``) of the groups whose name
+        matches; weight = sqrt of the group's surface share x N_SAMPLES, at most 50 (a big
+        panel is one vote, not many)."""
+        out = []
+        for g in range(len(self.groupings)):
+            hit = np.flatnonzero(self.matches(match, g))
+            if hit.size:
+                w = np.sqrt(np.minimum(self.share[g][hit] * N_SAMPLES, 50.0))
+                out.extend(zip(w.tolist(), self.means(g, value)[hit].tolist()))
+        return out
+
+
+def _vote(votes: list[tuple[float, float]]) -> float:
+    """Weighted signed votes [(weight, value in [-1, 1])] -> agreement in [-1, 1]; few or
+    weak votes give less than full agreement (a prior weight of 2 on zero)."""
+    if not votes:
+        return 0.0
+    w = np.array([v[0] for v in votes])
+    x = np.clip(np.array([v[1] for v in votes]), -1.0, 1.0)
+    return float(np.clip(2.0 * (w * x).sum() / (w.sum() + 2.0), -1.0, 1.0))
+
+
+def _is_glass(mat, ws: tuple[str, ...]) -> bool:
+    """Window glass: clear (transmission, or blended and see-through) or named so (``ws``:
+    the name's words); lamp covers (a lamp word in the name) are not windows."""
+    if _IS_LAMP(ws):
+        return False
+    clear = mat.transmission > 0.05 or (mat.alpha_mode == "BLEND" and mat.base_color[3] < 0.9)
+    return bool(clear or _IS_GLASS(ws))
+
+
+def _lamp_colour(mat, ws: tuple[str, ...]) -> int:
+    """-1 a red lamp, +1 a white / yellow / amber lamp, 0 not a lamp or unknown colour (a
+    lamp: a lamp word in the name or emission; its colour: emissive, else base colour)."""
+    glowing = max(mat.emissive) > 0.1
+    if not (glowing or _IS_LAMP(ws)) or (mat.has_texture and not glowing):
+        return 0
+    r, g, b = (float(c) for c in (mat.emissive if glowing else mat.base_color[:3]))
+    if r > 0.25 and g < 0.45 * r and b < 0.45 * r:
+        return -1
+    if r > 0.4 and g > 0.35 * r and (b > 0.5 * r or g > 0.6 * r):
+        return 1
+    return 0
+
+
+def _material_kinds(names: "_NameTable") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(glass (M,) bool, lamp (M,) bool, lamp colour (M,) int) of the materials with samples."""
+    mats = names.mesh.materials
+    M = len(mats)
+    glass, lamp, colour = np.zeros(M, bool), np.zeros(M, bool), np.zeros(M, np.int8)
+    for i in np.flatnonzero(names.share[0]):
+        ws = names.words(mats[i].name)
+        glass[i] = _is_glass(mats[i], ws)
+        lamp[i] = _IS_LAMP(ws) or max(mats[i].emissive) > 0.1
+        colour[i] = _lamp_colour(mats[i], ws)
+    return glass, lamp, colour
+
+
+# ----------------------------------------------------------------------------- up cues
+
+def _up_cues(ctx: _Context, wheels: _Wheels | None, names: _NameTable) -> dict[str, float]:
+    """Each cue in [-1, 1]: positive = the height axis b points up."""
+    cues: dict[str, float] = {}
+    if wheels is not None:
+        cues["wheels"] = _wheel_up(ctx, wheels)
+    fm = names.material_of_sample
+    glass = names.glass[fm]
+    if 0.005 <= glass.mean() < 0.6:
+        cues["glass_high"] = float(np.clip(2.5 * ctx.t[glass].mean(), -1, 1))
+    lamps = names.lamp[fm]
+    if lamps.sum() >= 3 and lamps.mean() < 0.2:
+        cues["lamps_low"] = float(np.clip(-1.5 * ctx.t[lamps].mean(), -1, 1))
+    ft = (ctx.S.face_centroid @ ctx.b - ctx.t0) / ctx.half_h
+    votes = names.votes(_IS_ROOF, ft) + [(w, -v) for w, v in names.votes(_IS_FLOOR, ft)]
+    if votes:
+        cues["names_up"] = _vote(votes)
+    votes = [(w, -v) for w, v in names.votes(_IS_WHEEL, ft)]
+    if votes:
+        cues["wheel_names_low"] = _vote(votes)
+    cues["hull_base"] = _hull_base(ctx)
+    cues["roof_narrow"] = _roof_narrow(ctx)
+    return cues
+
+
+def _wheel_up(ctx: _Context, wheels: _Wheels) -> float:
+    """+1 when the line touching the wheels' undersides (for b up) has no sample beyond it
+    and the line touching their tops (for b down) has the body beyond it; the wheel centres
+    lying low adds to it."""
+    pts = ctx.side_points()
+    c = wheels.side_view(ctx)
+    beyond = []
+    for sgn in (1.0, -1.0):
+        line = float(np.min(sgn * c[:, 1] - wheels.radii))   # lowest wheel point along +-b
+        beyond.append(float(np.mean(sgn * pts[:, 1] < line - 0.02 * ctx.half_len)))
+    low = -float(np.mean(c[:, 1])) / ctx.half_h
+    return float(np.clip(4.0 * (beyond[1] - beyond[0]) + low, -1, 1))
+
+
+def _hull_base(ctx: _Context) -> float:
+    """The side view's convex hull has a long level edge at the bottom (floor, sills, the
+    tyres' common tangent) and a rounded top: + when the longest level edge is low."""
+    hull = ctx.side_hull()
+    if hull is None:
+        return 0.0
+    e = np.roll(hull, -1, axis=0) - hull
+    ln = np.hypot(e[:, 0], e[:, 1])
+    level = np.abs(e[:, 1]) < math.tan(math.radians(10.0)) * np.abs(e[:, 0])
+    mid = hull[:, 1] + 0.5 * e[:, 1]
+    lo = ln[level & (mid < 0)].max(initial=0.0)
+    hi = ln[level & (mid > 0)].max(initial=0.0)
+    return float(np.clip(1.5 * (lo - hi) / (2 * ctx.half_len), -1, 1))
+
+
+def _roof_narrow(ctx: _Context) -> float:
+    """Tumblehome: the top of a vehicle is narrower than its lower body."""
+    q = np.abs(ctx.q)
+    top, bot = q[ctx.t > 0.7], q[(ctx.t < -0.1) & (ctx.t > -0.8)]
+    if top.size < 8 or bot.size < 8:
+        return 0.0
+    return float(np.clip(3.0 * (_quantile(bot, 0.9) - _quantile(top, 0.9)), -1, 1))
+
+
+# ----------------------------------------------------------------------------- front cues
+
+def _front_cues(ctx: _Context, wheels: _Wheels | None, names: _NameTable) -> dict[str, float]:
+    """Each cue in [-1, 1]: positive = the length axis a points to the front (b is up)."""
+    cues: dict[str, float] = {}
+    fs = ctx.face_s()
+    votes = ([(w, v) for w, v in names.votes(_IS_FRONT, fs)]
+             + [(w, -v) for w, v in names.votes(_IS_REAR, fs)])
+    if votes:
+        cues["names"] = _vote(votes)
+    share = names.share[0]
+    lamp = np.flatnonzero((names.colour != 0) & (share > 0) & (share <= 0.05))
+    if lamp.size:
+        # a lamp material's surface at the front end minus at the back end: one at both
+        # ends (or in the middle) cancels
+        ends = names.means(0, (fs > 0.5).astype(float) - (fs < -0.5))[lamp]
+        w = np.sqrt(np.minimum(share[lamp] * N_SAMPLES, 50.0))
+        cues["lamp_colours"] = _vote(list(zip(w.tolist(), (names.colour[lamp] * ends).tolist())))
+    fm = names.material_of_sample
+    glass = names.glass[fm]
+    if glass.sum() >= 4:
+        cues.update(_glass_cues(ctx, glass))
+    cues["mirrors"] = _mirrors(ctx)
+    ax = wheels.axles(ctx) if wheels is not None else np.zeros(0)
+    if ax.size >= 3:
+        gaps = np.diff(ax)
+        cues["axles"] = float(np.clip(3.0 * (gaps[-1] - gaps[0]), -1, 1))
+    cues["profile"] = _profile(ctx)
+    return cues
+
+
+def _glass_cues(ctx: _Context, glass: np.ndarray) -> dict[str, float]:
+    """windscreen: the glazing facing along the length (not the side windows) lies more at
+    the front end of the glazed region than at its back (a windscreen is bigger than a rear
+    window, and trucks have none); by position, so inverted or double-sided glass faces do
+    not matter. cab_glass: glazing only near one end (a truck's or a van's cab) is the
+    front; glazing around the middle (a car's greenhouse) says nothing."""
+    s = ctx.s[glass]
+    lo, hi = s.min(), s.max()
+    ref = 0.5 * (lo + hi) if hi - lo >= 0.4 else 0.0       # the glazed region's middle
+    end = np.abs(ctx.ns[glass])
+    end = end * (np.abs(ctx.nq[glass]) < 0.6)
+    out = {}
+    if end.sum() > 0:
+        out["windscreen"] = float(np.clip(1.5 * (np.sign(s - ref) * end).sum() / end.sum(),
+                                          -1, 1))
+    centre = float(s.mean())
+    if abs(centre) > 0.35:
+        out["cab_glass"] = float(np.sign(centre) * min((abs(centre) - 0.35) / 0.25, 1.0))
+    return out
+
+
+def _mirrors(ctx: _Context) -> float:
+    """Side mirrors: local spikes of the vehicle's width above the wheels. The width
+    profile (largest |q|) in cells of 0.1 of the height by 0.05 of the length; a cell wider
+    by 0.06 than every cell 2-4 cells away along the length at the same height is a spike
+    (a broad shoulder is not). Mirrors sit in the front half (at the A pillars, or at a
+    truck's cab): (spikes in the front half - spikes in the back half) / (all spikes + 2)."""
+    t, q, s = ctx.t, np.abs(ctx.q), ctx.s
+    band = (t > -0.3) & (t < 0.85)
+    if band.sum() < 40:
+        return 0.0
+    lv = np.floor((t[band] + 0.3) / 0.1).astype(np.intp)
+    sb = np.clip(np.floor((s[band] + 1.0) / 0.05).astype(np.intp), 0, 39)
+    W = np.zeros((12, 40))
+    np.maximum.at(W, (np.minimum(lv, 11), sb), q[band])
+    P = np.pad(W, ((0, 0), (4, 4)))
+    nb = np.max([P[:, 4 + d:44 + d] for d in (-4, -3, -2, 2, 3, 4)], axis=0)
+    spike = (W - nb > 0.06) & (W > 0)
+    pos = (np.nonzero(spike)[1] + 0.5) * 0.05 - 1.0
+    front, back = int((pos > 0).sum()), int((pos < 0).sum())
+    return float((front - back) / (front + back + 2.0))
+
+
+def _profile(ctx: _Context) -> float:
+    """The nose is lower than the tail (a bonnet in front of the windscreen; a tailgate, a
+    boot, fins or a cargo box behind): the side view's top edge (the highest sample in each
+    of 40 columns along the length) averaged over the last 6 columns at each end."""
+    col = np.minimum(((ctx.s + 1.0) * 20.0).astype(np.intp), 39)
+    top = np.full(40, np.nan)
+    order = np.lexsort((ctx.t, col))
+    last = np.r_[col[order][1:] != col[order][:-1], True]
+    top[col[order][last]] = ctx.t[order][last]
+    front, rear = top[-6:], top[:6]
+    if np.isnan(front).all() or np.isnan(rear).all():
+        return 0.0
+    return float(np.clip(1.5 * (np.nanmean(rear) - np.nanmean(front)), -1, 1))
+
+
+# ----------------------------------------------------------------------------- many vehicles
+
+def _overlapping_vehicles(ctx: _Context, names: "_NameTable") -> bool:
+    """Vehicles on top of each other (a game's vehicle pack at the origin): two or more node
+    groups (node names without trimesh's '_xxxxxx' suffix) that each look like a whole
+    vehicle: two or more materials, glazing or lamps among them, and at least half of the
+    length and 40 % of the height of the model."""
+    mesh = ctx.mesh
+    if len(names.groupings) < 2:
+        return False
+    node_of_face, node_names = names.groupings[1]
+    stems = [re.sub(r"_[0-9a-f]{6}$", "", str(n)) for n in node_names]
+    stem_ids = {st: k for k, st in enumerate(dict.fromkeys(stems))}
+    if len(stem_ids) < 2:
+        return False
+    group = np.array([stem_ids[st] for st in stems])[node_of_face]
+    fm = np.asarray(mesh.face_material).astype(np.intp)
+    special = (names.glass | names.lamp)[fm]
+    fc = ctx.S.face_centroid
+    fs, ft = fc @ ctx.a, fc @ ctx.b
+    span_s, span_t = float(np.ptp(fs)), float(np.ptp(ft))
+    whole = 0
+    for k in range(len(stem_ids)):
+        sel = group == k
+        if sel.sum() < 4 or not special[sel].any() or np.unique(fm[sel]).size < 2:
+            continue
+        if np.ptp(fs[sel]) >= 0.5 * span_s and np.ptp(ft[sel]) >= 0.4 * span_t:
+            whole += 1
+    return whole >= 2
+
+def _several_vehicles(ctx: _Context) -> bool:
+    """Vehicles side by side: nothing crosses the mirror plane (under 0.3 % of the samples
+    within 3 % of the half-width of it; a single vehicle's roof, bumpers and floor cross it).
+    Or two or more separate clusters of surface (voxels of 1/40 of the length, one voxel of
+    gap joins), each holding at least 15 % of the samples and 30 % of the length."""
+    from scipy import ndimage
+
+    if np.mean(np.abs(ctx.q) < 0.03) < 0.003 and min(np.mean(ctx.q > 0), np.mean(ctx.q < 0)) > 0.3:
+        return True
+    p = ctx.S.points
+    cell = 2 * ctx.half_len / 40.0
+    i = np.floor((p - p.min(axis=0)) / cell).astype(np.intp)
+    dims = i.max(axis=0) + 1
+    if np.prod(dims) > 4_000_000:
+        return False
+    g = np.zeros(dims, bool)
+    g[i[:, 0], i[:, 1], i[:, 2]] = True
+    lab, k = ndimage.label(ndimage.binary_dilation(g), structure=np.ones((3, 3, 3)))
+    if k < 2:
+        return False
+    who = lab[i[:, 0], i[:, 1], i[:, 2]]
+    cnt = np.bincount(who, minlength=k + 1)
+    big = [c for c in range(1, k + 1) if cnt[c] >= 0.15 * len(p)
+           and np.ptp(ctx.s[who == c]) >= 0.6]
+    return len(big) >= 2
