@@ -60,6 +60,7 @@ import os
 import resource
 import shutil
 import sqlite3
+import stat as stat_
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -184,8 +185,6 @@ def _manifest_paths(manifest: Path) -> list[Path]:
     """Paths listed by a .txt / .json manifest (ValueError naming the manifest and the problem).
     The manifest must be a regular file of at most MAX_MANIFEST_BYTES (a library given as
     /dev/zero or a FIFO is refused, not read)."""
-    import stat as stat_
-
     shown = printable(str(manifest))
     st = manifest.stat()
     if not stat_.S_ISREG(st.st_mode):
@@ -300,7 +299,7 @@ def _parquet_uids(p: Path) -> list[str]:
 # ----------------------------------------------------------------------------- driver
 
 def build(library: str | os.PathLike, catalog: str | os.PathLike,
-          options: BuildOptions = BuildOptions(), *, workers: int = 1, engine: str = "local",
+          options: BuildOptions | None = None, *, workers: int = 1, engine: str = "local",
           timeout: float = 600.0, recycle_after: int = 200, progress: bool = True,
           uids: Iterable[str] | None = None, limit: int | None = None,
           ray_address: str | None = None, log=print, retry_failed: Iterable[str] | None = None,
@@ -313,6 +312,7 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     not a catalogue), ValueError / FileNotFoundError for bad arguments or a missing library.
     """
     t_start = time.perf_counter()
+    options = options or BuildOptions()
     segmenter_from_spec(options.segmenter)   # a bad --segmenter fails here, not in every worker
     if engine not in ("local", "ray"):
         raise ValueError(f"unknown engine {engine!r}: use local or ray")

@@ -45,7 +45,8 @@ from .ingest import (Budgets, IngestError, describe_exception, load_mesh, mesh_i
 from .orient import OrientationOverrides, orient_mesh, parse_mode
 from .pose import box_side
 from .render import render_views
-from .segment import name_priors, segmenter_from_spec
+from .names import name_priors
+from .segment import segmenter_from_spec
 from .shade import shade_views
 from .sheets import part_sheet
 

@@ -94,7 +94,7 @@ def run(args) -> int:
     from ..system import printable
     from ..ingest import IngestError, describe_exception, load_mesh
     from ..render import render_views
-    from ..segment import name_priors
+    from ..names import name_priors
     from ..sheets import part_sheet, write_png
 
     try:

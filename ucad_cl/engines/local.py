@@ -187,8 +187,9 @@ class _Worker:
         self.conn.close()
 
 
-def run_local(todo, options, commit, skip, *, workers, timeout, recycle_after, progress,
-              staging, log, known, memory_limit_mb, summary, runlog, loader=None):
+def run_local(todo, options, commit, skip, *, workers, timeout,  # noqa: C901  the driver loop
+              recycle_after, progress, staging, log, known, memory_limit_mb, summary, runlog,
+              loader=None):
     """Process ``todo`` in ``workers`` local processes (see the module docstring); raises
     ``BuildStopped`` on an environment fault. ``known`` = (catalogue, options hash, retried codes)
     for the workers' read-only "already catalogued?" question; ``summary`` gets the memory
