@@ -91,7 +91,7 @@ def main() -> None:
         samples: list[tuple[float, float]] = []
         stop = threading.Event()
 
-        def sample():
+        def sample(samples=samples, stop=stop):
             t0 = time.perf_counter()
             while not stop.is_set():
                 samples.append((time.perf_counter() - t0, tree_rss_mb(os.getpid())))
@@ -105,7 +105,7 @@ def main() -> None:
         disk = sum(f.stat().st_size for f in cat.rglob("*") if f.is_file())
         n = max(s.processed, 1)
         rss = [r for _, r in samples]
-        q = lambda f: rss[min(len(rss) - 1, int(f * len(rss)))] if rss else 0.0
+        q = lambda f, rss=rss: rss[min(len(rss) - 1, int(f * len(rss)))] if rss else 0.0
         rows.append((w, s, disk / n, max(rss) if rss else 0.0, q(0.25), q(0.5), q(0.95)))
         print(f"workers {w}: {s.processed} meshes ({s.accepted} accepted, {s.rejected} rejected: "
               f"{s.reasons}) in {s.seconds:.0f} s")

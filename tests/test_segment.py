@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from ucad_cl.classify import classify_parts
+from ucad_cl.names import name_prior
 from ucad_cl.segment import (MasksSegmenter, OnnxSegmenter, PriorSegmenter, material_colors,
-                             material_features, material_image, masks_from_labels, name_prior,
+                             material_features, material_image, masks_from_labels,
                              write_masks)
 from tests.reference import flat_mesh, flat_views
 from ucad_cl.artifacts import PART_NAMES, Mesh, PartMasks
@@ -521,7 +522,7 @@ def test_name_prior_regex_matches_the_per_keyword_rule():
     import random
     import re
 
-    from ucad_cl.segment import NAME_KEYWORDS
+    from ucad_cl.names import NAME_KEYWORDS
 
     def reference(name):
         spaced = re.sub(r"([a-z])([A-Z])", r"\1 \2", name).lower()

@@ -368,7 +368,7 @@ def test_cli_writes_library(tmp_path):
 
 
 def test_realism_traits_change_materials_as_documented():
-    from ucad_cl.segment import name_prior
+    from ucad_cl.names import name_prior
     from ucad_cl.synth import REALISM_TRAITS, apply_realism  # noqa: F401
 
     base = make_vehicle(21, "sedan")

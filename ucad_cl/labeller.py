@@ -37,7 +37,7 @@ Features (``FEATURE_NAMES``, one row per material, float32):
   views that see it, pixel-weighted |cos azimuth| (seen from the ends vs the sides), share of its
   image boundary against background, see-through materials and the largest material; share of its
   visibility that comes only through glass (layer behind glass, see ``behind_glass``).
-* names: ``segment.name_prior`` of the material name (one-hot over parts, all zero for a name
+* names: ``names.name_prior`` of the material name (one-hot over parts, all zero for a name
   that says nothing, e.g. ``Material.001``), and the area share of faces whose node name says
   each part. ``use_names=False`` zeros both (the "names hidden" evaluation).
 * context (same for every material of a mesh): length/height and width/height, material count,
@@ -72,6 +72,8 @@ from pathlib import Path
 import numpy as np
 
 from .artifacts import PART_NAMES, CameraRing, Mesh, ViewSet
+from .names import name_prior
+from .render import render_views
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 MODEL_PATH = MODEL_DIR / "labeller.onnx"
@@ -216,7 +218,6 @@ def behind_glass(mesh: Mesh, views: ViewSet
     first layer resampled to (S, H', W')). None when no see-through material is visible.
     Views: every k-th of the ring, at most ``BEHIND_VIEWS``; size: the ring's, scaled down to
     at most ``BEHIND_SIZE`` px (nearest pixel centre)."""
-    from .render import render_views
 
     clear = see_through(mesh)
     # a see-through material nobody sees in the first layer (a lamp's inner glass behind its
@@ -264,7 +265,6 @@ def _resize_ids(ids: np.ndarray, h: int, w: int) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True) -> MaterialTable:
     """Feature rows of every material (see the module docstring)."""
-    from .segment import name_prior
 
     M, P = len(mesh.materials), len(PART_NAMES)
     D = len(FEATURE_NAMES)
