@@ -55,8 +55,10 @@ def references(lib: Path, cat: Path, opts) -> dict:
     out = {}
     con = sqlite3.connect(cat / "catalog.sqlite")
     for sha, path in con.execute("SELECT sha256, path FROM meshes WHERE state='accepted'"):
-        views = render_views(load_mesh(lib / path), ring)
+        mesh = load_mesh(lib / path)                              # oriented, as the build does
+        views = render_views(mesh, ring)
         out[sha] = {"views": views, "edges": material_edges(views).edges > 0, "ring": ring,
+                    "orientation": mesh.orientation.as_dict(),
                     "table": con.execute("SELECT idx, part FROM materials m JOIN meshes x ON "
                                          "m.mesh_id=x.id WHERE x.sha256=?", (sha,)).fetchall()}
     con.close()
@@ -97,7 +99,8 @@ for m in cat.meshes():
     e = cat.entry(m.name)
     assert (e.id, e.info.path, [p.part for p in e.parts], len(e.views)) == \
         (m.id, m.path, [p.part for p in cat.parts(m.id)], len(views))
-    assert all(p.is_file() for p in e.artifacts.values()) and e.orientation is None
+    assert all(p.is_file() for p in e.artifacts.values())
+    rec["orientation"] = e.orientation
     rec["provenance"] = {k: v for k, v in e.provenance.items() if k != "run_started"}
     rec["artifact_kinds"] = sorted(cat.record(m.id)["artifacts"])
     out[m.id] = rec
@@ -134,6 +137,8 @@ def test_reader_installed_alone_reads_every_artifact(built, tmp_path):
         assert [tuple(a) for a in rec["angles"]] == \
             [(v, ring.azimuth[v], ring.elevation[v]) for v in range(ring.n_views)]
         assert np.array_equal(rec["K"], ring.K) and np.array_equal(rec["w2c"], ring.w2c)
+        assert rec["orientation"] == json.loads(json.dumps(ref["orientation"]))   # the stage's record
+        assert rec["orientation"]["source"] == "auto" and len(rec["orientation"]["rotation"]) == 3
         assert rec["by_angle"] == [brute_nearest(ring, a, e) for a, e in
                                    ((100.0, 25.0), (350.0, 0.0), (181.0, 14.9), (0.0, 89.0))]
         assert rec["by_angle"][1] == 0 and rec["view_by_angle"] == rec["by_angle"][0]
