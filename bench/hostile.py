@@ -65,7 +65,7 @@ def memory_line(stdout: str) -> tuple[int, int, int]:
 
 def corpus_build(work: Path):
     from ucad_catalog.reader import CatalogReader
-    from ucad_cl.build import printable
+    from ucad_cl.system import printable
 
     lib = work / "corpus"
     cases = write_corpus(lib)
@@ -105,7 +105,7 @@ import json, os, resource, sys, time
 sys.path.insert(0, sys.argv[1])
 import trimesh  # noqa: F401  - imported before the clock starts
 from ucad_cl.ingest import Budgets, IngestError, load_mesh
-from ucad_cl.build import process_memory_mb
+from ucad_cl.system import process_memory_mb
 path, lift, cap = sys.argv[2], sys.argv[3] == "1", int(sys.argv[4])
 if cap:
     resource.setrlimit(resource.RLIMIT_DATA, (cap * 2**20, resource.RLIM_INFINITY))
@@ -146,7 +146,7 @@ def run_child(path, lift=False, cap=0):
 
 
 def per_class(cases):
-    from ucad_cl.build import printable
+    from ucad_cl.system import printable
 
     floor = statistics.median(run_child("-")[2] for _ in range(3))
     print(f"\n2. ingest alone per case (fresh child each; floor = the child that only imports "
@@ -191,7 +191,7 @@ load_mesh(sys.argv[2], budgets=Budgets(max_triangles=10**12, max_vertices=10**12
 
 
 def mechanisms(lib: Path, limit_mb: int):
-    from ucad_cl.build import process_memory_mb
+    from ucad_cl.system import process_memory_mb
 
     path = lib / BOMBS[0]
     print(f"\n4. memory-limit mechanisms on {path.name} (budgets off), limit {limit_mb} MB")

@@ -33,7 +33,6 @@ import resource
 import sys
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,10 +41,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 VEHICLES = ROOT.parent / "shared" / "data" / "vehicles"
 
-from ucad_cl.cameras import make_ring  # noqa: E402
 from ucad_cl.classify import classify_parts, part_histogram  # noqa: E402
 from ucad_cl.render import render_views  # noqa: E402
-from ucad_cl.segment import LabellerSegmenter, PriorSegmenter, name_priors  # noqa: E402
+from ucad_cl.names import name_priors  # noqa: E402
+from ucad_cl.segment import LabellerSegmenter, PriorSegmenter  # noqa: E402
 from ucad_cl.artifacts import PART_NAMES  # noqa: E402
 
 COLS = list(PART_NAMES) + ["unseen"]
@@ -153,7 +152,7 @@ def accuracy_table(args):
                                    else (Score(), []))
         for k, (sc, _) in res.items():
             tot[k] += sc
-        cell = lambda k: f"{res[k][0].acc:6.0%} {res[k][0].pix:6.0%}"  # noqa: E731
+        cell = lambda k, res=res: f"{res[k][0].acc:6.0%} {res[k][0].pix:6.0%}"  # noqa: E731
         print(f"{rm.file:44s} {res['lab_named'][0].n:4d} | {cell('lab_named'):>14s} "
               f"{cell('lab_hidden'):>13s} | {cell('prior_named'):>13s} "
               f"{cell('prior_hidden'):>13s} | {'; '.join(res['lab_hidden'][1][:5])} "

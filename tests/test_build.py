@@ -128,14 +128,15 @@ def test_sigkill_resume_equals_uninterrupted_build(library, tmp_path, runtime):
         assert c.verify() == []
 
 
-def test_crashing_and_hanging_loaders_are_isolated(library, tmp_path, runtime, monkeypatch):
+def test_crashing_and_hanging_loaders_are_isolated(library, tmp_path, runtime):
     """A native crash is recorded against the mesh the worker held alone; a hang is killed after
     --timeout, retried alone with twice the time, then recorded; the build goes on."""
     names = sorted(p.name for p in library.glob("synth_*.glb"))
-    monkeypatch.setenv("UCAD_FAULT_INJECT", f"crash:{names[1]},hang:{names[4]}")
+    from tests.faults import faulty_loader
     cat = tmp_path / "cat"
     t0 = time.monotonic()
-    s = build(library, cat, OPTS, progress=False, timeout=4.0, log=lambda *a: None)
+    s = build(library, cat, OPTS, progress=False, timeout=4.0, log=lambda *a: None,
+              loader=faulty_loader(crash=[names[1]], hang=[names[4]]))
     content = catalogue_content(cat)
     by_name = {rec["path"]: rec for rec in content.values()}
     assert by_name[names[1]]["state"] == "rejected"
@@ -147,7 +148,6 @@ def test_crashing_and_hanging_loaders_are_isolated(library, tmp_path, runtime, m
     assert f"{names[1]} reason=loader_crashed" in log and "reason=timeout" in log
     assert "finished: 6 accepted, 4 rejected" in log
     # --retry-failed re-processes recorded failures (the fault is gone now); plain runs skip them
-    monkeypatch.delenv("UCAD_FAULT_INJECT")
     assert build(library, cat, OPTS, progress=False, log=lambda *a: None).processed == 0
     s2 = build(library, cat, OPTS, progress=False, log=lambda *a: None,
                retry_failed=["timeout", "loader_crashed"])

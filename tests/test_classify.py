@@ -381,7 +381,8 @@ def test_bits_and_masks_give_identical_tables(runtime):
     """Packed and unpacked PartMasks classify alike (every field of every row, exactly), on
     disjoint (ground-truth, prior) and overlapping (degraded) masks of generated vehicles; a
     packed PartMasks is never unpacked by classification."""
-    from ucad_cl.segment import PriorSegmenter, name_priors
+    from ucad_cl.names import name_priors
+    from ucad_cl.segment import PriorSegmenter
 
     for k, (mesh, views, truth) in enumerate(_synth_cases(3)):
         gt = masks_from_labels(views, truth, confidence=0.9)

@@ -10,7 +10,7 @@ ray = pytest.importorskip("ray")
 
 from tests.test_build import catalogue_content  # noqa: E402
 from ucad_cl.build import BuildOptions, MeshRef, build  # noqa: E402
-from ucad_cl.engines import MARKER_PREFIX, _process_one, run_ray  # noqa: E402
+from ucad_cl.engines.ray import MARKER_PREFIX, _process_one, run_ray  # noqa: E402
 
 OPTS = BuildOptions(azimuth_step=90.0, size=64)
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -60,7 +60,9 @@ def test_local_cluster_is_started_and_shut_down(library, tmp_path):
 
 @pytest.fixture(scope="module")
 def cluster():
+    import tests.faults
     ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING")
+    ray.cloudpickle.register_pickle_by_value(tests.faults)   # workers need not import tests/
     yield
     ray.shutdown()
 
@@ -82,12 +84,11 @@ def test_ray_build_equals_local_build(library, tmp_path, runtime, cluster):
         assert c.verify() == []
 
 
-def test_crashing_loader_is_rejected_and_build_completes(library, tmp_path, runtime, cluster,
-                                                         monkeypatch):
+def test_crashing_loader_is_rejected_and_build_completes(library, tmp_path, runtime, cluster):
+    from tests.faults import faulty_loader
     names = sorted(p.name for p in library.glob("synth_*.glb"))
-    monkeypatch.setenv("UCAD_FAULT_INJECT", f"crash:{names[1]}")   # forwarded to the workers
     cat = tmp_path / "cat"
-    s = build(library, cat, OPTS, engine="ray", **QUIET)
+    s = build(library, cat, OPTS, engine="ray", loader=faulty_loader(crash=[names[1]]), **QUIET)
     by_name = {rec["path"]: rec for rec in catalogue_content(cat).values()}
     assert len(by_name) == 7
     assert (by_name[names[1]]["state"], by_name[names[1]]["reason"]) == ("rejected",
@@ -96,14 +97,14 @@ def test_crashing_loader_is_rejected_and_build_completes(library, tmp_path, runt
     assert all(by_name[n]["state"] == "accepted" for n in names if n != names[1])
 
 
-def test_hanging_task_times_out(library, tmp_path, runtime, cluster, monkeypatch):
+def test_hanging_task_times_out(library, tmp_path, runtime, cluster):
     """Cancelled after the timeout, resubmitted once with twice the time, then rejected. (The
     clock of a Ray task includes a fresh worker's start-up: 8 s leaves room on a loaded machine.)"""
+    from tests.faults import faulty_loader
     names = sorted(p.name for p in library.glob("synth_*.glb"))
-    monkeypatch.setenv("UCAD_FAULT_INJECT", f"hang:{names[2]}")
     got = []
     run_ray(_todo([library / names[2], library / names[3]]), OPTS, got.append, timeout=8.0,
-            staging=tmp_path / "staging", **QUIET)
+            staging=tmp_path / "staging", loader=faulty_loader(hang=[names[2]]), **QUIET)
     by_name = {Path(e.path).name: e for e in got}
     assert (by_name[names[2]].state, by_name[names[2]].reason) == ("rejected", "timeout")
     assert by_name[names[3]].state == "accepted", (by_name[names[3]].reason, by_name[names[3]].detail)

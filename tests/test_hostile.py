@@ -24,8 +24,9 @@ from tests.hostile_corpus import (box_gltf, pack_glb, remove_deep, vehicle_glb, 
                                   write_corpus)
 from tests.test_build import catalogue_content
 from ucad_cl import reasons
-from ucad_cl.build import BuildOptions, BuildStopped, build, printable
+from ucad_cl.build import BuildOptions, BuildStopped, build
 from ucad_cl.ingest import Budgets, IngestError, load_mesh
+from ucad_cl.system import printable
 
 OPTS = BuildOptions(azimuth_step=90.0, size=64)
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -518,7 +519,7 @@ def test_environment_faults_are_classified():
     import errno
     import sqlite3
 
-    from ucad_cl.build import environment_code
+    from ucad_cl.pipeline import environment_code
     assert environment_code(OSError(errno.ENOSPC, "No space left on device")) == "disk_full"
     assert environment_code(OSError(errno.EDQUOT, "Disk quota exceeded")) == "disk_full"
     assert environment_code(OSError(errno.EIO, "Input/output error")) == "io_error"

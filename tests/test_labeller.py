@@ -331,7 +331,8 @@ def test_shared_paint_on_rims_is_split_by_component(runtime):
 
 
 def test_default_segmenter_everywhere():
-    from ucad_cl.build import BuildOptions, make_segmenter
+    from ucad_cl.build import BuildOptions
+    from ucad_cl.segment import segmenter_from_spec as make_segmenter
     from ucad_cl.segment import LabellerSegmenter
 
     assert BuildOptions().segmenter == "labeller"

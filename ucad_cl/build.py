@@ -55,80 +55,28 @@ process starts at its parent's size).
 """
 from __future__ import annotations
 
-import errno
-import gzip
-import hashlib
-import io
 import json
 import os
+import resource
 import shutil
 import sqlite3
+import stat as stat_
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
+from typing import Callable, Iterable
 
-import numpy as np
+from ucad_catalog.store import Catalog
 
 from . import reasons
-from .ingest import SUPPORTED_SUFFIXES, Budgets
+from .engines import run_local, run_ray
+from .ingest import SUPPORTED_SUFFIXES
+from .pipeline import CODE_VERSION, BuildOptions, BuildStopped, MeshRef, environment_code
+from .segment import segmenter_from_spec
+from .system import default_memory_limit_mb, printable, process_memory_mb, tree_rss_mb
 
-CODE_VERSION = "5"        # bump when a change alters results: it enters the options hash
-
-
-@dataclass(frozen=True)
-class BuildOptions:
-    """Everything that affects what is stored. Angles in degrees, sizes in pixels."""
-
-    azimuth_step: float = 5.0
-    elevations: tuple[float, ...] = (15.0,)
-    fov_deg: float = 40.0
-    size: int = 256
-    segmenter: str = "labeller"         # 'labeller[:MODEL]' | 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG'
-    threshold: float = 0.5              # part score threshold (UrbanCAD: 0.5)
-    min_materials: int = 2
-    max_triangles: int = 2_000_000      # reject above this (after decimation, if any)
-    triangle_budget: int = 0            # decimate above this many triangles (0 = never)
-    dominant_fraction: float = 0.97     # reject when one material covers this share of pixels
-    min_visible_materials: int = 2
-    features: bool = True
-    edges: bool = True
-    max_input_triangles: int = Budgets.max_triangles   # ingest budget, before allocation
-    orientation: str = "auto"           # 'auto' | 'file' | 'UP,FRONT' (ucad_cl.orient)
-    orientation_overrides: tuple = ()   # ((path or sha256, 'UP,FRONT' | 'auto' | 'file'), ...)
-    reject_uncertain_orientation: bool = False   # reject instead of flag (uncertain_orientation)
-
-    def __post_init__(self):
-        from .orient import parse_mode
-
-        parse_mode(self.orientation)                      # a bad mode fails here
-        object.__setattr__(self, "orientation_overrides",
-                           tuple((str(k), str(v)) for k, v in self.orientation_overrides))
-
-    def to_dict(self) -> dict:
-        d = asdict(self)
-        d["elevations"] = list(self.elevations)
-        d["orientation_overrides"] = [list(kv) for kv in self.orientation_overrides]
-        return d
-
-    def hash(self) -> str:
-        blob = json.dumps({"code": CODE_VERSION, **self.to_dict()}, sort_keys=True)
-        return hashlib.sha256(blob.encode()).hexdigest()
-
-    def budgets(self) -> Budgets:
-        """Ingest budgets: triangles as given, vertices three per triangle (at least the
-        default vertex budget: files often carry unreferenced vertices)."""
-        return Budgets(max_triangles=self.max_input_triangles,
-                       max_vertices=max(Budgets.max_vertices, 3 * self.max_input_triangles))
-
-
-@dataclass
-class MeshRef:
-    """A library file: path, size in bytes, mtime (s); size -1 when it cannot be stat-ed."""
-
-    path: str
-    size: int
-    mtime: float
+__all__ = ["build", "discover", "read_uid_list", "library_root", "relative_path", "BuildOptions",
+           "BuildStopped", "BuildSummary", "CODE_VERSION", "MeshRef"]
 
 
 @dataclass
@@ -159,55 +107,6 @@ class BuildSummary:
     @property
     def meshes_per_s(self) -> float:
         return self.processed / self.seconds if self.seconds > 0 else 0.0
-
-
-class BuildStopped(RuntimeError):
-    """An environment fault stopped the build (nothing recorded for the meshes in flight).
-    ``code`` is an environment reason code, ``str`` says what to free or fix; ``summary`` holds
-    what the run did before it stopped."""
-
-    def __init__(self, code: str, message: str, summary: BuildSummary | None = None):
-        self.code = reasons.check(code, reasons.ENVIRONMENT)
-        self.summary = summary
-        super().__init__(message)
-
-
-def environment_code(exc: BaseException) -> str | None:
-    """The environment reason code of an error raised while writing the catalogue or staging
-    files (``disk_full``, ``io_error``), or None when it is not an environment fault."""
-    if isinstance(exc, OSError):
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            return "disk_full"
-        if exc.errno in (errno.EIO, errno.EROFS, errno.ENXIO, errno.ENODEV, errno.ESTALE):
-            return "io_error"
-        return None
-    if isinstance(exc, sqlite3.Error):
-        code = getattr(exc, "sqlite_errorcode", None)
-        text = str(exc).lower()
-        if code == 13 or "disk is full" in text:                 # SQLITE_FULL
-            return "disk_full"
-        if (code is not None and code & 0xFF in (8, 10, 14)) or "disk i/o error" in text:
-            return "io_error"                                   # READONLY, IOERR, CANTOPEN
-    return None
-
-
-def printable(text: str) -> str:
-    """``text`` as valid UTF-8 for logs and terminals: bytes of a non-UTF-8 file name (Python's
-    surrogate escapes) are written ``\\xNN``."""
-    try:
-        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
-    except UnicodeEncodeError:
-        return text.encode("utf-8", "backslashreplace").decode("utf-8")
-
-
-def default_memory_limit_mb(workers: int) -> float:
-    """Half the machine's memory divided among the workers, at least 1 GiB each."""
-    try:
-        import psutil
-        total = psutil.virtual_memory().total
-    except ImportError:
-        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    return max(1024.0, total / 2**20 / 2 / max(1, workers))
 
 
 # ----------------------------------------------------------------------------- discovery
@@ -286,8 +185,6 @@ def _manifest_paths(manifest: Path) -> list[Path]:
     """Paths listed by a .txt / .json manifest (ValueError naming the manifest and the problem).
     The manifest must be a regular file of at most MAX_MANIFEST_BYTES (a library given as
     /dev/zero or a FIFO is refused, not read)."""
-    import stat as stat_
-
     shown = printable(str(manifest))
     st = manifest.stat()
     if not stat_.S_ISREG(st.st_mode):
@@ -399,292 +296,24 @@ def _parquet_uids(p: Path) -> list[str]:
     # Objaverse file identifiers are URLs ending in <uid>.glb: keep the stem
     return [Path(str(v)).stem if "/" in str(v) else str(v) for v in values if v is not None]
 
-
-def content_sha256(path: str | os.PathLike) -> str:
-    """The mesh key (``ingest.mesh_identity``: format tag + the bytes of the file and of the
-    files it references); for a file that cannot be read, ``ingest.unreadable_identity``."""
-    from .ingest import IngestError, mesh_identity, unreadable_identity
-
-    try:
-        return mesh_identity(path)
-    except IngestError:
-        return unreadable_identity(path)
-
-
-# ----------------------------------------------------------------------------- per mesh
-
-@dataclass
-class Skipped:
-    """A worker's answer for a path whose content is already catalogued with these options."""
-
-    sha256: str
-
-
-class Pipeline:
-    """The per-mesh stages with their state (segmenter, feature extractor) built once."""
-
-    def __init__(self, options: BuildOptions):
-        from .cameras import make_ring
-        from .orient import OrientationOverrides
-
-        self.options = options
-        self.budgets = options.budgets()
-        self.overrides = OrientationOverrides(dict(options.orientation_overrides))
-        self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
-                              fov_deg=options.fov_deg, size=options.size)
-        self.segmenter = make_segmenter(options.segmenter)
-        self.extractor = None
-        if options.features:
-            from .features import HogExtractor
-            self.extractor = HogExtractor()
-
-    def identify(self, ref: MeshRef) -> tuple[str, object]:
-        """(content key, None), or (key, rejected CatalogEntry) when the file cannot be read."""
-        from .ingest import IngestError, mesh_identity, unreadable_identity
-
-        try:
-            return mesh_identity(ref.path, self.budgets), None
-        except IngestError as exc:
-            sha = unreadable_identity(ref.path)
-            return sha, rejected_entry(ref, sha, exc.reason, str(exc))
-
-    def load(self, ref: MeshRef):
-        """Ingest, then orient (may raise IngestError or MemoryError). Returns (mesh,
-        {stage: seconds})."""
-        from .ingest import load_mesh
-        from .orient import orient_mesh
-
-        t0 = time.perf_counter()
-        _inject_fault(ref.path)
-        mesh = load_mesh(ref.path, budgets=self.budgets, orientation=None)
-        t1 = time.perf_counter()
-        mode = self.overrides.mode_for(ref.path, mesh.sha256, self.options.orientation)
-        mesh = orient_mesh(mesh, mode)
-        return mesh, {"ingest": t1 - t0, "orient": time.perf_counter() - t1}
-
-    def load_entry(self, ref: MeshRef, sha: str):
-        """``load`` with every input fault turned into a rejected entry: (mesh, secs, None) or
-        (None, 0, entry). MemoryError passes through (the caller attributes it)."""
-        from .ingest import IngestError, describe_exception
-
-        try:
-            mesh, secs = self.load(ref)
-            return mesh, secs, None
-        except IngestError as exc:
-            return None, 0.0, rejected_entry(ref, sha, exc.reason, str(exc))
-        except MemoryError:
-            raise
-        except Exception as exc:             # a reader quirk on a strange file: an input fault
-            return None, 0.0, rejected_entry(ref, sha, "unreadable",
-                                             f"{ref.path}: {describe_exception(exc)}")
-
-    def process(self, ref: MeshRef, mesh, load_seconds: float | dict, staging: Path):
-        """Everything after ingest; returns a CatalogEntry (accepted or rejected).
-        ``load_seconds``: the ingest seconds, or ``{stage: seconds}`` from ``load``."""
-        from ucad_catalog.entry import CatalogEntry
-        from ucad_catalog.exr import write_viewset_exr
-
-        from .filter import filter_mesh, filter_views
-        from .artifacts import Verdict
-
-        o = self.options
-        timings = (dict(load_seconds) if isinstance(load_seconds, dict)
-                   else {"ingest": load_seconds})
-        t = time.perf_counter()
-        notes = "; ".join(mesh.report.notes)
-
-        def lap(name):
-            nonlocal t
-            now = time.perf_counter()
-            timings[name] = timings.get(name, 0.0) + now - t
-            t = now
-
-        def rejected(verdict):
-            if notes:
-                verdict = Verdict(False, verdict.reason, f"{verdict.detail} ({notes})")
-            return CatalogEntry.from_results(sha256=mesh.sha256, path=ref.path, size=ref.size,
-                                             mtime=ref.mtime, verdict=verdict, mesh=mesh,
-                                             timings=timings)
-
-        orient = mesh.orientation
-        if o.reject_uncertain_orientation and orient is not None and orient.uncertain:
-            return rejected(Verdict(False, "uncertain_orientation",
-                                    f"{ref.path}: orientation confidence up "
-                                    f"{orient.up_confidence:.2f}, front "
-                                    f"{orient.front_confidence:.2f} (flags: "
-                                    f"{', '.join(orient.flags) or 'none'})"))
-        if o.triangle_budget and mesh.n_faces > o.triangle_budget:
-            from .decimate import decimate
-            mesh = decimate(mesh, o.triangle_budget)
-            lap("decimate")
-        verdict = filter_mesh(mesh, min_materials=o.min_materials, max_triangles=o.max_triangles)
-        lap("filter")
-        if not verdict.accepted:
-            return rejected(verdict)
-        from .render import render_views
-        views = render_views(mesh, self.ring)
-        lap("render")
-        verdict = filter_views(mesh, views, dominant_fraction=o.dominant_fraction,
-                               min_visible_materials=o.min_visible_materials)
-        lap("filter")
-        if not verdict.accepted:
-            return rejected(verdict)
-        artifacts = {}
-        staging.mkdir(parents=True, exist_ok=True)
-        exr = staging / f"{mesh.sha256}.views.exr"
-        write_viewset_exr(exr, views, mesh)
-        artifacts["views.exr"] = exr
-        lap("write")
-        if o.edges:
-            from .edges import material_edges
-            edges = material_edges(views).edges
-            artifacts["edges.npy.gz"] = npy_gz_bytes(np.packbits(edges > 0, axis=-1))
-            lap("edges")
-        masks = self.segmenter.segment(mesh, views)
-        lap("segment")
-        from .classify import classify_parts
-        from .segment import name_priors
-        table = classify_parts(mesh, views, masks, threshold=o.threshold, priors=name_priors(mesh))
-        lap("classify")
-        if self.extractor is not None:
-            from .features import view_features
-            from .shade import shade_views
-            images = shade_views(mesh, views, background=(128, 128, 128))
-            feats = view_features(self.extractor, images, views).feats
-            artifacts["features.npy"] = npy_bytes(feats.astype(np.float32))
-            lap("features")
-        artifacts["parts.png"] = parts_sheet_png(views, table)
-        lap("write")
-        from .pose import _box_side
-        visible = views.material_counts()[:, 1:].sum(axis=1)
-        view_stats = [{"visible_pixels": int(visible[v]),
-                       "box_side": float(_box_side(views.mat_id[v] > 0))}
-                      for v in range(views.n_views)]
-        return CatalogEntry.from_results(
-            sha256=mesh.sha256, path=ref.path, size=ref.size, mtime=ref.mtime,
-            verdict=Verdict(True, "", notes), mesh=mesh, table=table, ring=self.ring,
-            artifacts=artifacts, timings=timings, view_stats=view_stats)
-
-    def process_entry(self, ref: MeshRef, mesh, load_seconds: float, staging: Path):
-        """``process`` with an unexpected error recorded as ``pipeline_error``. Environment
-        faults (``environment_code``) and MemoryError pass through."""
-        from .ingest import describe_exception
-
-        try:
-            return self.process(ref, mesh, load_seconds, staging)
-        except MemoryError:
-            raise
-        except Exception as exc:
-            if environment_code(exc):
-                raise
-            return rejected_entry(ref, mesh.sha256, "pipeline_error",
-                                  f"{ref.path}: {describe_exception(exc)}")
-
-
-class KnownContent:
-    """Read-only question to the catalogue, asked by workers: is content ``sha`` already
-    catalogued with options hash ``ohash`` (and not with a reason being retried)? No lock; any
-    error answers "no" (the mesh is then simply processed)."""
-
-    def __init__(self, catalog: str | os.PathLike | None, ohash: str | None,
-                 retry: Iterable[str] = ()):
-        self._db = Path(catalog) / "catalog.sqlite" if catalog else None
-        self._ohash, self._retry = ohash, set(retry)
-        self._conn = None
-
-    def __call__(self, sha: str) -> bool:
-        if self._db is None or not self._ohash:
-            return False
-        try:
-            if self._conn is None:
-                self._conn = sqlite3.connect(f"{self._db.resolve().as_uri()}?mode=ro", uri=True,
-                                             timeout=5.0, check_same_thread=False)
-            row = self._conn.execute("SELECT state, reason FROM meshes WHERE sha256=? AND "
-                                     "options_hash=?", (sha, self._ohash)).fetchone()
-        except sqlite3.Error:
-            return False
-        return row is not None and not (row[0] == "rejected" and row[1] in self._retry)
-
-
-def _inject_fault(path: str) -> None:
-    """Test hook standing in for a native loader that crashes or hangs on a broken file:
-    ``UCAD_FAULT_INJECT="crash:NAME,hang:NAME"`` segfaults / hangs while loading a path that
-    contains NAME. Unset in normal use."""
-    spec = os.environ.get("UCAD_FAULT_INJECT")
-    if not spec:
-        return
-    for item in spec.split(","):
-        kind, _, needle = item.partition(":")
-        if needle and needle in path:
-            if kind == "crash":               # a real fault: LLVM (PoCL) catches kill(SIGSEGV)
-                import ctypes
-                ctypes.string_at(0)
-            elif kind == "hang":
-                time.sleep(3600)
-
-
-def make_segmenter(spec: str):
-    """'labeller[:MODEL.onnx]' | 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG.json' -> a Segmenter
-    (``segment.make_segmenter``)."""
-    from .segment import make_segmenter as factory
-
-    kind, _, arg = spec.partition(":")
-    model, _, config = arg.partition(":") if kind == "onnx" else (arg, "", "")
-    return factory(kind, model or None, config or None)
-
-
-def rejected_entry(ref: MeshRef, sha: str, reason: str, detail: str):
-    from ucad_catalog.entry import CatalogEntry
-    from .artifacts import Verdict
-
-    reasons.check(reason, reasons.REJECTION)
-    return CatalogEntry.from_results(sha256=sha, path=ref.path, size=max(ref.size, 0),
-                                     mtime=ref.mtime, verdict=Verdict(False, reason, detail))
-
-
-def npy_bytes(a: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    np.save(buf, a, allow_pickle=False)
-    return buf.getvalue()
-
-
-def npy_gz_bytes(a: np.ndarray) -> bytes:
-    """Deterministic gzip (mtime 0) of an .npy file. Level 1: a mesh's packed edge maps in 2 ms
-    (56 kB) instead of 6 ms (44 kB) at level 6."""
-    return gzip.compress(npy_bytes(a), compresslevel=1, mtime=0)
-
-
-def parts_sheet_png(views, table) -> bytes:
-    """Contact sheet of (at most 24 of) the views coloured by part, as PNG bytes."""
-    import cv2
-
-    from .sheets import part_sheet
-
-    sub = views.select(np.arange(0, views.n_views, max(1, views.n_views // 24)))
-    ok, png = cv2.imencode(".png", np.ascontiguousarray(part_sheet(sub, table, 1600)[..., ::-1]))
-    return png.tobytes()
-
-
 # ----------------------------------------------------------------------------- driver
 
 def build(library: str | os.PathLike, catalog: str | os.PathLike,
-          options: BuildOptions = BuildOptions(), *, workers: int = 1, engine: str = "local",
+          options: BuildOptions | None = None, *, workers: int = 1, engine: str = "local",
           timeout: float = 600.0, recycle_after: int = 200, progress: bool = True,
           uids: Iterable[str] | None = None, limit: int | None = None,
           ray_address: str | None = None, log=print, retry_failed: Iterable[str] | None = None,
-          memory_limit_mb: float | None = None) -> BuildSummary:
+          memory_limit_mb: float | None = None, loader: Callable | None = None) -> BuildSummary:
     """Build or update the catalogue at ``catalog`` from ``library``. See the module docstring.
+    ``loader`` replaces ``ingest.load_mesh`` in every worker (``pipeline.Pipeline``'s seam).
 
     Raises ``BuildStopped`` on an environment fault (the summary of what was done is attached),
     ``ucad_catalog.CatalogError`` when the catalogue cannot be opened (another writer holds it,
     not a catalogue), ValueError / FileNotFoundError for bad arguments or a missing library.
     """
-    import resource
-
-    from ucad_catalog.store import Catalog
-
     t_start = time.perf_counter()
-    make_segmenter(options.segmenter)     # a bad --segmenter fails here, not in every worker
+    options = options or BuildOptions()
+    segmenter_from_spec(options.segmenter)   # a bad --segmenter fails here, not in every worker
     if engine not in ("local", "ray"):
         raise ValueError(f"unknown engine {engine!r}: use local or ray")
     retry = tuple(reasons.check(r, reasons.REJECTION) for r in (retry_failed or ()))
@@ -716,17 +345,16 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
             shutil.rmtree(staging, ignore_errors=True)   # a killed run's leftovers (we hold the lock)
             known = (str(catalog), cat.run_options_hash, retry)
             if engine == "local":
-                from .engines import run_local
                 run_local(todo, options, sink.commit, sink.skip, workers=workers,
                           timeout=timeout, recycle_after=recycle_after, progress=progress,
                           staging=staging, log=log, known=known,
-                          memory_limit_mb=memory_limit_mb, summary=summary, runlog=sink.log)
+                          memory_limit_mb=memory_limit_mb, summary=summary, runlog=sink.log,
+                          loader=loader)
             else:
-                from .engines import run_ray
                 run_ray(todo, options, sink.commit, address=ray_address, progress=progress,
                         staging=staging, log=log, timeout=timeout,
                         num_cpus=None if ray_address else workers, on_skip=sink.skip,
-                        known=known, summary=summary)
+                        known=known, summary=summary, loader=loader)
             shutil.rmtree(staging, ignore_errors=True)
             _finish_summary(summary, t_start, resource)
             summary.superseded_mb = cat.superseded_bytes / 2**20
@@ -817,7 +445,7 @@ class _Sink:
                        + (f" reason={entry.reason}: {printable(entry.detail)}"
                           if entry.reason else "")
                        + f" s={sum((entry.timings or {}).values()):.2f}"
-                       + (f" rss_mb={_tree_rss_mb():.0f}" if n % 50 == 0 else ""))
+                       + (f" rss_mb={tree_rss_mb():.0f}" if n % 50 == 0 else ""))
         if entry.state == "accepted":
             s.accepted += 1
         else:
@@ -893,6 +521,12 @@ class RunLog:
         except OSError:
             self._f = None
 
+    def __enter__(self) -> "RunLog":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def close(self) -> None:
         if self._f is not None:
             try:
@@ -900,42 +534,3 @@ class RunLog:
             except OSError:
                 pass
             self._f = None
-
-
-def _tree_rss_mb() -> float:
-    """Resident memory of this process and its children (MB); 0 without psutil."""
-    try:
-        import psutil
-    except ImportError:
-        return 0.0
-    total = 0
-    try:
-        me = psutil.Process()
-        for p in [me] + me.children(recursive=True):
-            try:
-                total += p.memory_info().rss
-            except psutil.Error:
-                pass
-    except psutil.Error:
-        return 0.0
-    return total / 2**20
-
-
-def process_memory_mb(pid: int) -> tuple[float, float, float]:
-    """(VmRSS, VmHWM, VmData) of a process in MB from /proc; zeros where unavailable. VmHWM is
-    the peak of the process' own memory (unlike ``ru_maxrss``, which after fork + exec starts at
-    the parent's size)."""
-    out = {"VmRSS": 0.0, "VmHWM": 0.0, "VmData": 0.0}
-    try:
-        with open(f"/proc/{pid}/status", "rb") as f:
-            for line in f:
-                key, _, value = line.partition(b":")
-                k = key.decode()
-                if k in out:
-                    out[k] = int(value.split()[0]) / 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return out["VmRSS"], out["VmHWM"], out["VmData"]
-
-
-# ----------------------------------------------------------------------------- local engine

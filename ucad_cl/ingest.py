@@ -106,6 +106,7 @@ import numpy as np
 
 from . import reasons
 from .artifacts import IngestReport, Material, Mesh
+from .orient import orient_mesh
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 DRACO = "KHR_draco_mesh_compression"
@@ -212,8 +213,6 @@ def load_mesh(path: str | os.PathLike, *, clean: bool = True,
                 face_node=face_node.astype(np.int32), node_names=node_names, report=report)
     if orientation is None:
         return mesh
-    from .orient import orient_mesh
-
     if overrides is not None:
         orientation = overrides.mode_for(path, sha, orientation)
     return orient_mesh(mesh, orientation)

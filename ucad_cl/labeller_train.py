@@ -29,6 +29,11 @@ from pathlib import Path
 import numpy as np
 
 from .artifacts import PART_NAMES, Mesh
+from .cameras import make_ring
+from .ingest import load_mesh
+from .labeller import FEATURE_NAMES, material_table
+from .render import render_views
+from .synth import KINDS, REALISM_TRAITS, make_vehicle
 
 RINGS: tuple[tuple[float, tuple[float, ...], int], ...] = (
     (5.0, (15.0,), 256),          # the build's default ring
@@ -41,7 +46,8 @@ REALISM_PROB: dict[str, float] = {
     "chassis_only": 0.12, "one_paint": 0.75, "paint_rims": 0.15, "shared_black": 0.25,
     "dark_trim": 0.4, "textured_body": 0.12, "varied_looks": 0.5, "mtl_like": 0.25,
     "opaque_glass": 0.15,
-    "plain_lights": 0.35, "meaningless_names": 0.2, "misleading_names": 0.1,
+    "plain_lights": 0.35, "lamp_variety": 0.4, "ground_base": 0.15,
+    "meaningless_names": 0.2, "misleading_names": 0.1,
 }
 REAL_RINGS = (0,)          # rings whose renders of each real model give training rows
 DEFAULT_VEHICLES = 500     # generated training vehicles of the shipped model
@@ -65,7 +71,6 @@ class Rows:
     def concat(items: list["Rows"]) -> "Rows":
         items = [r for r in items if r.X.shape[0]]
         if not items:
-            from .labeller import FEATURE_NAMES
             return Rows(np.zeros((0, len(FEATURE_NAMES)), np.float32), np.zeros(0, np.int64),
                         np.zeros(0), np.zeros(0, object))
         return Rows(*(np.concatenate([getattr(r, k) for r in items])
@@ -79,7 +84,6 @@ def vehicle_seed(seed: int, i: int) -> int:
 
 def synth_recipe(seed: int, i: int) -> dict:
     """Kind, realism traits, names and ring of generated vehicle i (see the module docstring)."""
-    from .synth import KINDS, REALISM_TRAITS
 
     vs = vehicle_seed(seed, i)
     r = np.random.default_rng([vs, 11])
@@ -96,7 +100,6 @@ def hide_names(mesh: Mesh) -> Mesh:
 
 
 def make_ring_of(index: int):
-    from .cameras import make_ring
 
     step, elev, size = RINGS[index]
     return make_ring(azimuth_step=step, elevations=elev, size=size)
@@ -104,9 +107,6 @@ def make_ring_of(index: int):
 
 def synth_rows(count: int, seed: int, *, start: int = 0, progress=None) -> Rows:
     """Feature rows of generated vehicles ``start .. start + count - 1`` of run ``seed``."""
-    from .labeller import material_table
-    from .render import render_views
-    from .synth import make_vehicle
 
     out = []
     for i in range(start, start + count):
@@ -151,7 +151,6 @@ class RealModel:
 def load_real_models(folder: str | Path, *, skip=("ferrari_458.glb",)) -> list[RealModel]:
     """The manifest's models (``skip``: duplicates), oriented by their manifest ``up``/``front``
     (models without a front keep the file's horizontal axes)."""
-    from .ingest import load_mesh
 
     folder = Path(folder)
     manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
@@ -175,8 +174,6 @@ def real_rows(models: list[RealModel], rings: tuple[int, ...] = REAL_RINGS) -> d
     into ``RINGS``), names kept, weight ``REAL_WEIGHT / len(rings)``; materials missing from the
     manifest are left out. (The trees never see names; the named rows also give the names'
     reliability, ``name_weights``.)"""
-    from .labeller import material_table
-    from .render import render_views
 
     out = {}
     for rm in models:
@@ -197,7 +194,6 @@ def real_rows(models: list[RealModel], rings: tuple[int, ...] = REAL_RINGS) -> d
 # ---------------------------------------------------------------------------------------------
 def name_columns() -> tuple[np.ndarray, np.ndarray]:
     """Indices of the material-name and node-name columns of ``FEATURE_NAMES`` (PART_NAMES order)."""
-    from .labeller import FEATURE_NAMES
 
     col = {n: i for i, n in enumerate(FEATURE_NAMES)}
     return (np.array([col[f"name_{p}"] for p in PART_NAMES]),
@@ -279,7 +275,6 @@ def export_onnx(clf, path: str | Path, record: dict, check: np.ndarray | None = 
     """Write the model as ONNX (``tree_ensemble_onnx``) and ``record`` (plus the feature and
     class names) as JSON beside it; returns the ONNX path. ``check`` rows (float32) are stored
     with scikit-learn's probabilities for them, a reference any runtime must reproduce."""
-    from .labeller import FEATURE_NAMES
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

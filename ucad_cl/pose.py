@@ -633,7 +633,7 @@ def _elevation_step(elevations: Sequence[float]) -> float:
     return float(np.min(np.diff(e))) if e.size > 1 else 10.0
 
 
-def _box_side(mask: np.ndarray) -> float:
+def box_side(mask: np.ndarray) -> float:
     """Side of the mask's bounding box in pixels (the longer one); 0 for an empty mask."""
     rows = np.flatnonzero(mask.any(axis=1))
     cols = np.flatnonzero(mask.any(axis=0))

@@ -36,15 +36,16 @@ bool or packed (V, H, W) uint16 bits (see ``PartMasks``) and confidence (V, P) f
 """
 from __future__ import annotations
 
-import functools
+import colorsys
 import json
-import re
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
 from .artifacts import PART_NAMES, Mesh, PartMasks, ViewSet
+from .labeller import MODEL_PATH, LabellerModel, label_materials
+from .names import name_prior
 
 
 class Segmenter(Protocol):
@@ -143,8 +144,6 @@ def write_masks(root: str | Path, sha: str, masks: PartMasks) -> Path:
 # ---------------------------------------------------------------------------------------------
 def material_colors(n_ids: int) -> np.ndarray:
     """(n_ids, 3) uint8 RGB: id 0 black, id k a fixed colour (golden-ratio hue, two values)."""
-    import colorsys
-
     out = np.zeros((n_ids, 3), np.uint8)
     for k in range(1, n_ids):
         h = (k * 0.6180339887498949) % 1.0
@@ -156,6 +155,29 @@ def material_colors(n_ids: int) -> np.ndarray:
 def material_image(mat_id: np.ndarray) -> np.ndarray:
     """(V, H, W, 3) uint8 RGB colour-coded material maps (``material_colors``)."""
     return material_colors(int(mat_id.max(initial=0)) + 1)[mat_id]
+
+
+# The --segmenter spellings, one table for every command (kind -> (spelling, what it is)).
+SEGMENTER_SPECS: dict[str, tuple[str, str]] = {
+    "labeller": ("labeller[:MODEL.onnx]", "the learned per-material labeller shipped with the "
+                 "package (default, offline), or another labeller model"),
+    "prior": ("prior", "hand-written rules (names, colours, geometry)"),
+    "masks": ("masks:DIR", "part masks made elsewhere: DIR/<sha256>/view_<vvv>/<part>.png"),
+    "onnx": ("onnx:MODEL:CONFIG.json", "a user ONNX image segmentation model and its config"),
+}
+
+
+def segmenter_help() -> str:
+    """The spellings of ``SEGMENTER_SPECS`` for ``--help`` texts."""
+    return "; ".join(f"{spell}: {what}" for spell, what in SEGMENTER_SPECS.values())
+
+
+def segmenter_from_spec(spec: str):
+    """A segmenter from a ``--segmenter`` SPEC (``SEGMENTER_SPECS``); ValueError naming the
+    accepted spellings otherwise."""
+    kind, _, arg = str(spec).partition(":")
+    model, _, config = arg.partition(":") if kind == "onnx" else (arg, "", "")
+    return make_segmenter(kind, model or None, config or None)
 
 
 def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict | None = None):
@@ -173,7 +195,7 @@ def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict 
             raise ValueError("the onnx segmenter needs a config JSON (classes, input_size)")
         return OnnxSegmenter(arg, config)
     raise ValueError(f"unknown segmenter {kind!r}{':' + arg if arg else ''}: expected "
-                     "labeller[:MODEL.onnx], prior, masks:DIR or onnx:MODEL:CONFIG.json")
+                     + ", ".join(spell for spell, _ in SEGMENTER_SPECS.values()))
 
 
 class OnnxSegmenter:
@@ -245,69 +267,6 @@ class OnnxSegmenter:
 
 # ---------------------------------------------------------------------------------------------
 # Priors: names, properties, geometry
-# ---------------------------------------------------------------------------------------------
-# Keyword lists, checked in this order (the earliest match in the name wins, see ``name_prior``;
-# equal positions go to the earlier group). Matching is case-insensitive on the
-# name with separators (_ - . space digits) turned into word breaks; Latin keywords must start a
-# word, except those marked "~" (German compounds: Windschutzscheibe) and non-Latin ones, which
-# match anywhere.
-NAME_KEYWORDS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("interior", ("interior", "seat", "~sitz", "siège", "siege", "asiento", "sedile", "dashboard",
-                  "dash", "leather", "leder", "cuir", "cuero", "pelle", "carpet", "teppich",
-                  "steering", "lenkrad", "volant", "fabric", "cloth", "wood",
-                  "innen", "intérieur", "interieur", "シート", "内装", "座椅", "内饰", "салон",
-                  "сиден")),
-    ("plate", ("plate", "number", "licen", "~kennzeichen", "nummernschild", "plaque",
-               "immatriculation",
-               "matrícula", "matricula", "targa", "ナンバー", "牌照", "车牌", "номер")),
-    ("light", ("light", "lamp", "headlight", "taillight", "~scheinwerfer", "licht", "~leuchte",
-               "phare", "feu", "faro", "luz", "luce", "fanale", "projector", "signal", "indicator",
-               "blinker", "led", "lens", "ライト", "ランプ", "灯", "фар", "фонар")),
-    ("chrome", ("chrome", "chrom", "cromo", "trim", "grill", "grille", "kühlergrill", "calandre",
-                "parrilla", "griglia", "bumper", "stoßstange", "クローム", "镀铬", "хром")),
-    ("rim", ("rim", "~felge", "jante", "llanta", "cerchio", "hub", "ホイール", "轮毂", "диск")),
-    ("wheel", ("tyre", "tire", "wheel", "~reifen", "pneu", "neumático", "neumatico",
-               "gomma", "pneumatico", "rubber", "gummi", "タイヤ", "车轮", "轮胎", "шин", "колес")),
-    ("window", ("glass", "window", "windshield", "windscreen", "~scheibe", "glas", "fenster",
-                "vitre", "verre", "ventana", "vidrio", "cristal", "vetro", "finestrino", "ガラス",
-                "窓", "玻璃", "车窗", "стекл", "окн")),
-    ("body", ("paint", "body", "~karosserie", "lack", "carrosserie", "peinture", "carrocería",
-              "carroceria", "pintura", "carrozzeria", "vernice", "ボディ", "塗装", "车身", "车漆",
-              "кузов", "краск")),
-)
-
-
-@functools.lru_cache(maxsize=65536)
-def name_prior(name: str) -> str | None:
-    """Part named by a material name, or None (cached: a pure function of the name).
-
-    Every keyword of ``NAME_KEYWORDS`` found in the name is a candidate; the one that starts
-    earliest in the name wins (names put the part first: ``paint_window_sill`` is paint,
-    ``Taillight_Glass`` a light), equal positions go to the earlier group of ``NAME_KEYWORDS``.
-    """
-    spaced = re.sub(r"([a-z])([A-Z])", r"\1 \2", name).lower()      # camelCase -> camel case
-    spaced = " " + re.sub(r"[\s_\-.:/\\0-9()\[\]]+", " ", spaced) + " "
-    best = None
-    for rank, (part, words) in enumerate(NAME_KEYWORDS):
-        for kw in words:
-            if kw.startswith("~"):
-                pos = spaced.find(kw[1:])
-            elif kw.isascii():
-                hit = re.search(r"(?<![a-z])" + re.escape(kw), spaced)
-                pos = hit.start() if hit else -1
-            else:
-                pos = spaced.find(kw)
-            if pos >= 0 and (best is None or (pos, rank) < best[:2]):
-                best = (pos, rank, part)
-    return best[2] if best else None
-
-
-def name_priors(mesh: Mesh) -> dict[int, str]:
-    """{material index: part} for the materials whose names say their part (``name_prior``);
-    classification uses them for leftovers instead of merging those into the body."""
-    return {m: p for m, mat in enumerate(mesh.materials) if (p := name_prior(mat.name)) is not None}
-
-
 def material_features(mesh: Mesh, views: ViewSet | None = None) -> dict[str, np.ndarray]:
     """Per-material geometry in the vehicle frame (all (M,) float64, area-weighted over faces).
 
@@ -502,13 +461,11 @@ class LabellerSegmenter:
     ``use_names=False`` ignores material and node names (the names-hidden evaluation)."""
 
     def __init__(self, model: str | Path | None = None, use_names: bool = True):
-        from .labeller import MODEL_PATH, LabellerModel
 
         self.model = LabellerModel(model or MODEL_PATH)   # a missing or stale model fails here
         self.use_names = use_names
 
     def segment(self, mesh: Mesh, views: ViewSet) -> PartMasks:
-        from .labeller import label_materials
 
         labels = label_materials(mesh, views, use_names=self.use_names, model=self.model)
         masks = paint_materials(views, labels.prob.astype(np.float64),

@@ -73,7 +73,7 @@ REALISM_TRAITS: tuple[str, ...] = (
     "brake_discs", "lens_lamps", "rich_interior", "no_rims", "chassis_only", "one_paint",
     "paint_rims", "shared_black", "dark_trim", "textured_body", "varied_looks", "mtl_like",
     "opaque_glass",
-    "plain_lights", "meaningless_names", "misleading_names")
+    "plain_lights", "lamp_variety", "ground_base", "meaningless_names", "misleading_names")
 
 
 def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
@@ -546,235 +546,272 @@ def _kind_params(kind: str, r: np.random.Generator) -> dict:
     return p
 
 
-def _build_parts(kind: str, r: np.random.Generator, res: float) -> list[_Part]:
-    """All part instances of one vehicle, car frame (see module docstring)."""
-    p = _kind_params(kind, r)
-    L, W, H, R, tw = p["L"], p["W"], p["cab_H"], p["R"], p["tw"]
-    clear, belt, c0, c1, t0, t1 = p["clear"], p["belt"], p["c0"], p["c1"], p["t0"], p["t1"]
-    xf, xr, hw = L / 2, -L / 2, W / 2
-    cell = 0.08 * max(1.0, L / 4.6) ** 0.5 / res
-    seg = max(12, int(round(48 * res)))
-    paint = tuple(r.uniform(0.05, 0.9, 3))
-    big = kind in ("truck", "bus", "van")
-    parts: list[_Part] = []
+class _VehicleBuilder:
+    """Builds the part instances of one vehicle in the car frame (see module docstring), one
+    named builder per group of parts, all from the proportions of ``_kind_params``. The
+    builders run in a fixed order (the order of parts, hence of materials, is part of the
+    output); ``d0``/``d1`` (door span) and ``wc``/``wt`` (glazing half-widths) are shared."""
 
-    def add(name, part, cls, v, f, pair=False):
+    def __init__(self, kind: str, r: np.random.Generator, res: float):
+        self.kind, self.res = kind, res
+        self.p = p = _kind_params(kind, r)
+        self.cell = 0.08 * max(1.0, p["L"] / 4.6) ** 0.5 / res
+        self.seg = max(12, int(round(48 * res)))
+        self.paint = tuple(r.uniform(0.05, 0.9, 3))
+        self.big = kind in ("truck", "bus", "van")
+        self.parts: list[_Part] = []
+
+    def add(self, name, part, cls, v, f, pair=False):
         """Add a part; pair=True: (v, f) is the right (+Z) instance named NAME_R / _xR, and the
         left one is its mirror image."""
-        mk = lambda n: _Part(n, part, _material(n, cls, paint), v, f)  # noqa: E731
-        if not pair:
-            parts.append(mk(name))
-            return
-        vl, fl = _mirror(v, f)
-        left = name[:-1] + "L"
-        parts.append(_Part(left, part, _material(left, cls, paint), vl, fl))
-        parts.append(mk(name))
+        if pair:
+            vl, fl = _mirror(v, f)
+            left = name[:-1] + "L"
+            self.parts.append(_Part(left, part, _material(left, cls, self.paint), vl, fl))
+        self.parts.append(_Part(name, part, _material(name, cls, self.paint), v, f))
 
-    # ---- lower body: a box from the ground clearance to the belt line, split into panels
-    bulge_side = 0.01 if big else 0.03
-    arch = [(ax, R + 0.04) for ax in p["axles"]]
+    def lower_body(self) -> None:
+        """Belt-line top, side panels (doors, fenders), nose, grille, tail, underbody, bed or
+        cargo box."""
+        p, kind, add = self.p, self.kind, self.add
+        L, R, clear, belt, c0, c1 = p["L"], p["R"], p["clear"], p["belt"], p["c0"], p["c1"]
+        xf, xr, hw = L / 2, -L / 2, p["W"] / 2
+        cell, big = self.cell, self.big
+        bulge_side = 0.01 if big else 0.03
+        arch = [(ax, R + 0.04) for ax in p["axles"]]
 
-    def arches(cen):
-        d = np.zeros(len(cen), bool)
-        for ax, rad in arch:
-            d |= (cen[:, 0] - ax) ** 2 + (cen[:, 1] - R) ** 2 < rad ** 2
-        return d
+        def arches(cen):
+            d = np.zeros(len(cen), bool)
+            for ax, rad in arch:
+                d |= (cen[:, 0] - ax) ** 2 + (cen[:, 1] - R) ** 2 < rad ** 2
+            return d
 
-    bed_x = c0 - 0.05 if p.get("bed") else None
-    cargo_x = c0 - 0.1 if p.get("cargo") else None
-    # top (y = belt), u along x from rear to front: trunk | cabin (open) | hood
-    xb = [xr]
-    for x in sorted([min(max(c0, xr), xf), min(max(c1, xr), xf), xf]):
-        if x - xb[-1] > 1e-6:
-            xb.append(x)
-    ub = [(x - xr) / L for x in xb]
+        bed_x = c0 - 0.05 if p.get("bed") else None
+        cargo_x = c0 - 0.1 if p.get("cargo") else None
+        # top (y = belt), u along x from rear to front: trunk | cabin (open) | hood
+        xb = [xr]
+        for x in sorted([min(max(c0, xr), xf), min(max(c1, xr), xf), xf]):
+            if x - xb[-1] > 1e-6:
+                xb.append(x)
+        ub = [(x - xr) / L for x in xb]
 
-    def top_label(i, j):
-        x_mid = xr + 0.5 * (ub[i] + ub[i + 1]) * L
-        if x_mid > c1:
-            return "paint_hood"
-        if x_mid < c0:
-            if p.get("bed") or p.get("cargo"):
-                return None
-            return "paint_trunk" if kind == "sedan" else "paint_rear_deck"
-        return None
-    for n, (v, f) in _patch([xr, belt, hw], [xf, belt, hw], [xr, belt, -hw], [xf, belt, -hw],
-                            ub, [0, 1], cell, 0.0 if big else 0.04, top_label).items():
-        add(n, "body", "paint", v, f)
-    # sides (right side z = +hw; left mirrored): quarter | doors | fender
-    d0, d1 = (c0 + 0.05, min(c1 + 0.25, xf - 0.3)) if kind != "bus" else (c1 - 1.6, c1 - 0.4)
-    if kind == "truck":
-        d0, d1 = c0 + 0.1, c1 - 0.35
-    nd = p["doors"]
-    xs = [xr, d0] + [d0 + (d1 - d0) * k / nd for k in range(1, nd)] + [d1, xf]
-    if bed_x is not None:
-        xs = sorted(xs + [bed_x])
-    us = [(x - xr) / L for x in xs]
-    door_names = (["paint_door_R"] if nd == 1 else ["paint_door_rear_R", "paint_door_front_R"])
-    rear_name = "paint_side_R" if big else "paint_quarter_R"
+        def top_label(i, j):
+            x_mid = xr + 0.5 * (ub[i] + ub[i + 1]) * L
+            if x_mid > c1:
+                return "paint_hood"
+            if x_mid < c0:
+                if p.get("bed") or p.get("cargo"):
+                    return None
+                return "paint_trunk" if kind == "sedan" else "paint_rear_deck"
+            return None
+        for n, (v, f) in _patch([xr, belt, hw], [xf, belt, hw], [xr, belt, -hw], [xf, belt, -hw],
+                                ub, [0, 1], cell, 0.0 if big else 0.04, top_label).items():
+            add(n, "body", "paint", v, f)
+        # sides (right side z = +hw; left mirrored): quarter | doors | fender
+        d0, d1 = (c0 + 0.05, min(c1 + 0.25, xf - 0.3)) if kind != "bus" else (c1 - 1.6, c1 - 0.4)
+        if kind == "truck":
+            d0, d1 = c0 + 0.1, c1 - 0.35
+        nd = p["doors"]
+        xs = [xr, d0] + [d0 + (d1 - d0) * k / nd for k in range(1, nd)] + [d1, xf]
+        if bed_x is not None:
+            xs = sorted(xs + [bed_x])
+        us = [(x - xr) / L for x in xs]
+        door_names = (["paint_door_R"] if nd == 1 else ["paint_door_rear_R", "paint_door_front_R"])
+        rear_name = "paint_side_R" if big else "paint_quarter_R"
 
-    def side_label(i, j):
-        x_mid = xr + 0.5 * (us[i] + us[i + 1]) * L
-        if bed_x is not None and x_mid < bed_x:
-            return "paint_bed_side_R"
-        if x_mid < d0:
-            return rear_name
-        if x_mid > d1:
-            return "paint_fender_R"
-        return door_names[min(nd - 1, int((x_mid - d0) / (d1 - d0) * nd))]
-    for n, (v, f) in _patch([xr, clear, hw], [xf, clear, hw], [xr, belt, hw], [xf, belt, hw],
-                            us, [0, 1], cell, bulge_side, side_label, arches).items():
-        add(n, "body", "paint", v, f, pair=True)
-    # front face (x = xf), u along z: nose | grille | nose, v along y
-    zb = [0, 0.3, 0.7, 1]
-    yb = [0, 0.45, 0.85, 1]
+        def side_label(i, j):
+            x_mid = xr + 0.5 * (us[i] + us[i + 1]) * L
+            if bed_x is not None and x_mid < bed_x:
+                return "paint_bed_side_R"
+            if x_mid < d0:
+                return rear_name
+            if x_mid > d1:
+                return "paint_fender_R"
+            return door_names[min(nd - 1, int((x_mid - d0) / (d1 - d0) * nd))]
+        for n, (v, f) in _patch([xr, clear, hw], [xf, clear, hw], [xr, belt, hw], [xf, belt, hw],
+                                us, [0, 1], cell, bulge_side, side_label, arches).items():
+            add(n, "body", "paint", v, f, pair=True)
+        # front face (x = xf), u along z: nose | grille | nose, v along y
+        zb = [0, 0.3, 0.7, 1]
+        yb = [0, 0.45, 0.85, 1]
 
-    def front_label(i, j):
-        return "grille" if (i == 1 and j == 1) else "paint_nose"
-    fparts = _patch([xf, clear, hw], [xf, clear, -hw], [xf, belt, hw], [xf, belt, -hw],
-                    zb, yb, cell, 0.0, front_label)
-    add("grille", "chrome", "plastic", *fparts["grille"])   # policy: grilles and trim = chrome
-    add("paint_nose", "body", "paint", *fparts["paint_nose"])
-    # rear face (x = xr): tail panel, or tailgate for pickups
-    rname = "paint_tailgate" if p.get("bed") else "paint_tail_panel"
-    add(rname, "body", "paint", *_patch([xr, clear, -hw], [xr, clear, hw], [xr, belt, -hw],
-                                        [xr, belt, hw], [0, 1], [0, 1], cell)["panel"])
-    add("underbody", "other", "plastic", *_patch([xr, clear, hw], [xr, clear, -hw],
-                                                 [xf, clear, hw], [xf, clear, -hw],
-                                                 [0, 1], [0, 1], cell * 2)["panel"])
-    if bed_x is not None:
-        yfl = clear + 0.35
-        add("paint_bed_floor", "body", "paint", *_patch(
-            [xr, yfl, hw - 0.05], [bed_x, yfl, hw - 0.05], [xr, yfl, -hw + 0.05],
-            [bed_x, yfl, -hw + 0.05], [0, 1], [0, 1], cell)["panel"])
-        add("paint_bed_front", "body", "paint", *_patch(
-            [bed_x, yfl, -hw], [bed_x, yfl, hw], [bed_x, belt, -hw], [bed_x, belt, hw],
-            [0, 1], [0, 1], cell)["panel"])
-    if cargo_x is not None:
-        add("cargo_box", "body", "paint", *_box([xr - 0.02, belt - 0.05, -hw - 0.02],
-                                                [cargo_x, p["H"], hw + 0.02], cell * 1.5))
+        def front_label(i, j):
+            return "grille" if (i == 1 and j == 1) else "paint_nose"
+        fparts = _patch([xf, clear, hw], [xf, clear, -hw], [xf, belt, hw], [xf, belt, -hw],
+                        zb, yb, cell, 0.0, front_label)
+        add("grille", "chrome", "plastic", *fparts["grille"])   # policy: grilles and trim = chrome
+        add("paint_nose", "body", "paint", *fparts["paint_nose"])
+        # rear face (x = xr): tail panel, or tailgate for pickups
+        rname = "paint_tailgate" if p.get("bed") else "paint_tail_panel"
+        add(rname, "body", "paint", *_patch([xr, clear, -hw], [xr, clear, hw], [xr, belt, -hw],
+                                            [xr, belt, hw], [0, 1], [0, 1], cell)["panel"])
+        add("underbody", "other", "plastic", *_patch([xr, clear, hw], [xr, clear, -hw],
+                                                     [xf, clear, hw], [xf, clear, -hw],
+                                                     [0, 1], [0, 1], cell * 2)["panel"])
+        if bed_x is not None:
+            yfl = clear + 0.35
+            add("paint_bed_floor", "body", "paint", *_patch(
+                [xr, yfl, hw - 0.05], [bed_x, yfl, hw - 0.05], [xr, yfl, -hw + 0.05],
+                [bed_x, yfl, -hw + 0.05], [0, 1], [0, 1], cell)["panel"])
+            add("paint_bed_front", "body", "paint", *_patch(
+                [bed_x, yfl, -hw], [bed_x, yfl, hw], [bed_x, belt, -hw], [bed_x, belt, hw],
+                [0, 1], [0, 1], cell)["panel"])
+        if cargo_x is not None:
+            add("cargo_box", "body", "paint", *_box([xr - 0.02, belt - 0.05, -hw - 0.02],
+                                                    [cargo_x, p["H"], hw + 0.02], cell * 1.5))
+        self.d0, self.d1 = d0, d1
 
-    # ---- greenhouse: windshield, rear window, roof, pillars and side windows
-    wc, wt = hw - (0.03 if big else 0.06), hw - (0.06 if big else 0.18)
-    add("glass_windshield", "window", "glass", *_patch(
-        [c1, belt, wc], [c1, belt, -wc], [t1, H, wt], [t1, H, -wt], [0, 1], [0, 1], cell)["panel"])
-    back = _patch([c0, belt, -wc], [c0, belt, wc], [t0, H, -wt], [t0, H, wt], [0, 1],
-                  [0, 0.12, 0.9, 1] if p["rear_glass"] else [0, 1], cell,
-                  label=lambda i, j: "glass_rear" if (p["rear_glass"] and j == 1)
-                  else "paint_rear_frame")
-    for n, (v, f) in back.items():
-        add(n, "window" if n.startswith("glass") else "body",
-            "glass" if n.startswith("glass") else "paint", v, f)
-    add("paint_roof", "body", "paint", *_patch(
-        [t0, H, wt], [t1, H, wt], [t0, H, -wt], [t1, H, -wt], [0, 1], [0, 1], cell,
-        0.015 if big else 0.03)["panel"])
-    nw = p["windows"]
-    pil = 0.04 if big else 0.06                       # pillar width, fraction of the side
-    a_w = 0.02 if big else 0.12                       # A pillar, fraction
-    c_w = 0.04 if big else (0.15 if kind == "sedan" else 0.1)
-    inner = np.linspace(c_w, 1 - a_w, nw + 1)
-    ubr = [0.0, c_w]
-    for k in range(1, nw):
-        ubr += [inner[k] - pil / 2, inner[k] + pil / 2]
-    ubr += [1 - a_w, 1.0]
-    vbr = [0.0, 0.06, 0.88, 1.0]
-    win_names = (["glass_side_R"] if nw == 1 else
-                 ["glass_side_rear_R", "glass_side_front_R"] if nw == 2 else
-                 [f"glass_side_{k + 1}_R" for k in range(nw)])
+    def greenhouse(self) -> None:
+        """Windshield, rear window, roof, pillars and side windows."""
+        p, kind, add = self.p, self.kind, self.add
+        H, belt, c0, c1, t0, t1 = p["cab_H"], p["belt"], p["c0"], p["c1"], p["t0"], p["t1"]
+        hw = p["W"] / 2
+        cell, big = self.cell, self.big
+        wc, wt = hw - (0.03 if big else 0.06), hw - (0.06 if big else 0.18)
+        add("glass_windshield", "window", "glass", *_patch(
+            [c1, belt, wc], [c1, belt, -wc], [t1, H, wt], [t1, H, -wt], [0, 1], [0, 1], cell)["panel"])
+        back = _patch([c0, belt, -wc], [c0, belt, wc], [t0, H, -wt], [t0, H, wt], [0, 1],
+                      [0, 0.12, 0.9, 1] if p["rear_glass"] else [0, 1], cell,
+                      label=lambda i, j: "glass_rear" if (p["rear_glass"] and j == 1)
+                      else "paint_rear_frame")
+        for n, (v, f) in back.items():
+            add(n, "window" if n.startswith("glass") else "body",
+                "glass" if n.startswith("glass") else "paint", v, f)
+        add("paint_roof", "body", "paint", *_patch(
+            [t0, H, wt], [t1, H, wt], [t0, H, -wt], [t1, H, -wt], [0, 1], [0, 1], cell,
+            0.015 if big else 0.03)["panel"])
+        nw = p["windows"]
+        pil = 0.04 if big else 0.06                       # pillar width, fraction of the side
+        a_w = 0.02 if big else 0.12                       # A pillar, fraction
+        c_w = 0.04 if big else (0.15 if kind == "sedan" else 0.1)
+        inner = np.linspace(c_w, 1 - a_w, nw + 1)
+        ubr = [0.0, c_w]
+        for k in range(1, nw):
+            ubr += [inner[k] - pil / 2, inner[k] + pil / 2]
+        ubr += [1 - a_w, 1.0]
+        vbr = [0.0, 0.06, 0.88, 1.0]
+        win_names = (["glass_side_R"] if nw == 1 else
+                     ["glass_side_rear_R", "glass_side_front_R"] if nw == 2 else
+                     [f"glass_side_{k + 1}_R" for k in range(nw)])
 
-    def gh_label(i, j):
-        if j == 0:
-            return "paint_window_sill_R"
-        if j == 2:
-            return "paint_roof_rail_R"
-        if i == 0:
-            return "paint_pillar_C_R"
-        if i == len(ubr) - 2:
-            return "paint_pillar_A_R"
-        if i % 2 == 1:
-            return win_names[(i - 1) // 2]
-        return f"paint_pillar_B{i // 2}_R" if nw > 2 else "paint_pillar_B_R"
-    for n, (v, f) in _patch([c0, belt, wc], [c1, belt, wc], [t0, H, wt], [t1, H, wt], ubr, vbr,
-                            cell, 0.0, gh_label).items():
-        glass = n.startswith("glass")
-        add(n, "window" if glass else "body", "glass" if glass else "paint", v, f, pair=True)
+        def gh_label(i, j):
+            if j == 0:
+                return "paint_window_sill_R"
+            if j == 2:
+                return "paint_roof_rail_R"
+            if i == 0:
+                return "paint_pillar_C_R"
+            if i == len(ubr) - 2:
+                return "paint_pillar_A_R"
+            if i % 2 == 1:
+                return win_names[(i - 1) // 2]
+            return f"paint_pillar_B{i // 2}_R" if nw > 2 else "paint_pillar_B_R"
+        for n, (v, f) in _patch([c0, belt, wc], [c1, belt, wc], [t0, H, wt], [t1, H, wt], ubr, vbr,
+                                cell, 0.0, gh_label).items():
+            glass = n.startswith("glass")
+            add(n, "window" if glass else "body", "glass" if glass else "paint", v, f, pair=True)
+        self.wc, self.wt = wc, wt
 
-    # ---- wheels: tyre (closed rounded profile) and rim (dished disc, inset 1.5 cm)
-    nar = max(2, int(round(3 * res)))
-    zc = hw - tw / 2 + 0.02
-    rr, cr = 0.62 * R, 0.05
-    arc = np.linspace(0, np.pi / 2, nar + 1)
-    prof = np.concatenate([
-        [[rr, -tw / 2]],
-        np.stack([R - cr + cr * np.sin(arc), -tw / 2 + cr - cr * np.cos(arc)], 1),
-        np.stack([R - cr + cr * np.cos(arc), tw / 2 - cr + cr * np.sin(arc)], 1),
-        [[rr, tw / 2], [rr, -tw / 2]]])
-    prof = prof[np.r_[True, np.any(np.abs(np.diff(prof, axis=0)) > 1e-12, axis=1)]]
-    af = tw / 2 - 0.015
-    rim_prof = np.array([[rr, af - 0.12], [rr, af], [0.85 * rr, af - 0.012],
-                         [0.3 * rr, af - 0.004], [0.2 * rr, af - 0.03], [0.0, af - 0.03]])
-    axle_tags = ["F", "R", "R2"]
-    for ai, ax in enumerate(p["axles"]):
-        tag = axle_tags[ai]
-        add(f"tyre_{tag}R", "wheel", "tyre", *_revolve(prof, seg, [ax, R, zc]), pair=True)
-        add(f"rim_{tag}R", "rim", "rim", *_revolve(rim_prof, seg, [ax, R, zc]), pair=True)
+    def wheels(self) -> None:
+        """Tyres (closed rounded profile) and rims (dished disc, inset 1.5 cm) on every axle."""
+        p, add = self.p, self.add
+        R, tw = p["R"], p["tw"]
+        hw = p["W"] / 2
+        seg = self.seg
+        res = self.res
+        nar = max(2, int(round(3 * res)))
+        zc = hw - tw / 2 + 0.02
+        rr, cr = 0.62 * R, 0.05
+        arc = np.linspace(0, np.pi / 2, nar + 1)
+        prof = np.concatenate([
+            [[rr, -tw / 2]],
+            np.stack([R - cr + cr * np.sin(arc), -tw / 2 + cr - cr * np.cos(arc)], 1),
+            np.stack([R - cr + cr * np.cos(arc), tw / 2 - cr + cr * np.sin(arc)], 1),
+            [[rr, tw / 2], [rr, -tw / 2]]])
+        prof = prof[np.r_[True, np.any(np.abs(np.diff(prof, axis=0)) > 1e-12, axis=1)]]
+        af = tw / 2 - 0.015
+        rim_prof = np.array([[rr, af - 0.12], [rr, af], [0.85 * rr, af - 0.012],
+                             [0.3 * rr, af - 0.004], [0.2 * rr, af - 0.03], [0.0, af - 0.03]])
+        axle_tags = ["F", "R", "R2"]
+        for ai, ax in enumerate(p["axles"]):
+            tag = axle_tags[ai]
+            add(f"tyre_{tag}R", "wheel", "tyre", *_revolve(prof, seg, [ax, R, zc]), pair=True)
+            add(f"rim_{tag}R", "rim", "rim", *_revolve(rim_prof, seg, [ax, R, zc]), pair=True)
 
-    # ---- lights, plates, bumpers, chrome, mirrors
-    ly = (belt - 0.2, belt - 0.06) if not big else (clear + 0.35, clear + 0.55)
-    add("headlight_R", "light", "headlight",
-        *_box([xf - 0.04, ly[0], hw - 0.4], [xf + 0.025, ly[1], hw - 0.1], cell / 2), pair=True)
-    add("taillight_R", "light", "taillight",
-        *_box([xr - 0.025, ly[0], hw - 0.35], [xr + 0.04, ly[1], hw - 0.08], cell / 2), pair=True)
-    by = (clear + 0.04, clear + 0.28)
-    add("bumper_front", "body", "paint" if not big else "plastic",
-        *_box([xf - 0.05, by[0], -hw + 0.03], [xf + 0.06, by[1], hw - 0.03], cell))
-    add("bumper_rear", "body", "paint" if not big else "plastic",
-        *_box([xr - 0.06, by[0], -hw + 0.03], [xr + 0.05, by[1], hw - 0.03], cell))
-    py = clear + 0.16
-    add("plate_front", "plate", "plate", *_box([xf + 0.06, py - 0.055, -0.26],
-                                              [xf + 0.072, py + 0.055, 0.26], cell / 2))
-    add("plate_rear", "plate", "plate", *_box([xr - 0.072, py - 0.055, -0.26],
-                                             [xr - 0.06, py + 0.055, 0.26], cell / 2))
-    ty = clear + 0.55 * (belt - clear)
-    add("chrome_trim_R", "chrome", "chrome",
-        *_box([d0, ty - 0.015, hw + 0.025], [d1, ty + 0.015, hw + 0.035], cell / 2), pair=True)
-    if p.get("roof_rails"):
-        add("chrome_roof_rail_R", "chrome", "chrome", *_box(
-            [t0 + 0.1, H + 0.03, wt - 0.12], [t1 - 0.1, H + 0.06, wt - 0.08], cell / 2), pair=True)
-    if kind in ("sedan", "suv", "pickup", "hatchback"):
-        ex = np.array([[0.0, -0.12], [0.035, -0.12], [0.035, 0.0], [0.03, 0.0], [0.03, -0.1]])
-        v, f = _revolve(ex, max(12, seg // 3), [0.0, 0.0, 0.0])
-        v = np.stack([-v[:, 2], v[:, 1], v[:, 0]], 1) + [xr - 0.03, clear + 0.02, hw - 0.5]
-        add("exhaust_R", "chrome", "chrome", v, f, pair=True)
-    my = belt + 0.05
-    add("paint_mirror_R", "body", "paint",
-        *_box([c1 - 0.18, my, wc + 0.02], [c1 - 0.05, my + 0.12, wc + 0.2], cell / 2), pair=True)
+    def fittings(self) -> None:
+        """Lamps, bumpers, plates, chrome trim, roof rails, exhaust, mirrors."""
+        p, kind, add = self.p, self.kind, self.add
+        H, clear, belt, c1, t0, t1 = p["cab_H"], p["clear"], p["belt"], p["c1"], p["t0"], p["t1"]
+        xf, xr, hw = p["L"] / 2, -p["L"] / 2, p["W"] / 2
+        cell, seg, big = self.cell, self.seg, self.big
+        d0, d1, wc, wt = self.d0, self.d1, self.wc, self.wt
+        ly = (belt - 0.2, belt - 0.06) if not big else (clear + 0.35, clear + 0.55)
+        add("headlight_R", "light", "headlight",
+            *_box([xf - 0.04, ly[0], hw - 0.4], [xf + 0.025, ly[1], hw - 0.1], cell / 2), pair=True)
+        add("taillight_R", "light", "taillight",
+            *_box([xr - 0.025, ly[0], hw - 0.35], [xr + 0.04, ly[1], hw - 0.08], cell / 2), pair=True)
+        by = (clear + 0.04, clear + 0.28)
+        add("bumper_front", "body", "paint" if not big else "plastic",
+            *_box([xf - 0.05, by[0], -hw + 0.03], [xf + 0.06, by[1], hw - 0.03], cell))
+        add("bumper_rear", "body", "paint" if not big else "plastic",
+            *_box([xr - 0.06, by[0], -hw + 0.03], [xr + 0.05, by[1], hw - 0.03], cell))
+        py = clear + 0.16
+        add("plate_front", "plate", "plate", *_box([xf + 0.06, py - 0.055, -0.26],
+                                                  [xf + 0.072, py + 0.055, 0.26], cell / 2))
+        add("plate_rear", "plate", "plate", *_box([xr - 0.072, py - 0.055, -0.26],
+                                                 [xr - 0.06, py + 0.055, 0.26], cell / 2))
+        ty = clear + 0.55 * (belt - clear)
+        add("chrome_trim_R", "chrome", "chrome",
+            *_box([d0, ty - 0.015, hw + 0.025], [d1, ty + 0.015, hw + 0.035], cell / 2), pair=True)
+        if p.get("roof_rails"):
+            add("chrome_roof_rail_R", "chrome", "chrome", *_box(
+                [t0 + 0.1, H + 0.03, wt - 0.12], [t1 - 0.1, H + 0.06, wt - 0.08], cell / 2), pair=True)
+        if kind in ("sedan", "suv", "pickup", "hatchback"):
+            ex = np.array([[0.0, -0.12], [0.035, -0.12], [0.035, 0.0], [0.03, 0.0], [0.03, -0.1]])
+            v, f = _revolve(ex, max(12, seg // 3), [0.0, 0.0, 0.0])
+            v = np.stack([-v[:, 2], v[:, 1], v[:, 0]], 1) + [xr - 0.03, clear + 0.02, hw - 0.5]
+            add("exhaust_R", "chrome", "chrome", v, f, pair=True)
+        my = belt + 0.05
+        add("paint_mirror_R", "body", "paint",
+            *_box([c1 - 0.18, my, wc + 0.02], [c1 - 0.05, my + 0.12, wc + 0.2], cell / 2), pair=True)
 
-    # ---- interior: floor, seats, dashboard (visible through the glazing)
-    yfl = clear + (0.35 if kind == "bus" else 0.12)
-    ix0, ix1 = (c0 + 0.1, c1 - 0.1)
-    add("interior_floor", "interior", "interior", *_patch(
-        [ix0, yfl, wc - 0.02], [ix1, yfl, wc - 0.02], [ix0, yfl, -wc + 0.02],
-        [ix1, yfl, -wc + 0.02], [0, 1], [0, 1], cell * 2)["panel"])
-    add("interior_dashboard", "interior", "interior", *_box(
-        [c1 - 0.55, belt - 0.3, -wc + 0.08], [c1 - 0.12, belt + 0.04, wc - 0.08], cell))
+    def interior(self) -> None:
+        """Floor, dashboard and seats (visible through the glazing)."""
+        p, kind, add = self.p, self.kind, self.add
+        clear, belt, c0, c1 = p["clear"], p["belt"], p["c0"], p["c1"]
+        cell = self.cell
+        wc = self.wc
+        yfl = clear + (0.35 if kind == "bus" else 0.12)
+        ix0, ix1 = (c0 + 0.1, c1 - 0.1)
+        add("interior_floor", "interior", "interior", *_patch(
+            [ix0, yfl, wc - 0.02], [ix1, yfl, wc - 0.02], [ix0, yfl, -wc + 0.02],
+            [ix1, yfl, -wc + 0.02], [0, 1], [0, 1], cell * 2)["panel"])
+        add("interior_dashboard", "interior", "interior", *_box(
+            [c1 - 0.55, belt - 0.3, -wc + 0.08], [c1 - 0.12, belt + 0.04, wc - 0.08], cell))
 
-    def seat(x, z0, z1):
-        cush = _box([x - 0.25, yfl, z0], [x + 0.25, yfl + 0.3, z1], cell)
-        backr = _box([x - 0.32, yfl + 0.3, z0], [x - 0.2, belt + 0.35, z1], cell)
-        return _merge([cush, backr])
-    row0 = c1 - 1.0
-    rows = [row0 - 0.85 * k for k in range(14) if row0 - 0.85 * k - 0.32 > c0 - 0.35]
-    for k, x in enumerate(rows):
-        if k == 0:
-            add("interior_seat_FR", "interior", "interior", *seat(x, 0.12, min(0.65, wc - 0.1)),
-                pair=True)
-        elif kind in ("bus", "van"):
-            add(f"interior_seat_{k}_R", "interior", "interior",
-                *seat(x, 0.12, min(0.65, wc - 0.1)), pair=True)
-        elif k == 1:
-            add("interior_seat_rear", "interior", "interior", *seat(x, -wc + 0.15, wc - 0.15))
-    return parts
+        def seat(x, z0, z1):
+            cush = _box([x - 0.25, yfl, z0], [x + 0.25, yfl + 0.3, z1], cell)
+            backr = _box([x - 0.32, yfl + 0.3, z0], [x - 0.2, belt + 0.35, z1], cell)
+            return _merge([cush, backr])
+        row0 = c1 - 1.0
+        rows = [row0 - 0.85 * k for k in range(14) if row0 - 0.85 * k - 0.32 > c0 - 0.35]
+        for k, x in enumerate(rows):
+            if k == 0:
+                add("interior_seat_FR", "interior", "interior", *seat(x, 0.12, min(0.65, wc - 0.1)),
+                    pair=True)
+            elif kind in ("bus", "van"):
+                add(f"interior_seat_{k}_R", "interior", "interior",
+                    *seat(x, 0.12, min(0.65, wc - 0.1)), pair=True)
+            elif k == 1:
+                add("interior_seat_rear", "interior", "interior", *seat(x, -wc + 0.15, wc - 0.15))
+
+
+def _build_parts(kind: str, r: np.random.Generator, res: float) -> list[_Part]:
+    """All part instances of one vehicle, car frame (see module docstring)."""
+    b = _VehicleBuilder(kind, r, res)
+    for step in (b.lower_body, b.greenhouse, b.wheels, b.fittings, b.interior):
+        step()
+    return b.parts
 
 
 def _finish(seed: int, kind: str, name: str, parts: list[_Part], messy: Sequence[str],
@@ -1026,8 +1063,8 @@ def _quat_matrix(q: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 # material realism: how real libraries assign materials (traits for training and tests)
 
-def apply_realism(parts: list[_Part], traits: Sequence[str], r: np.random.Generator
-                  ) -> list[_Part]:
+def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one branch per trait
+                  r: np.random.Generator) -> list[_Part]:
     """The vehicle's parts with the realism ``traits`` applied, in ``REALISM_TRAITS`` order.
 
     Geometry traits: ``brake_discs`` (rims become rings with a grey disc and a red calliper
@@ -1043,7 +1080,12 @@ def apply_realism(parts: list[_Part], traits: Sequence[str], r: np.random.Genera
     ``varied_looks`` (every material's colour pulled up to 60 % toward a random colour, metallic
     and roughness moved by up to 0.35), ``mtl_like`` (OBJ/MTL materials: metallic 0, roughness 1,
     no emission, no transmission),
-    ``opaque_glass`` (glass is opaque light blue), ``plain_lights`` (lamps without emission).
+    ``opaque_glass`` (glass is opaque light blue), ``plain_lights`` (lamps without emission),
+    ``lamp_variety`` (lamps as real libraries build them: an amber indicator beside every lamp,
+    tail lamps behind a tinted red see-through lens with a grey reflector inside, headlamps as a
+    clear lens over a chrome-like reflector; all part light), ``ground_base`` (the vehicle stands
+    on a ground plane, plinth or cloth up to 3 times its size: part other, and the file's
+    bounding box is the base's).
     Name traits: ``meaningless_names`` (materials become ``Material.001``..., nodes
     ``Object_1``...), ``misleading_names`` (some materials named after another part).
     The truth of a shared material is its majority part (``majority_part``)."""
@@ -1135,6 +1177,10 @@ def apply_realism(parts: list[_Part], traits: Sequence[str], r: np.random.Genera
             for q in parts:
                 if q.part == "light" and max(q.material.emissive) > 0:
                     q.material = shared(q.material.name, q.material, emissive=(0.0, 0.0, 0.0))
+        elif t == "lamp_variety":
+            parts = _lamp_variety(parts, r, shared)
+        elif t == "ground_base":
+            parts = _ground_base(parts, r)
         elif t == "meaningless_names":
             renamed: dict[str, str] = {}
             for k, q in enumerate(parts):
@@ -1201,6 +1247,70 @@ def _lens_lamps(parts: list[_Part]) -> list[_Part]:
             v, f = _box(lo - 0.01, hi + 0.01, 0.05)
             out.append(_Part(f"lens_{q.node}", "light", lens, v, f))
     return out
+
+
+def _lamp_variety(parts: list[_Part], r: np.random.Generator, shared) -> list[_Part]:
+    """Indicators, tinted lenses and reflectors on the head and tail lamps (``apply_realism``).
+    ``shared(name, like, **changes)`` gives one material per name (lamps of a kind share it)."""
+    amber = Material("indicator", (0.95, 0.45, 0.04, 1.0), "OPAQUE", 0.0, 0.2,
+                     (0.9, 0.4, 0.0) if r.random() < 0.5 else (0.0, 0.0, 0.0))
+    red_lens = r.random() < 0.6
+    clear_head = r.random() < 0.6
+    refl = Material("reflector", (0.8, 0.8, 0.82, 1.0), "OPAQUE", 1.0, 0.1)
+    out = []
+    for q in parts:
+        head, tail = q.node.startswith("headlight_"), q.node.startswith("taillight_")
+        if not (q.part == "light" and (head or tail)):
+            out.append(q)
+            continue
+        lo, hi = _bbox(q)
+        side = 1.0 if hi[2] + lo[2] > 0 else -1.0
+        size = hi - lo
+        if (tail and red_lens) or (head and clear_head):
+            lens = (shared("taillight_glass", q.material, base_color=(0.7, 0.04, 0.03, 0.45),
+                           alpha_mode="BLEND", transmission=0.6, metallic=0.0, roughness=0.05)
+                    if tail else
+                    shared("headlight_glass", q.material, base_color=(0.92, 0.92, 0.95, 0.25),
+                           alpha_mode="BLEND", transmission=0.9, metallic=0.0, roughness=0.05,
+                           emissive=(0.0, 0.0, 0.0)))
+            out.append(_Part(q.node, "light", lens, q.vertices, q.faces))
+            ilo, ihi = lo + 0.2 * size, hi - 0.2 * size
+            v, f = _box(ilo, ihi, max(float(size.max()) / 3, 0.02))
+            out.append(_Part(f"reflector_{q.node}", "light",
+                             shared("reflector", refl), v, f))
+        else:
+            out.append(q)
+        # indicator beside the lamp on the outer side, the lamp's depth, the lower 60 % height
+        z0 = hi[2] + 0.005 if side > 0 else lo[2] - 0.005 - 0.08
+        v, f = _box([lo[0], lo[1], z0], [hi[0], lo[1] + 0.6 * size[1], z0 + 0.08], 0.04)
+        out.append(_Part(f"indicator_{q.node}", "light", shared("indicator", amber), v, f))
+    return out
+
+
+def _ground_base(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
+    """A base under the vehicle (``apply_realism``): a thin ground plane, a low plinth or a
+    sagging cloth, 1.2-3 times the vehicle's length and width, top just below the tyres."""
+    lo = np.min([_bbox(q)[0] for q in parts], axis=0)
+    hi = np.max([_bbox(q)[1] for q in parts], axis=0)
+    size = hi - lo
+    cen = 0.5 * (lo + hi)
+    kx, kz = r.uniform(1.2, 3.0, 2)
+    half = np.array([0.5 * kx * size[0], 0.0, 0.5 * max(kz * size[2], 1.1 * size[0] * 0.5)])
+    style = int(r.integers(3))                      # 0 plane, 1 plinth, 2 cloth
+    thick = (0.01, float(r.uniform(0.05, 0.3)) * size[1], 0.02)[style]
+    top = lo[1] - 0.002
+    v, f = _box([cen[0] - half[0], top - thick, cen[2] - half[2]],
+                [cen[0] + half[0], top, cen[2] + half[2]], max(float(half.max()) / 6, 0.1))
+    if style == 2:                                  # cloth: edges hang down to 1.2 x the height
+        d = np.maximum(np.abs(v[:, 0] - cen[0]) / half[0], np.abs(v[:, 2] - cen[2]) / half[2])
+        v = v.copy()
+        v[:, 1] -= np.clip(d - 0.6, 0, None) / 0.4 * 1.2 * size[1]
+    g = float(r.uniform(0.1, 0.9))
+    tint = np.clip(g + r.uniform(-0.1, 0.1, 3), 0, 1)
+    mat = Material("ground" if style == 0 else ("base" if style == 1 else "fabric"),
+                   (*(float(x) for x in tint), 1.0), "OPAQUE", 0.0, float(r.uniform(0.5, 1.0)),
+                   has_texture=bool(r.random() < 0.3))
+    return list(parts) + [_Part("ground_base", "other", mat, v, f)]
 
 
 def _rich_interior(parts: list[_Part], r: np.random.Generator) -> list[_Part]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from ..segment import segmenter_help
 from .render import add_camera_args, add_orientation_args, orientation_from_args
 
 
@@ -36,9 +37,7 @@ def register(sub) -> None:
                    help="local worker processes (default) or Ray tasks on a cluster (extra 'ray')")
     p.add_argument("--address", default=None, help="Ray cluster address for --engine ray")
     p.add_argument("--segmenter", default="labeller", metavar="SPEC",
-                   help="labeller (default, offline: the learned per-material labeller shipped "
-                        "with the package; labeller:MODEL.onnx for another one), prior (hand-"
-                        "written rules), masks:DIR or onnx:MODEL:CONFIG.json")
+                   help=f"default labeller. {segmenter_help()}")
     p.add_argument("--threshold", type=float, default=0.5, help="part score threshold (default 0.5)")
     p.add_argument("--triangle-budget", type=int, default=0, metavar="N",
                    help="decimate meshes above N triangles, keeping material boundaries (0 = never)")
@@ -104,7 +103,8 @@ def run(args) -> int:
     from ucad_catalog import CatalogError
 
     from .. import reasons
-    from ..build import BuildStopped, build, printable, read_uid_list
+    from ..build import BuildStopped, build, read_uid_list
+    from ..system import printable
 
     say = (lambda *a, **k: None) if args.quiet else print
     try:

@@ -14,6 +14,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from ..segment import segmenter_from_spec, segmenter_help
 from .common import format_rows, match_meshes, open_reader
 from .render import add_camera_args, add_orientation_args, orientation_from_args, ring_from_args
 
@@ -35,27 +36,13 @@ def register(sub) -> None:
     p.add_argument("--catalog", type=Path, default=None, metavar="PATH",
                    help="print the stored material -> part tables of a catalogue instead")
     p.add_argument("--segmenter", default="labeller", metavar="SPEC",
-                   help="one word, as in `build`: 'labeller' (default: the learned "
-                        "per-material labeller shipped with the package; 'labeller:MODEL.onnx' "
-                        "another model; reports its probability per material), 'prior' "
-                        "(hand-written rules over names, properties, geometry), 'masks:DIR' "
-                        "(DIR/<sha256>/view_<vvv>/<part>.png + confidence.json), or "
-                        "'onnx:MODEL:CONFIG.json' (CONFIG: {\"classes\": {\"0\": \"background\", "
-                        "\"1\": \"window\", ...}, \"input_size\": [H, W]})")
+                   help=f"default labeller. {segmenter_help()}")
     p.add_argument("--out", type=Path, default=Path("out/parts"), metavar="DIR",
                    help="output folder (default out/parts)")
     p.add_argument("--threshold", type=float, default=0.5, help="score threshold (default 0.5)")
     add_camera_args(p)
     add_orientation_args(p)
     p.set_defaults(func=run)
-
-
-def make_segmenter(spec: str):
-    """Segmenter from a ``--segmenter`` SPEC, the one spelling of every command
-    (``ucad_cl.build.make_segmenter``; ValueError with a usage message)."""
-    from ..build import make_segmenter as from_spec
-
-    return from_spec(spec)
 
 
 def write_table(table, stem: Path) -> None:
@@ -104,14 +91,14 @@ def run(args) -> int:
         print("error: give MESH files, or --catalog PATH", file=sys.stderr)
         return 2
     from ..classify import classify_parts
-    from ..build import printable
+    from ..system import printable
     from ..ingest import IngestError, describe_exception, load_mesh
     from ..render import render_views
-    from ..segment import name_priors
+    from ..names import name_priors
     from ..sheets import part_sheet, write_png
 
     try:
-        segmenter = make_segmenter(args.segmenter)
+        segmenter = segmenter_from_spec(args.segmenter)
         mode, overrides = orientation_from_args(args)
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)

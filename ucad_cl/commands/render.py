@@ -122,7 +122,7 @@ def run(args) -> int:
 
     from ucad_catalog.exr import write_viewset_exr
 
-    from ..build import printable
+    from ..system import printable
     from ..ingest import IngestError, describe_exception, load_mesh
     from ..render import render_views
     from ..sheets import material_sheet, write_png

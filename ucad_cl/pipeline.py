@@ -1,0 +1,342 @@
+"""The per-mesh pipeline of a build: options, mesh references, the stages from a library file to
+a ``CatalogEntry``, and the artifact serialisers. The engines (``ucad_cl.engines``) run it in
+worker processes; the driver (``ucad_cl.build``) commits what it returns.
+
+``Pipeline(options).identify(ref)`` -> content key (or a rejection when the file cannot be read);
+``.load_entry(ref, sha)`` -> the mesh (ingest, under the worker's limits) or a rejection;
+``.process_entry(ref, mesh, seconds, staging)`` -> ingest -> [decimate] -> filter -> render ->
+filter by views -> edges -> segment -> classify -> features -> ``CatalogEntry``. Artifacts go to
+``staging`` (EXR) or stay bytes; their kinds are ``ucad_catalog._db.ARTIFACT_KINDS``.
+
+The loader is a seam: ``Pipeline(options, loader=...)`` replaces ``ingest.load_mesh`` (a picklable
+module-level function ``loader(path, *, budgets, orientation) -> Mesh``; the pipeline orients
+the mesh itself, so it passes ``orientation=None``), so tests can stand in a native reader
+that crashes or hangs; ``build(..., loader=...)`` hands it to every worker.
+"""
+from __future__ import annotations
+
+import errno
+import gzip
+import hashlib
+import io
+import json
+import os
+import sqlite3
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, Iterable
+
+import numpy as np
+
+from ucad_catalog.entry import CatalogEntry
+from ucad_catalog.exr import write_viewset_exr
+
+from . import reasons
+from .artifacts import Verdict
+from .cameras import make_ring
+from .classify import classify_parts
+from .decimate import decimate
+from .edges import material_edges
+from .features import HogExtractor, view_features
+from .filter import filter_mesh, filter_views
+from .ingest import (Budgets, IngestError, describe_exception, load_mesh, mesh_identity,
+                     unreadable_identity)
+from .orient import OrientationOverrides, orient_mesh, parse_mode
+from .pose import box_side
+from .render import render_views
+from .names import name_priors
+from .segment import segmenter_from_spec
+from .shade import shade_views
+from .sheets import part_sheet
+
+if TYPE_CHECKING:
+    from .build import BuildSummary
+
+CODE_VERSION = "6"        # bump when a change alters results: it enters the options hash
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """Everything that affects what is stored. Angles in degrees, sizes in pixels."""
+
+    azimuth_step: float = 5.0
+    elevations: tuple[float, ...] = (15.0,)
+    fov_deg: float = 40.0
+    size: int = 256
+    segmenter: str = "labeller"         # 'labeller[:MODEL]' | 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG'
+    threshold: float = 0.5              # part score threshold (UrbanCAD: 0.5)
+    min_materials: int = 2
+    max_triangles: int = 2_000_000      # reject above this (after decimation, if any)
+    triangle_budget: int = 0            # decimate above this many triangles (0 = never)
+    dominant_fraction: float = 0.97     # reject when one material covers this share of pixels
+    min_visible_materials: int = 2
+    features: bool = True
+    edges: bool = True
+    max_input_triangles: int = Budgets.max_triangles   # ingest budget, before allocation
+    orientation: str = "auto"           # 'auto' | 'file' | 'UP,FRONT' (ucad_cl.orient)
+    orientation_overrides: tuple = ()   # ((path or sha256, 'UP,FRONT' | 'auto' | 'file'), ...)
+    reject_uncertain_orientation: bool = False   # reject instead of flag (uncertain_orientation)
+
+    def __post_init__(self):
+        parse_mode(self.orientation)                      # a bad mode fails here
+        object.__setattr__(self, "orientation_overrides",
+                           tuple((str(k), str(v)) for k, v in self.orientation_overrides))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["elevations"] = list(self.elevations)
+        d["orientation_overrides"] = [list(kv) for kv in self.orientation_overrides]
+        return d
+
+    def hash(self) -> str:
+        blob = json.dumps({"code": CODE_VERSION, **self.to_dict()}, sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()
+
+    def budgets(self) -> Budgets:
+        """Ingest budgets: triangles as given, vertices three per triangle (at least the
+        default vertex budget: files often carry unreferenced vertices)."""
+        return Budgets(max_triangles=self.max_input_triangles,
+                       max_vertices=max(Budgets.max_vertices, 3 * self.max_input_triangles))
+
+
+@dataclass
+class MeshRef:
+    """A library file: path, size in bytes, mtime (s); size -1 when it cannot be stat-ed."""
+
+    path: str
+    size: int
+    mtime: float
+
+
+class BuildStopped(RuntimeError):
+    """An environment fault stopped the build (nothing recorded for the meshes in flight).
+    ``code`` is an environment reason code, ``str`` says what to free or fix; ``summary`` holds
+    what the run did before it stopped."""
+
+    def __init__(self, code: str, message: str, summary: "BuildSummary | None" = None):
+        self.code = reasons.check(code, reasons.ENVIRONMENT)
+        self.summary = summary
+        super().__init__(message)
+
+
+def environment_code(exc: BaseException) -> str | None:
+    """The environment reason code of an error raised while writing the catalogue or staging
+    files (``disk_full``, ``io_error``), or None when it is not an environment fault."""
+    if isinstance(exc, OSError):
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return "disk_full"
+        if exc.errno in (errno.EIO, errno.EROFS, errno.ENXIO, errno.ENODEV, errno.ESTALE):
+            return "io_error"
+        return None
+    if isinstance(exc, sqlite3.Error):
+        code = getattr(exc, "sqlite_errorcode", None)
+        text = str(exc).lower()
+        if code == 13 or "disk is full" in text:                 # SQLITE_FULL
+            return "disk_full"
+        if (code is not None and code & 0xFF in (8, 10, 14)) or "disk i/o error" in text:
+            return "io_error"                                   # READONLY, IOERR, CANTOPEN
+    return None
+
+
+def content_sha256(path: str | os.PathLike) -> str:
+    """The mesh key (``ingest.mesh_identity``: format tag + the bytes of the file and of the
+    files it references); for a file that cannot be read, ``ingest.unreadable_identity``."""
+    try:
+        return mesh_identity(path)
+    except IngestError:
+        return unreadable_identity(path)
+
+
+@dataclass
+class Skipped:
+    """A worker's answer for a path whose content is already catalogued with these options."""
+
+    sha256: str
+
+
+class Pipeline:
+    """The per-mesh stages with their state (segmenter, feature extractor) built once."""
+
+    def __init__(self, options: BuildOptions, loader: Callable | None = None):
+        self.options = options
+        self.loader = loader or load_mesh
+        self.budgets = options.budgets()
+        self.overrides = OrientationOverrides(dict(options.orientation_overrides))
+        self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
+                              fov_deg=options.fov_deg, size=options.size)
+        self.segmenter = segmenter_from_spec(options.segmenter)
+        self.extractor = None
+        if options.features:
+            self.extractor = HogExtractor()
+
+    def identify(self, ref: MeshRef) -> tuple[str, object]:
+        """(content key, None), or (key, rejected CatalogEntry) when the file cannot be read."""
+        try:
+            return mesh_identity(ref.path, self.budgets), None
+        except IngestError as exc:
+            sha = unreadable_identity(ref.path)
+            return sha, rejected_entry(ref, sha, exc.reason, str(exc))
+
+    def load(self, ref: MeshRef):
+        """Ingest, then orient (may raise IngestError or MemoryError). Returns (mesh,
+        {stage: seconds})."""
+        t0 = time.perf_counter()
+        mesh = self.loader(ref.path, budgets=self.budgets, orientation=None)
+        t1 = time.perf_counter()
+        mode = self.overrides.mode_for(ref.path, mesh.sha256, self.options.orientation)
+        mesh = orient_mesh(mesh, mode)
+        return mesh, {"ingest": t1 - t0, "orient": time.perf_counter() - t1}
+
+    def load_entry(self, ref: MeshRef, sha: str):
+        """``load`` with every input fault turned into a rejected entry: (mesh, secs, None) or
+        (None, 0, entry). MemoryError passes through (the caller attributes it)."""
+        try:
+            mesh, secs = self.load(ref)
+            return mesh, secs, None
+        except IngestError as exc:
+            return None, 0.0, rejected_entry(ref, sha, exc.reason, str(exc))
+        except MemoryError:
+            raise
+        except Exception as exc:             # a reader quirk on a strange file: an input fault
+            return None, 0.0, rejected_entry(ref, sha, "unreadable",
+                                             f"{ref.path}: {describe_exception(exc)}")
+
+    def process(self, ref: MeshRef, mesh, load_seconds: float | dict, staging: Path):
+        """Everything after ingest; returns a CatalogEntry (accepted or rejected).
+        ``load_seconds``: the ingest seconds, or ``{stage: seconds}`` from ``load``."""
+        o = self.options
+        timings = (dict(load_seconds) if isinstance(load_seconds, dict)
+                   else {"ingest": load_seconds})
+        t = time.perf_counter()
+        notes = "; ".join(mesh.report.notes)
+
+        def lap(name):
+            nonlocal t
+            now = time.perf_counter()
+            timings[name] = timings.get(name, 0.0) + now - t
+            t = now
+
+        def rejected(verdict):
+            if notes:
+                verdict = Verdict(False, verdict.reason, f"{verdict.detail} ({notes})")
+            return CatalogEntry.from_results(sha256=mesh.sha256, path=ref.path, size=ref.size,
+                                             mtime=ref.mtime, verdict=verdict, mesh=mesh,
+                                             timings=timings)
+
+        orient = mesh.orientation
+        if o.reject_uncertain_orientation and orient is not None and orient.uncertain:
+            return rejected(Verdict(False, "uncertain_orientation",
+                                    f"{ref.path}: orientation confidence up "
+                                    f"{orient.up_confidence:.2f}, front "
+                                    f"{orient.front_confidence:.2f} (flags: "
+                                    f"{', '.join(orient.flags) or 'none'})"))
+        if o.triangle_budget and mesh.n_faces > o.triangle_budget:
+            mesh = decimate(mesh, o.triangle_budget)
+            lap("decimate")
+        verdict = filter_mesh(mesh, min_materials=o.min_materials, max_triangles=o.max_triangles)
+        lap("filter")
+        if not verdict.accepted:
+            return rejected(verdict)
+        views = render_views(mesh, self.ring)
+        lap("render")
+        verdict = filter_views(mesh, views, dominant_fraction=o.dominant_fraction,
+                               min_visible_materials=o.min_visible_materials)
+        lap("filter")
+        if not verdict.accepted:
+            return rejected(verdict)
+        artifacts = {}
+        staging.mkdir(parents=True, exist_ok=True)
+        exr = staging / f"{mesh.sha256}.views.exr"
+        write_viewset_exr(exr, views, mesh)
+        artifacts["views.exr"] = exr
+        lap("write")
+        if o.edges:
+            edges = material_edges(views).edges
+            artifacts["edges.npy.gz"] = npy_gz_bytes(np.packbits(edges > 0, axis=-1))
+            lap("edges")
+        masks = self.segmenter.segment(mesh, views)
+        lap("segment")
+        table = classify_parts(mesh, views, masks, threshold=o.threshold, priors=name_priors(mesh))
+        lap("classify")
+        if self.extractor is not None:
+            images = shade_views(mesh, views, background=(128, 128, 128))
+            feats = view_features(self.extractor, images, views).feats
+            artifacts["features.npy"] = npy_bytes(feats.astype(np.float32))
+            lap("features")
+        artifacts["parts.png"] = parts_sheet_png(views, table)
+        lap("write")
+        visible = views.material_counts()[:, 1:].sum(axis=1)
+        view_stats = [{"visible_pixels": int(visible[v]),
+                       "box_side": float(box_side(views.mat_id[v] > 0))}
+                      for v in range(views.n_views)]
+        return CatalogEntry.from_results(
+            sha256=mesh.sha256, path=ref.path, size=ref.size, mtime=ref.mtime,
+            verdict=Verdict(True, "", notes), mesh=mesh, table=table, ring=self.ring,
+            artifacts=artifacts, timings=timings, view_stats=view_stats)
+
+    def process_entry(self, ref: MeshRef, mesh, load_seconds: float, staging: Path):
+        """``process`` with an unexpected error recorded as ``pipeline_error``. Environment
+        faults (``environment_code``) and MemoryError pass through."""
+        try:
+            return self.process(ref, mesh, load_seconds, staging)
+        except MemoryError:
+            raise
+        except Exception as exc:
+            if environment_code(exc):
+                raise
+            return rejected_entry(ref, mesh.sha256, "pipeline_error",
+                                  f"{ref.path}: {describe_exception(exc)}")
+
+
+class KnownContent:
+    """Read-only question to the catalogue, asked by workers: is content ``sha`` already
+    catalogued with options hash ``ohash`` (and not with a reason being retried)? No lock; any
+    error answers "no" (the mesh is then simply processed)."""
+
+    def __init__(self, catalog: str | os.PathLike | None, ohash: str | None,
+                 retry: Iterable[str] = ()):
+        self._db = Path(catalog) / "catalog.sqlite" if catalog else None
+        self._ohash, self._retry = ohash, set(retry)
+        self._conn = None
+
+    def __call__(self, sha: str) -> bool:
+        if self._db is None or not self._ohash:
+            return False
+        try:
+            if self._conn is None:
+                self._conn = sqlite3.connect(f"{self._db.resolve().as_uri()}?mode=ro", uri=True,
+                                             timeout=5.0, check_same_thread=False)
+            row = self._conn.execute("SELECT state, reason FROM meshes WHERE sha256=? AND "
+                                     "options_hash=?", (sha, self._ohash)).fetchone()
+        except sqlite3.Error:
+            return False
+        return row is not None and not (row[0] == "rejected" and row[1] in self._retry)
+
+
+def rejected_entry(ref: MeshRef, sha: str, reason: str, detail: str):
+    reasons.check(reason, reasons.REJECTION)
+    return CatalogEntry.from_results(sha256=sha, path=ref.path, size=max(ref.size, 0),
+                                     mtime=ref.mtime, verdict=Verdict(False, reason, detail))
+
+
+def npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, a, allow_pickle=False)
+    return buf.getvalue()
+
+
+def npy_gz_bytes(a: np.ndarray) -> bytes:
+    """Deterministic gzip (mtime 0) of an .npy file. Level 1: a mesh's packed edge maps in 2 ms
+    (56 kB) instead of 6 ms (44 kB) at level 6."""
+    return gzip.compress(npy_bytes(a), compresslevel=1, mtime=0)
+
+
+def parts_sheet_png(views, table) -> bytes:
+    """Contact sheet of (at most 24 of) the views coloured by part, as PNG bytes."""
+    import cv2
+
+
+    sub = views.select(np.arange(0, views.n_views, max(1, views.n_views // 24)))
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(part_sheet(sub, table, 1600)[..., ::-1]))
+    return png.tobytes()
