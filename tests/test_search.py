@@ -219,3 +219,27 @@ def test_pca_against_numpy_projection_and_rerank(runtime):
         FeatureIndex(db, mode="pca", pca_dims=65, runtime=runtime)
     with pytest.raises(ValueError, match="rerank=5 is smaller than k=10"):
         search(q, db, 10, mode="pca", pca_dims=24, rerank=5, runtime=runtime)
+
+
+def test_pca_rerank_expansion_preselection_near_duplicates(runtime):
+    """Batches of >= 4 queries preselect re-rank candidates by the float32 expansion
+    (sq_l2_dot_tile). Its cancellation must not lose the exact answer: clusters of 40
+    near-duplicate rows (differences 1e-5, far below the expansion's error on these norms) around
+    each query's true neighbour still fit in rerank=64, so top-k equals the exact f32 scan, rows
+    and bytes of the distances; a single query (direct-difference path) agrees with the batch."""
+    rng = np.random.default_rng(21)
+    db = hog_like(4000, 96, 20)
+    q = db[rng.choice(4000, 12, replace=False)] + 0.02 * rng.standard_normal((12, 96))
+    q = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    near = np.argsort(ref_sq(q, db), axis=1)[:, 0]
+    dup = db[np.repeat(near, 40)] + 1e-5 * rng.standard_normal((len(q) * 40, 96)).astype(np.float32)
+    db = np.concatenate([db, dup.astype(np.float32)])
+    exact, exact_d = search(q, db, 10, runtime=runtime)
+    assert ref_rank(ref_sq(q, db), 1)[:, 0].tolist() == exact[:, 0].tolist()
+    index = FeatureIndex(db, mode="pca", pca_dims=32, rerank=64, runtime=runtime)
+    idx, dist = index.search(q, 10)
+    np.testing.assert_array_equal(idx, exact)
+    assert dist.tobytes() == exact_d.tobytes()
+    one, one_d = index.search(q[3], 10)
+    np.testing.assert_array_equal(one[0], idx[3])
+    assert one_d[0].tobytes() == dist[3].tobytes()

@@ -22,14 +22,21 @@ Conventions
   ``pca_dims`` principal axes (fitted in float64 on the host, deterministic signs) and searched
   exactly in float32 in that space; with ``rerank=R`` the R best reduced-space candidates are
   re-ranked by exact float32 distances in the full space (then sq_dists are full-space distances,
-  otherwise reduced-space ones).
+  otherwise reduced-space ones). With a re-rank and Q >= DOT_QB queries, the candidates are chosen
+  by the expansion |q|^2 + |x|^2 - 2 q.x in float32 (``sq_l2_dot_tile``, half the arithmetic of
+  direct differences): its cancellation error (~1e-7 of the squared norms of the reduced,
+  centred vectors) can only swap candidates within that error of the R-th; the re-rank is exact.
 * k: 1 <= k <= min(N, 64); k > N is an error (not clipped). NaN/inf anywhere is an error.
 
 Cost (PoCL, 2 cores, 100 queries x 72,000 x 512, bench/search.py): f32 ~25-50 ms per batch, about
 2-5x NumPy's sgemm scan and 7-12x faiss IndexFlatL2 with the same top-1. f16 halves the resident
 database but is ~1.3x slower than f32 here (half -> float conversion in every work-item); pca
 d=64/128 is 1.5-2.5x faster, with top-1 recall 0.51/0.64 alone and 1.00 with rerank=32 on
-HOG-like features. Device memory: database + one (Q batch x N) float32 distance matrix.
+HOG-like features. Catalogue search (bench/pose.py --catalog: 168 queries x 72,000 x 1,764 HOG,
+pca 128 + rerank 64): CPU s per batch 0.12-0.19 vs 0.25-0.28 before the expansion preselection
+and fewer top-k chunks, where the projection of the queries is ~7 ms, the preselection ~100 ms,
+top-k ~20 ms and the re-rank gather ~15 ms. Device memory: database + one (Q batch x N) float32
+distance matrix.
 """
 from __future__ import annotations
 
@@ -44,13 +51,21 @@ MODES = ("f32", "f16", "pca")
 # runs: 4x4 22 ms, 6x4 22, 2x8 22-27, 4x8 35, 8x4 52, 8x2 63. Batches of 1-3 queries use QB = 1
 # (memory-bound: 8 ms vs 15 ms with zero-padded QB = 4).
 QB, RB = 4, 4
+# Register block of sq_l2_dot_tile (re-rank candidates in pca mode, float8 accumulators: 8 of
+# the 16 AVX2 registers). Kernel CPU ms, 168 x 72,000 x 128, PoCL 3.1 on 2 loaded Zen 3 cores:
+# 4x2 98, 2x4 107, 4x4 114, 8x2 124; sq_l2_tile (direct differences, 4x4) 139; NumPy's sgemm
+# for the same product 70-77 (the machine, not the kernel, is the limit).
+DOT_QB, DOT_RB = 4, 2
 # Local size: query blocks per work-group = the largest divisor of their count <= LQ_MAX
 # (25 and 1 measured equal; a bounded set of local sizes bounds PoCL's per-size compiles).
 LQ_MAX = 16
 ONE_ITEM = (1, 1)       # local size of topk_rows and sq_l2_gather (PoCL's default: 2x slower)
 DIST_BUDGET = 1 << 26   # floats in one (Q batch x N) distance matrix (256 MiB)
 UPLOAD_ROWS = 8192      # rows per host->device slice and per PCA chunk
-TOPK_ITEMS = 512        # target work-items of topk_rows (query x row chunk)
+# Target work-items of topk_rows (query x row chunk). Fewer, longer chunks insert less
+# (about k ln(chunk / k) insertions per chunk): 168 queries x 72,000 rows, k = 64, CPU s of the
+# whole pca search 0.12-0.14 with 64 vs 0.14-0.16 with 512 (PoCL 3.1, 2 loaded Zen 3 cores).
+TOPK_ITEMS = 64
 
 
 
@@ -108,6 +123,14 @@ class FeatureIndex:
         store_dt = np.float16 if mode == "f16" else np.float32
         self.d_db = self._upload(stored, self.exp, self.rows_pad, self.dim_pad, store_dt)
         if self.rerank:
+            # squared norms of the stored (scaled, float32) reduced rows, for the expansion
+            # preselection (sq_l2_dot_tile)
+            norm2 = np.zeros(self.rows_pad, np.float32)
+            for r0 in range(0, self.n_rows, UPLOAD_ROWS):
+                part = _pack(stored[r0:r0 + UPLOAD_ROWS], self.exp, len(stored[r0:r0 + UPLOAD_ROWS]),
+                             self.dim_pad, np.float32).astype(np.float64)
+                norm2[r0:r0 + len(part)] = np.einsum("ij,ij->i", part, part)
+            self.d_norm2 = self._upload(norm2[:, None], 0, self.rows_pad, 1, np.float32)
             self.full_exp = _scale_exponent(x)
             self.full_dim_pad = _round_up(self.dim, 16)
             self.d_full = self._upload(x, self.full_exp, self.n_rows, self.full_dim_pad, np.float32)
@@ -194,10 +217,24 @@ class FeatureIndex:
         _check_query_range(qbuf, self.dim_pad)
         mf = cl.mem_flags
         d_q = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=qbuf)
-        d_dist = self._scratch("dist", 4 * q_pad * self.rows_pad)
+        d_dist = self._scratch("dist", 4 * _round_up(nq, max(QB, DOT_QB)) * self.rows_pad)
         prm = np.array([(nq, self.n_rows, self.dim_pad // 16, q_pad, self.rows_pad)], DIST_PARAMS)
-        _launch(queue, self._tile_kernel(qb), (q_blocks, self.rows_pad // RB), (lq, 1),
-                prm, d_q, self.d_db, d_dist)
+        if self.rerank and nq >= DOT_QB:
+            # candidates for the exact re-rank: expansion distances (one fma per term)
+            q_pad = _round_up(nq, DOT_QB)
+            qbuf = _pack(q, self.exp, q_pad, self.dim_pad, np.float32)
+            qn2 = np.einsum("ij,ij->i", qbuf.astype(np.float64), qbuf.astype(np.float64))
+            d_q = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=qbuf)
+            d_qn2 = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=qn2.astype(np.float32))
+            q_blocks = q_pad // DOT_QB
+            lq = max(d for d in range(1, min(LQ_MAX, q_blocks) + 1) if q_blocks % d == 0)
+            prm["q_stride"] = q_pad
+            kernel = self.rt.kernel("search", "sq_l2_dot_tile", (f"-DDQB={DOT_QB}", f"-DDRB={DOT_RB}"))
+            _launch(queue, kernel, (q_blocks, self.rows_pad // DOT_RB), (lq, 1),
+                    prm, d_q, self.d_db, d_qn2, self.d_norm2, d_dist)
+        else:
+            _launch(queue, self._tile_kernel(qb), (q_blocks, self.rows_pad // RB), (lq, 1),
+                    prm, d_q, self.d_db, d_dist)
         # Row chunks per query: enough work-items for every core, each chunk at least k rows.
         n_chunks = max(1, min(-(-TOPK_ITEMS // nq), self.n_rows // max(k, 16)))
         chunk = _round_up(-(-self.n_rows // n_chunks), 16)
