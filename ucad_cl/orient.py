@@ -316,14 +316,22 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) ->
     axis-permuted copy of a mesh gets the same faces and the permuted points. Faces of
     material ``skip_material`` get none."""
     v = np.asarray(mesh.vertices, np.float64)
-    f = np.asarray(mesh.faces)
-    x, y, z = np.ascontiguousarray(v.T)
-    f0, f1, f2 = np.ascontiguousarray(f.T).astype(np.intp)
-    x0, y0, z0 = x[f0], y[f0], z[f0]
-    ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
-    bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
-    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-    a2 = np.sqrt(cx * cx + cy * cy + cz * cz)             # twice the face areas
+    corner = np.take(v, np.asarray(mesh.faces).astype(np.intp), axis=0)   # (F, 3, 3)
+    o = corner[:, 0]
+    e1, e2 = corner[:, 1] - o, corner[:, 2] - o
+    x0, y0, z0 = o.T
+    ax, ay, az = e1.T
+    bx, by, bz = e2.T
+    c = np.empty_like(e1)                                  # e1 x e2, written in place
+    np.multiply(ay, bz, out=c[:, 0])
+    c[:, 0] -= az * by
+    np.multiply(az, bx, out=c[:, 1])
+    c[:, 1] -= ax * bz
+    np.multiply(ax, by, out=c[:, 2])
+    c[:, 2] -= ay * bx
+    cx, cy, cz = c.T
+    sq = c * c
+    a2 = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2])          # twice the face areas
     if skip_material >= 0:
         a2 = np.where(np.asarray(mesh.face_material) == skip_material, 0.0, a2)
     cum = np.cumsum(a2)
@@ -342,7 +350,9 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) ->
     dp = np.stack([x0[fd] + (ax[fd] + bx[fd]) / 3.0, y0[fd] + (ay[fd] + by[fd]) / 3.0,
                    z0[fd] + (az[fd] + bz[fd]) / 3.0], axis=1)
     dn = np.stack([cx[fd], cy[fd], cz[fd]], axis=1) / a2[fd][:, None]
-    fc = np.stack([x0 + (ax + bx) / 3.0, y0 + (ay + by) / 3.0, z0 + (az + bz) / 3.0], axis=1)
+    fc = e1 + e2                                           # centroids: o + (e1 + e2) / 3
+    fc /= 3.0
+    fc += o
     return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
 
 
@@ -1302,17 +1312,23 @@ def _overlapping_vehicles(ctx: _Context, names: "_NameTable") -> bool:
     stem_ids = {st: k for k, st in enumerate(dict.fromkeys(stems))}
     if len(stem_ids) < 2:
         return False
+    K = len(stem_ids)
     group = np.array([stem_ids[st] for st in stems])[node_of_face]
     fm = np.asarray(mesh.face_material).astype(np.intp)
     special = (names.glass | names.lamp)[fm]
+    # counts per group in one pass each: faces, glazing or lamp faces, distinct materials
+    M = max(len(mesh.materials), 1)
+    n_mat = np.bincount(np.unique(group * M + fm) // M, minlength=K)
+    cand = np.flatnonzero((np.bincount(group, minlength=K) >= 4) & (n_mat >= 2)
+                          & (np.bincount(group, weights=special.astype(float), minlength=K) > 0))
+    if cand.size < 2:
+        return False
     fc = ctx.S.face_centroid
     fs, ft = fc @ ctx.a, fc @ ctx.b
     span_s, span_t = float(np.ptp(fs)), float(np.ptp(ft))
     whole = 0
-    for k in range(len(stem_ids)):
+    for k in cand:
         sel = group == k
-        if sel.sum() < 4 or not special[sel].any() or np.unique(fm[sel]).size < 2:
-            continue
         if np.ptp(fs[sel]) >= 0.5 * span_s and np.ptp(ft[sel]) >= 0.4 * span_t:
             whole += 1
     return whole >= 2
