@@ -135,11 +135,13 @@ def label_row(lib: Path, args) -> None:
     from ucad_cl.filter import filter_mesh
     from ucad_cl.ingest import IngestError, load_mesh
     from ucad_cl.render import render_views
+    from ucad_cl.labeller import label_materials
     from ucad_cl.segment import LabellerSegmenter, PriorSegmenter
 
     ring = make_ring(azimuth_step=args.azimuth_step, elevations=(15.0,), size=args.size)
     segs = {"labeller": LabellerSegmenter(), "prior": PriorSegmenter()}
     t = {k: [] for k in segs}
+    t["label only"] = []          # label_materials: features, layer behind glass, ONNX trees
     tris = []
     for path in sorted(lib.glob("*.glb")):
         if len(tris) >= args.label_meshes:
@@ -160,6 +162,12 @@ def label_row(lib: Path, args) -> None:
                 seg.segment(mesh, views)
                 runs.append(time.perf_counter() - t0)
             t[k].append(float(np.median(runs)))
+        runs = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            label_materials(mesh, views, model=segs["labeller"].model)
+            runs.append(time.perf_counter() - t0)
+        t["label only"].append(float(np.median(runs)))
     if not tris:
         return
     print(f"\nlabelling per mesh ({len(tris)} meshes, median {int(np.median(tris))} triangles, "
@@ -167,6 +175,8 @@ def label_row(lib: Path, args) -> None:
     print(f"{'segmenter':>10} {'median ms':>10} {'p90 ms':>8}")
     for k, v in t.items():
         print(f"{k:>10} {1000 * np.median(v):>10.1f} {1000 * np.percentile(v, 90):>8.1f}")
+    print("  (labeller, prior: the whole segment() call, painting the masks included; "
+          "label only: label_materials, the learned labeller's own cost)")
     print(f"{'added':>10} {1000 * (np.median(t['labeller']) - np.median(t['prior'])):>10.1f}"
           "   (labeller - prior, medians)")
 

@@ -424,3 +424,31 @@ def test_realism_traits_are_deterministic_and_checked():
     assert a.glb_bytes() == b.glb_bytes()               # applied in REALISM_TRAITS order
     with pytest.raises(ValueError, match="unknown realism trait"):
         make_vehicle(5, "van", realism=["chrome_everything"])
+
+
+def test_lamp_variety_and_ground_base_traits():
+    """lamp_variety: an amber indicator beside every lamp, a see-through red lens over a grey
+    reflector at the back, all part light; ground_base: one base of part other under the
+    tyres, larger than the vehicle. Same seed -> same bytes."""
+    from ucad_cl.labeller import see_through
+
+    v = make_vehicle(8, "sedan", realism=["lamp_variety", "ground_base"])
+    t = v.truth["materials"]
+    lamps = {n for n, p in t.items() if p == "light"}
+    assert "indicator" in lamps and lamps & {"taillight_glass", "headlight_glass"}
+    assert "reflector" in lamps
+    m = v.mesh()
+    mats = {x.name: i for i, x in enumerate(m.materials)}
+    clear = see_through(m)
+    for lens in lamps & {"taillight_glass", "headlight_glass"}:
+        assert clear[mats[lens]]
+    assert t["indicator"] == "light" and m.materials[mats["indicator"]].base_color[0] > 0.9
+    base = [n for n in t if n in ("ground", "base", "fabric")]
+    assert len(base) == 1 and t[base[0]] == "other"
+    fm = np.asarray(m.face_material)
+    vb = m.vertices[np.asarray(m.faces)[fm == mats[base[0]]].ravel()]
+    vc = m.vertices[np.asarray(m.faces)[fm != mats[base[0]]].ravel()]
+    assert vb[:, 1].max() <= vc[:, 1].min() + 1e-6            # under the vehicle
+    assert np.ptp(vb[:, 0]) > 1.1 * np.ptp(vc[:, 0])          # larger than it
+    again = make_vehicle(8, "sedan", realism=["ground_base", "lamp_variety"])
+    assert again.glb_bytes() == v.glb_bytes()

@@ -75,8 +75,8 @@ from .artifacts import PART_NAMES, CameraRing, Mesh, ViewSet
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 MODEL_PATH = MODEL_DIR / "labeller.onnx"
-BEHIND_VIEWS = 12          # at most this many views of the layer behind glass
-BEHIND_SIZE = 128          # at most this many pixels on its longer side
+BEHIND_VIEWS = 6           # at most this many views of the layer behind glass
+BEHIND_SIZE = 96           # at most this many pixels on its longer side
 ADJ_VIEWS = 12             # views used for image adjacency (every k-th view)
 ADJ_SIZE = 128             # ... sampled at every s-th pixel so the longer side is <= this
 SPLIT_MIN_SHARE = 0.05     # a component group must hold this share of the material's area
@@ -278,19 +278,23 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True) -> Mat
     def put(name, values):
         X[:, col[name]] = values
 
-    # ---- per-face geometry in the vehicle frame
-    used = np.zeros(v.shape[0], bool)
-    used[f.ravel()] = True
-    lo, hi = (v[used].min(axis=0), v[used].max(axis=0)) if F else (np.zeros(3), np.ones(3))
+    # ---- per-face geometry in the vehicle frame; coordinates as contiguous rows (3, F): the
+    # (F, 3) names below (tmin, tmax, unit, c) are transposed views whose columns are rows
+    vT = np.ascontiguousarray(v.T)
+    P0, P1, P2 = (vT.take(f[:, k], axis=1) for k in range(3))        # (3, F) corners
+    tmin = np.minimum(np.minimum(P0, P1), P2).T                       # (F, 3) face boxes
+    tmax = np.maximum(np.maximum(P0, P1), P2).T
+    lo, hi = (tmin.T.min(axis=1), tmax.T.max(axis=1)) if F else (np.zeros(3), np.ones(3))
     ext = np.maximum(hi - lo, 1e-12)
     la, wa = (0, 2) if ext[0] >= ext[2] else (2, 0)
     mid = 0.5 * (lo + hi)
-    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]                    # (F, 3) corners
-    n = np.cross(p1 - p0, p2 - p0)
-    norm = np.linalg.norm(n, axis=1)
+    e1, e2 = P1 - P0, P2 - P0
+    nT = np.stack([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                   e1[0] * e2[1] - e1[1] * e2[0]])                     # (3, F) 2 area * normal
+    norm = np.sqrt(nT[0] * nT[0] + nT[1] * nT[1] + nT[2] * nT[2])
     area = 0.5 * norm
-    unit = n / np.maximum(norm, 1e-30)[:, None]
-    c = (p0 + p1 + p2) / 3
+    unit = (nT / np.maximum(norm, 1e-30)).T
+    c = ((P0 + P1 + P2) / 3).T
     h = (c[:, 1] - lo[1]) / ext[1]
     u = (c[:, la] - mid[la]) / (0.5 * ext[la])
     w = (c[:, wa] - mid[wa]) / (0.5 * ext[wa])
@@ -318,11 +322,12 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True) -> Mat
     starts = np.searchsorted(fm[order], np.arange(M))
     present = np.bincount(fm, minlength=M) > 0
 
-    def reduce(ufunc, x, empty):
-        out = np.full(M, empty, np.float64)
+    def reduce(ufunc, rows):
+        """(k, M) per-material ``ufunc`` reduction of k per-face rows (0 for no faces)."""
+        out = np.zeros((len(rows), M), np.float64)
         if F:
-            r = ufunc.reduceat(x[order], np.minimum(starts, F - 1))
-            out[present] = r[present]
+            r = ufunc.reduceat(np.stack(rows)[:, order], np.minimum(starts, F - 1), axis=1)
+            out[:, present] = r[:, present]
         return out
 
     ny = unit[:, 1]
@@ -338,19 +343,22 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True) -> Mat
     hm, um = X[:, col["h_mean"]].copy(), X[:, col["u_mean"]].copy()
     put("h_std", np.sqrt(np.maximum(X[:, col["h_std"]] - hm * hm, 0)))
     put("u_std", np.sqrt(np.maximum(X[:, col["u_std"]] - um * um, 0)))
-    tmin = np.minimum(np.minimum(p0, p1), p2)                          # (F, 3) face boxes
-    tmax = np.maximum(np.maximum(p0, p1), p2)
-    put("h_min", reduce(np.minimum, (tmin[:, 1] - lo[1]) / ext[1], 0.0))
-    put("h_max", reduce(np.maximum, (tmax[:, 1] - lo[1]) / ext[1], 0.0))
-    put("u_max", reduce(np.maximum, au, 0.0))
-    put("w_max", reduce(np.maximum, aw, 0.0))
-    for name, x in (("ext_h", h), ("ext_u", u), ("ext_w", w)):
-        put(name, reduce(np.maximum, x, 0.0) - reduce(np.minimum, x, 0.0))
+    hmin, umin, wmin = reduce(np.minimum, [(tmin[:, 1] - lo[1]) / ext[1], u, w])
+    hmax, umax, wmax, aumax, awmax, hcmax, hcmin = reduce(
+        np.maximum, [(tmax[:, 1] - lo[1]) / ext[1], u, w, au, aw, h, -h])
+    put("h_min", hmin)
+    put("h_max", hmax)
+    put("u_max", aumax)
+    put("w_max", awmax)
+    put("ext_h", hcmax + hcmin)                       # max h - min h of the face centroids
+    put("ext_u", umax - umin)
+    put("ext_w", wmax - wmin)
     put("log_area", np.log10(np.maximum(tot / max(tot.sum(), 1e-30), 1e-7)))
     nf = np.bincount(fm, minlength=M)
     put("log_faces", np.log10(np.maximum(nf / max(F, 1), 1e-7)))
     # per-material mean of u u^T (area-weighted), its largest eigenvalue: 1 for a plane
-    outer = (S @ (unit[:, :, None] * unit[:, None, :]).reshape(-1, 9) if F
+    uT = unit.T
+    outer = (S @ (uT[:, None, :] * uT[None, :, :]).reshape(9, F).T if F
              else np.zeros((M, 9))).reshape(M, 3, 3)
     put("flat", np.linalg.eigvalsh(outer)[:, -1])
     put("log_tri_size", np.log10(np.maximum(tot / np.maximum(nf, 1), 1e-12)))
@@ -403,9 +411,9 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True) -> Mat
 
     # ---- appearance
     clear = see_through(mesh)
-    lab = np.zeros((M, 3))
+    lab = _lab(np.array([mat.base_color[:3] for mat in mesh.materials],
+                        np.float64).reshape(M, 3))
     for m, mat in enumerate(mesh.materials):
-        lab[m] = _lab(mat.base_color[:3])
         X[m, col["metallic"]] = mat.metallic
         X[m, col["roughness"]] = mat.roughness
         X[m, col["alpha"]] = mat.base_color[3]
@@ -439,7 +447,8 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True) -> Mat
     d_paint = np.linalg.norm(lab - lab[paint], axis=1)
     put("d_paint", d_paint)
     put("dl_paint", lab[:, 0] - lab[paint, 0])
-    same = np.array([_look(mat) == _look(mesh.materials[paint]) for mat in mesh.materials])
+    look = _look(mesh.materials[paint]) if M else None
+    same = np.array([_look(mat) == look for mat in mesh.materials], bool)
     put("same_paint", same & (d_paint < 5))
     st = max(1, -(-max(views.mat_id.shape[1:], default=1) // ADJ_SIZE))
     adj = _adjacency(views.mat_id[::max(1, -(-views.n_views // ADJ_VIEWS)), ::st, ::st], M + 1)
@@ -472,7 +481,11 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True) -> Mat
             npart = np.array([PART_NAMES.index(p) if (p := name_prior(nm)) else -1
                               for nm in mesh.node_names] + [-1])
             fp = npart[np.asarray(fn, np.int64)]                      # -1 node -> last entry
-            means({f"node_{p}": fp == k for k, p in enumerate(PART_NAMES)})
+            named = fp >= 0
+            share = np.bincount(fm[named] * P + fp[named], weights=area[named],
+                                minlength=M * P).reshape(M, P) / safe[:, None]
+            for k, p in enumerate(PART_NAMES):
+                put(f"node_{p}", share[:, k])
 
     # ---- context
     put("ctx_lh", ext[la] / ext[1])
@@ -500,30 +513,31 @@ def _look(mat) -> tuple:
 
 
 def _lab(rgb) -> np.ndarray:
-    """CIELAB (D65) of a linear RGB colour in [0, 1]."""
+    """CIELAB (D65) of linear RGB colours in [0, 1]: (..., 3) -> (..., 3)."""
     x = np.clip(np.asarray(rgb, np.float64), 0, 1)
     M = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722],
                   [0.0193, 0.1192, 0.9505]])
-    xyz = M @ x / np.array([0.95047, 1.0, 1.08883])
+    xyz = x @ M.T / np.array([0.95047, 1.0, 1.08883])
     fx = np.where(xyz > 0.008856, np.cbrt(xyz), 7.787 * xyz + 16 / 116)
-    return np.array([116 * fx[1] - 16, 500 * (fx[0] - fx[1]), 200 * (fx[1] - fx[2])])
+    return np.stack([116 * fx[..., 1] - 16, 500 * (fx[..., 0] - fx[..., 1]),
+                     200 * (fx[..., 1] - fx[..., 2])], axis=-1)
 
 
 def _components(v, f, fm, M):
     """(F,) component id of every face and (C,) its material: faces of one material joined
     through vertices welded on a ``WELD`` grid. Component ids ordered by (material, first face)."""
-    from scipy.sparse import coo_matrix
+    from scipy.sparse import csr_matrix
     from scipy.sparse.csgraph import connected_components
 
     F = f.shape[0]
     if F == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    q = np.round(v / WELD).astype(np.int64)
-    q -= q.min(axis=0)
+    q = np.round(np.ascontiguousarray(v.T) / WELD).astype(np.int64)      # (3, N) rows
+    q -= q.min(axis=1, keepdims=True)
     span = int(q.max()) + 1
-    key = (q[:, 0] * span + q[:, 1]) * span + q[:, 2] if span ** 3 < 2 ** 62 else None
+    key = (q[0] * span + q[1]) * span + q[2] if span ** 3 < 2 ** 62 else None
     if key is None:
-        _, weld = np.unique(q, axis=0, return_inverse=True)
+        _, weld = np.unique(q.T, axis=0, return_inverse=True)
     else:
         _, weld = np.unique(key, return_inverse=True)
     weld = weld.ravel()
@@ -542,7 +556,12 @@ def _components(v, f, fm, M):
     N = int(nid.max()) + 1
     rows = np.concatenate([nid[:, 0], nid[:, 1]])
     cols = np.concatenate([nid[:, 1], nid[:, 2]])
-    g = coo_matrix((np.ones(rows.size, np.int8), (rows, cols)), shape=(N, N))
+    # the edge list as CSR directly (rows sorted, duplicates kept: same components), which
+    # spares scipy's COO conversion
+    indptr = np.zeros(N + 1, np.int64)
+    np.cumsum(np.bincount(rows, minlength=N), out=indptr[1:])
+    g = csr_matrix((np.ones(rows.size), cols[np.argsort(rows, kind="stable")], indptr),
+                   shape=(N, N))
     _, lab = connected_components(g, directed=False)
     fl = lab[nid[:, 0]]
     # renumber by (material, first face) so ids do not depend on scipy's numbering
@@ -561,8 +580,8 @@ def _comp_boxes(tmin, tmax, comp, C) -> np.ndarray:
     if C:
         order = np.argsort(comp, kind="stable")
         starts = np.searchsorted(comp[order], np.arange(C))
-        box[:, :3] = np.minimum.reduceat(tmin[order], starts, axis=0)
-        box[:, 3:] = np.maximum.reduceat(tmax[order], starts, axis=0)
+        box[:, :3] = np.minimum.reduceat(tmin.T[:, order], starts, axis=1).T
+        box[:, 3:] = np.maximum.reduceat(tmax.T[:, order], starts, axis=1).T
     return box
 
 
@@ -616,12 +635,13 @@ def _merge_wheels(wc: np.ndarray) -> np.ndarray:
 def _rho(c, la, wa, wheels) -> np.ndarray:
     """(F,) distance of each face centroid to the nearest wheel axle (side view) / its radius,
     counting only wheels whose width span (grown by half a radius) holds the face; inf if none."""
-    rho = np.full(c.shape[0], np.inf)
+    rho2 = np.full(c.shape[0], np.inf)
+    cu, ch, cw = (np.ascontiguousarray(c[:, k]) for k in (la, 1, wa))
     for u0, h0, w0, R, hw in wheels:
-        r = np.hypot(c[:, la] - u0, c[:, 1] - h0) / R
-        inside = np.abs(c[:, wa] - w0) < hw + 0.5 * R
-        rho = np.where(inside, np.minimum(rho, r), rho)
-    return rho
+        r2 = ((cu - u0) ** 2 + (ch - h0) ** 2) / (R * R)
+        inside = np.abs(cw - w0) < hw + 0.5 * R
+        np.minimum(rho2, r2, out=rho2, where=inside)
+    return np.sqrt(rho2)
 
 
 def _adjacency(mat_id: np.ndarray, n: int) -> np.ndarray:

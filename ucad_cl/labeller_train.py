@@ -41,7 +41,8 @@ REALISM_PROB: dict[str, float] = {
     "chassis_only": 0.12, "one_paint": 0.75, "paint_rims": 0.15, "shared_black": 0.25,
     "dark_trim": 0.4, "textured_body": 0.12, "varied_looks": 0.5, "mtl_like": 0.25,
     "opaque_glass": 0.15,
-    "plain_lights": 0.35, "meaningless_names": 0.2, "misleading_names": 0.1,
+    "plain_lights": 0.35, "lamp_variety": 0.4, "ground_base": 0.15,
+    "meaningless_names": 0.2, "misleading_names": 0.1,
 }
 REAL_RINGS = (0,)          # rings whose renders of each real model give training rows
 DEFAULT_VEHICLES = 500     # generated training vehicles of the shipped model

@@ -73,7 +73,7 @@ REALISM_TRAITS: tuple[str, ...] = (
     "brake_discs", "lens_lamps", "rich_interior", "no_rims", "chassis_only", "one_paint",
     "paint_rims", "shared_black", "dark_trim", "textured_body", "varied_looks", "mtl_like",
     "opaque_glass",
-    "plain_lights", "meaningless_names", "misleading_names")
+    "plain_lights", "lamp_variety", "ground_base", "meaningless_names", "misleading_names")
 
 
 def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
@@ -1043,7 +1043,12 @@ def apply_realism(parts: list[_Part], traits: Sequence[str], r: np.random.Genera
     ``varied_looks`` (every material's colour pulled up to 60 % toward a random colour, metallic
     and roughness moved by up to 0.35), ``mtl_like`` (OBJ/MTL materials: metallic 0, roughness 1,
     no emission, no transmission),
-    ``opaque_glass`` (glass is opaque light blue), ``plain_lights`` (lamps without emission).
+    ``opaque_glass`` (glass is opaque light blue), ``plain_lights`` (lamps without emission),
+    ``lamp_variety`` (lamps as real libraries build them: an amber indicator beside every lamp,
+    tail lamps behind a tinted red see-through lens with a grey reflector inside, headlamps as a
+    clear lens over a chrome-like reflector; all part light), ``ground_base`` (the vehicle stands
+    on a ground plane, plinth or cloth up to 3 times its size: part other, and the file's
+    bounding box is the base's).
     Name traits: ``meaningless_names`` (materials become ``Material.001``..., nodes
     ``Object_1``...), ``misleading_names`` (some materials named after another part).
     The truth of a shared material is its majority part (``majority_part``)."""
@@ -1135,6 +1140,10 @@ def apply_realism(parts: list[_Part], traits: Sequence[str], r: np.random.Genera
             for q in parts:
                 if q.part == "light" and max(q.material.emissive) > 0:
                     q.material = shared(q.material.name, q.material, emissive=(0.0, 0.0, 0.0))
+        elif t == "lamp_variety":
+            parts = _lamp_variety(parts, r, shared)
+        elif t == "ground_base":
+            parts = _ground_base(parts, r)
         elif t == "meaningless_names":
             renamed: dict[str, str] = {}
             for k, q in enumerate(parts):
@@ -1201,6 +1210,70 @@ def _lens_lamps(parts: list[_Part]) -> list[_Part]:
             v, f = _box(lo - 0.01, hi + 0.01, 0.05)
             out.append(_Part(f"lens_{q.node}", "light", lens, v, f))
     return out
+
+
+def _lamp_variety(parts: list[_Part], r: np.random.Generator, shared) -> list[_Part]:
+    """Indicators, tinted lenses and reflectors on the head and tail lamps (``apply_realism``).
+    ``shared(name, like, **changes)`` gives one material per name (lamps of a kind share it)."""
+    amber = Material("indicator", (0.95, 0.45, 0.04, 1.0), "OPAQUE", 0.0, 0.2,
+                     (0.9, 0.4, 0.0) if r.random() < 0.5 else (0.0, 0.0, 0.0))
+    red_lens = r.random() < 0.6
+    clear_head = r.random() < 0.6
+    refl = Material("reflector", (0.8, 0.8, 0.82, 1.0), "OPAQUE", 1.0, 0.1)
+    out = []
+    for q in parts:
+        head, tail = q.node.startswith("headlight_"), q.node.startswith("taillight_")
+        if not (q.part == "light" and (head or tail)):
+            out.append(q)
+            continue
+        lo, hi = _bbox(q)
+        side = 1.0 if hi[2] + lo[2] > 0 else -1.0
+        size = hi - lo
+        if (tail and red_lens) or (head and clear_head):
+            lens = (shared("taillight_glass", q.material, base_color=(0.7, 0.04, 0.03, 0.45),
+                           alpha_mode="BLEND", transmission=0.6, metallic=0.0, roughness=0.05)
+                    if tail else
+                    shared("headlight_glass", q.material, base_color=(0.92, 0.92, 0.95, 0.25),
+                           alpha_mode="BLEND", transmission=0.9, metallic=0.0, roughness=0.05,
+                           emissive=(0.0, 0.0, 0.0)))
+            out.append(_Part(q.node, "light", lens, q.vertices, q.faces))
+            ilo, ihi = lo + 0.2 * size, hi - 0.2 * size
+            v, f = _box(ilo, ihi, max(float(size.max()) / 3, 0.02))
+            out.append(_Part(f"reflector_{q.node}", "light",
+                             shared("reflector", refl), v, f))
+        else:
+            out.append(q)
+        # indicator beside the lamp on the outer side, the lamp's depth, the lower 60 % height
+        z0 = hi[2] + 0.005 if side > 0 else lo[2] - 0.005 - 0.08
+        v, f = _box([lo[0], lo[1], z0], [hi[0], lo[1] + 0.6 * size[1], z0 + 0.08], 0.04)
+        out.append(_Part(f"indicator_{q.node}", "light", shared("indicator", amber), v, f))
+    return out
+
+
+def _ground_base(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
+    """A base under the vehicle (``apply_realism``): a thin ground plane, a low plinth or a
+    sagging cloth, 1.2-3 times the vehicle's length and width, top just below the tyres."""
+    lo = np.min([_bbox(q)[0] for q in parts], axis=0)
+    hi = np.max([_bbox(q)[1] for q in parts], axis=0)
+    size = hi - lo
+    cen = 0.5 * (lo + hi)
+    kx, kz = r.uniform(1.2, 3.0, 2)
+    half = np.array([0.5 * kx * size[0], 0.0, 0.5 * max(kz * size[2], 1.1 * size[0] * 0.5)])
+    style = int(r.integers(3))                      # 0 plane, 1 plinth, 2 cloth
+    thick = (0.01, float(r.uniform(0.05, 0.3)) * size[1], 0.02)[style]
+    top = lo[1] - 0.002
+    v, f = _box([cen[0] - half[0], top - thick, cen[2] - half[2]],
+                [cen[0] + half[0], top, cen[2] + half[2]], max(float(half.max()) / 6, 0.1))
+    if style == 2:                                  # cloth: edges hang down to 1.2 x the height
+        d = np.maximum(np.abs(v[:, 0] - cen[0]) / half[0], np.abs(v[:, 2] - cen[2]) / half[2])
+        v = v.copy()
+        v[:, 1] -= np.clip(d - 0.6, 0, None) / 0.4 * 1.2 * size[1]
+    g = float(r.uniform(0.1, 0.9))
+    tint = np.clip(g + r.uniform(-0.1, 0.1, 3), 0, 1)
+    mat = Material("ground" if style == 0 else ("base" if style == 1 else "fabric"),
+                   (*(float(x) for x in tint), 1.0), "OPAQUE", 0.0, float(r.uniform(0.5, 1.0)),
+                   has_texture=bool(r.random() < 0.3))
+    return list(parts) + [_Part("ground_base", "other", mat, v, f)]
 
 
 def _rich_interior(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
