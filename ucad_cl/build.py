@@ -73,7 +73,7 @@ import numpy as np
 from . import reasons
 from .ingest import SUPPORTED_SUFFIXES, Budgets
 
-CODE_VERSION = "6"        # bump when a change alters results: it enters the options hash
+CODE_VERSION = "7"        # bump when a change alters results: it enters the options hash
 
 
 @dataclass(frozen=True)
