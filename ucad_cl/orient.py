@@ -316,22 +316,14 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) ->
     axis-permuted copy of a mesh gets the same faces and the permuted points. Faces of
     material ``skip_material`` get none."""
     v = np.asarray(mesh.vertices, np.float64)
-    corner = np.take(v, np.asarray(mesh.faces).astype(np.intp), axis=0)   # (F, 3, 3)
-    o = corner[:, 0]
-    e1, e2 = corner[:, 1] - o, corner[:, 2] - o
-    x0, y0, z0 = o.T
-    ax, ay, az = e1.T
-    bx, by, bz = e2.T
-    c = np.empty_like(e1)                                  # e1 x e2, written in place
-    np.multiply(ay, bz, out=c[:, 0])
-    c[:, 0] -= az * by
-    np.multiply(az, bx, out=c[:, 1])
-    c[:, 1] -= ax * bz
-    np.multiply(ax, by, out=c[:, 2])
-    c[:, 2] -= ay * bx
-    cx, cy, cz = c.T
-    sq = c * c
-    a2 = np.sqrt(sq[:, 0] + sq[:, 1] + sq[:, 2])          # twice the face areas
+    f = np.asarray(mesh.faces)
+    x, y, z = np.ascontiguousarray(v.T)
+    f0, f1, f2 = np.ascontiguousarray(f.T).astype(np.intp)
+    x0, y0, z0 = x[f0], y[f0], z[f0]
+    ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
+    bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    a2 = np.sqrt(cx * cx + cy * cy + cz * cz)             # twice the face areas
     if skip_material >= 0:
         a2 = np.where(np.asarray(mesh.face_material) == skip_material, 0.0, a2)
     cum = np.cumsum(a2)
@@ -350,9 +342,7 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) ->
     dp = np.stack([x0[fd] + (ax[fd] + bx[fd]) / 3.0, y0[fd] + (ay[fd] + by[fd]) / 3.0,
                    z0[fd] + (az[fd] + bz[fd]) / 3.0], axis=1)
     dn = np.stack([cx[fd], cy[fd], cz[fd]], axis=1) / a2[fd][:, None]
-    fc = e1 + e2                                           # centroids: o + (e1 + e2) / 3
-    fc /= 3.0
-    fc += o
+    fc = np.stack([x0 + (ax + bx) / 3.0, y0 + (ay + by) / 3.0, z0 + (az + bz) / 3.0], axis=1)
     return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
 
 
