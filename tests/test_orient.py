@@ -197,6 +197,18 @@ def test_orientation_is_deterministic():
     assert a.as_dict() == b.as_dict()
 
 
+def test_trimesh_node_name_suffixes_do_not_change_the_estimate():
+    # trimesh makes repeated node names unique with a random '_xxxxxx' hex suffix (a new one
+    # each run); its letters must not count as words ('_0f0012' would read as 'f' = front)
+    mesh = _synth(3, "van").mesh()
+    names = list(mesh.node_names)
+    a = replace(mesh, node_names=[f"{n}_0f{i:04d}" for i, n in enumerate(names)])
+    b = replace(mesh, node_names=[f"{n}_0c{i:04d}" for i, n in enumerate(names)])
+    oa, ob = orient.estimate_orientation(a), orient.estimate_orientation(b)
+    assert oa.as_dict() == ob.as_dict()
+    assert oa.as_dict() == orient.estimate_orientation(mesh).as_dict()
+
+
 # --------------------------------------------------------------------------- modes, overrides
 
 def test_modes_file_and_override():

@@ -509,15 +509,16 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     coarse, coarse_n = sub[::2], sub_n[::2]                # ranking and refining: half of them
     ctree = cKDTree(coarse)
     few = coarse[::max(1, len(coarse) // 128)]
-    scores = [float(np.mean(ctree.query(_reflect(few, n, float(mu @ n)), k=1)[0] < 4.0 * step))
-              for n in cands]
+    scores = [float(np.mean(_near(ctree, _reflect(few, n, float(mu @ n)), 4.0 * step)[0]
+                            < 4.0 * step)) for n in cands]
     order = sorted(range(len(cands)), key=lambda i: (-scores[i], i))   # tie: candidate order
     # two refinement steps for the six best, then the two best distinct results in full
     rough = []
     for rank, i in enumerate(order[:6]):
         n, d = _refine_plane(ctree, coarse, coarse_n, cands[i], float(mu @ cands[i]),
                              1.4 * step, iters=2)
-        hit = float(np.mean(ctree.query(_reflect(coarse[::2], n, d), k=1)[0] < 1.5 * step))
+        hit = float(np.mean(_near(ctree, _reflect(coarse[::2], n, d), 1.5 * step)[0]
+                            < 1.5 * step))
         rough.append((hit, rank, n, d))
     rough.sort(key=lambda r: (-r[0], r[1]))                        # tie: the earlier rank
     picked: list = []
@@ -528,7 +529,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     refined = []
     for n, d in picked:
         n, d = _refine_plane(ctree, coarse, coarse_n, n, d, 1.4 * step)
-        dist, _ = tree.query(_reflect(sub, n, d), k=1)
+        dist, _ = _near(tree, _reflect(sub, n, d), 2.5 * step)
         refined.append((float(np.mean(dist < step)), float(np.ptp(sub @ n)), n, d,
                         float(np.mean(dist < 2.5 * step))))
     top = max(r[0] for r in refined)
@@ -539,6 +540,20 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
         tied = [r for r in tied if r[1] < max(r_[1] for r_ in tied)]
     best = max(tied, key=lambda r: r[0])                   # tie: the earlier one
     return best[2], best[3], best[4]
+
+
+def _near(tree, x: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """(distance, index) of each point's nearest neighbour in ``tree`` when closer than
+    ``bound``; distance inf and index 0 beyond it (the search stops there: reflections
+    that land far from the surface cost little)."""
+    dist, j = tree.query(x, k=1, distance_upper_bound=bound)
+    return dist, np.where(dist < bound, j, 0)
+
+
+def _cross3(a, b) -> np.ndarray:
+    """``np.cross`` of two 3-vectors (the same products, without its array overhead)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
 
 
 def _refine_plane(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: float,
@@ -555,16 +570,16 @@ def _refine_plane(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: float,
         stride = 2 if it < 2 else 1                       # the first steps on fewer samples
         half, half_n = p[::stride], nrm[::stride]
         rx = _reflect(half, n, d)
-        dist, j = tree.query(rx, k=1)
+        dist, j = _near(tree, rx, tau)
         m = nrm[j]
         rn = half_n - 2.0 * (half_n @ n)[:, None] * n
         ok = (dist < tau) & (np.abs(np.einsum("ij,ij->i", rn, m)) > 0.7)
         if ok.sum() < 16:
             break
         x, mm = half[ok], m[ok]
-        u = np.cross(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
-        u /= np.linalg.norm(u)
-        v = np.cross(n, u)
+        u = _cross3(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
+        u /= math.sqrt(u @ u)
+        v = _cross3(n, u)
         e0 = np.einsum("ij,ij->i", rx[ok] - p[j[ok]], mm)
         xn, mn = x @ n - d, mm @ n
         J = np.stack([-2.0 * (x @ u) * mn - 2.0 * xn * (mm @ u),
@@ -600,7 +615,7 @@ class _Context:
     def set_length_axis(self, a: np.ndarray) -> None:
         a = a - (a @ self.w) * self.w
         a = a / np.linalg.norm(a)
-        self._set_axes(a, np.cross(self.w, a))
+        self._set_axes(a, _cross3(self.w, a))
 
     def flip_up(self, flip: bool) -> None:
         """Make -b the height axis (w flips too, keeping a, b, w right-handed)."""
@@ -1013,7 +1028,9 @@ class _NameTable:
         if mesh.face_node is not None and len(mesh.node_names):
             fn = np.asarray(mesh.face_node).astype(np.intp)
             if fn.size and fn.min() >= 0 and fn.max() < len(mesh.node_names):
-                self.groupings.append((fn, list(mesh.node_names)))
+                # without trimesh's random '_xxxxxx' suffix (its hex letters would be
+                # words such as 'f' or 'bb': a names cue that changed from run to run)
+                self.groupings.append((fn, [_node_stem(n) for n in mesh.node_names]))
         self.total_area = total = max(float(self.area.sum()), 1e-300)
         self.share = [np.bincount(lab, weights=self.area, minlength=len(names)) / total
                       for lab, names in self.groupings]      # surface share of each group
@@ -1063,6 +1080,12 @@ class _NameTable:
                 w = np.sqrt(np.minimum(self.share[g][hit] * N_SAMPLES, 50.0))
                 out.extend(zip(w.tolist(), self.means(g, value)[hit].tolist()))
         return out
+
+
+def _node_stem(name) -> str:
+    """A node name without the random ``_xxxxxx`` hex suffix trimesh adds to repeated
+    names (``4_77af3b`` -> ``4``)."""
+    return re.sub(r"_[0-9a-f]{6}$", "", str(name))
 
 
 def _vote(votes: list[tuple[float, float]]) -> float:
@@ -1275,21 +1298,27 @@ def _overlapping_vehicles(ctx: _Context, names: "_NameTable") -> bool:
     if len(names.groupings) < 2:
         return False
     node_of_face, node_names = names.groupings[1]
-    stems = [re.sub(r"_[0-9a-f]{6}$", "", str(n)) for n in node_names]
+    stems = list(node_names)                                 # already _node_stem
     stem_ids = {st: k for k, st in enumerate(dict.fromkeys(stems))}
     if len(stem_ids) < 2:
         return False
+    K = len(stem_ids)
     group = np.array([stem_ids[st] for st in stems])[node_of_face]
     fm = np.asarray(mesh.face_material).astype(np.intp)
     special = (names.glass | names.lamp)[fm]
+    # counts per group in one pass each: faces, glazing or lamp faces, distinct materials
+    M = max(len(mesh.materials), 1)
+    n_mat = np.bincount(np.unique(group * M + fm) // M, minlength=K)
+    cand = np.flatnonzero((np.bincount(group, minlength=K) >= 4) & (n_mat >= 2)
+                          & (np.bincount(group, weights=special.astype(float), minlength=K) > 0))
+    if cand.size < 2:
+        return False
     fc = ctx.S.face_centroid
     fs, ft = fc @ ctx.a, fc @ ctx.b
     span_s, span_t = float(np.ptp(fs)), float(np.ptp(ft))
     whole = 0
-    for k in range(len(stem_ids)):
+    for k in cand:
         sel = group == k
-        if sel.sum() < 4 or not special[sel].any() or np.unique(fm[sel]).size < 2:
-            continue
         if np.ptp(fs[sel]) >= 0.5 * span_s and np.ptp(ft[sel]) >= 0.4 * span_t:
             whole += 1
     return whole >= 2

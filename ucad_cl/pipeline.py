@@ -53,7 +53,7 @@ from .sheets import part_sheet
 if TYPE_CHECKING:
     from .build import BuildSummary
 
-CODE_VERSION = "6"        # bump when a change alters results: it enters the options hash
+CODE_VERSION = "7"        # bump when a change alters results: it enters the options hash
 
 
 @dataclass(frozen=True)
