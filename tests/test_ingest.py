@@ -4,9 +4,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import signal
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -507,3 +509,19 @@ def test_synth_broken_files_rejected_with_expected_reason(tmp_path, trait):
     with pytest.raises(IngestError) as e:
         load_mesh(path)
     assert e.value.reason == vehicle.truth["expected_reject"] and path.name in str(e.value)
+
+
+def test_node_names_are_the_same_on_every_load(vehicles_dir):
+    """trimesh gives repeated node names a random hex suffix, new on every load: node names are
+    kept without it (artifacts.node_stem), so two processes load identical meshes."""
+    import subprocess
+    import sys
+    code = ("import sys, json; from ucad_cl.ingest import load_mesh; "
+            "m = load_mesh(sys.argv[1], orientation=None); print(json.dumps(m.node_names))")
+    path = vehicles_dir / "kenney_ambulance" / "ambulance.glb"
+    runs = [subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True,
+                           text=True, check=True, cwd=Path(__file__).resolve().parents[1]).stdout
+            for _ in range(2)]
+    names = json.loads(runs[0])
+    assert runs[0] == runs[1] and len(names) > len(set(names))     # repeated names, same stems
+    assert not any(re.search(r"_[0-9a-f]{6}$", n) for n in names)

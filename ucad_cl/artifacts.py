@@ -20,6 +20,7 @@ Conventions (written once, used everywhere; see docs/CONVENTIONS.md):
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,6 +36,12 @@ __all__ = ["BACKGROUND_MAT", "BACKGROUND_TRI", "PART_NAMES", "CameraRing", "Edge
            "Features", "IngestReport", "Material", "MaterialPart", "Mesh", "PartMasks",
            "PartTable", "Verdict", "ViewSet", "nonzero_box", "pack_masks"]
 
+
+
+def node_stem(name) -> str:
+    """A node name without the random ``_xxxxxx`` hex suffix trimesh gives repeated names
+    (``4_77af3b`` -> ``4``): a new suffix on every load, so ``Mesh.node_names`` hold stems."""
+    return re.sub(r"_[0-9a-f]{6}$", "", str(name))
 
 @dataclass
 class Material:
@@ -110,7 +117,8 @@ class Mesh:
     """A triangle mesh in the canonical frame with one material index per face.
 
     vertices: (N, 3) float64, canonical frame. faces: (F, 3) uint32. face_material: (F,) uint16
-    index into ``materials``. face_node: (F,) int32 index into ``node_names`` (-1 unknown).
+    index into ``materials``. face_node: (F,) int32 index into ``node_names`` (-1 unknown);
+    node names are ``node_stem``s (trimesh's random suffix of repeated names dropped).
     file_to_norm: (4, 4) float64 homogeneous transform, file frame -> canonical frame.
     orientation: how the canonical vehicle frame was found (None: not oriented yet).
     """

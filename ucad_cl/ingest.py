@@ -31,7 +31,8 @@ Conventions and decisions (see also ``ucad_cl/artifacts.py``):
   same in every process, not necessarily the file's node order); a geometry instanced on several
   nodes is drawn at each.
   Faces of a node whose transform mirrors (det < 0) get their winding flipped so that faces keep
-  facing outward. ``face_node`` indexes ``node_names`` (trimesh's unique node names; a PLY, OFF or
+  facing outward. ``face_node`` indexes ``node_names`` (node names without the random suffix trimesh
+  gives repeated names, ``artifacts.node_stem``, so they are the same on every load; a PLY, OFF or
   STL file has one node, ``geometry_0``: names never depend on the file's name).
 * **Up axis / units.** glTF is +Y up (spec); OBJ, PLY, OFF and STL carry no convention. The file
   frame is the flattened scene frame (file units); which way is up and front is found by the
@@ -105,7 +106,7 @@ from urllib.parse import unquote
 import numpy as np
 
 from . import reasons
-from .artifacts import IngestReport, Material, Mesh
+from .artifacts import IngestReport, Material, Mesh, node_stem
 from .orient import orient_mesh
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
@@ -240,8 +241,10 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 
 def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean: bool = True,
-                       loader=None) -> Mesh:
-    """``load_mesh`` in a fresh child interpreter, so a native crash or hang cannot kill us.
+                       loader=None, **kwargs) -> Mesh:
+    """``load_mesh(path, clean=clean, **kwargs)`` in a fresh child interpreter, so a native crash
+    or hang cannot kill us (the CLI's ``render``, ``parts`` and ``pose`` load user files this
+    way; ``build`` isolates loading in its workers instead).
 
     The child is ``python -c`` (not multiprocessing 'spawn', which re-runs the caller's
     ``__main__`` and breaks scripts without a main guard); arguments go in on stdin, the pickled
@@ -249,7 +252,8 @@ def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean
     dies without answering raises ``IngestError`` reason ``loader_crashed`` (the message names
     the signal or exit code); one still running after ``timeout`` seconds is killed and raises
     reason ``timeout``. ``loader`` (a picklable module-level function
-    ``loader(path, clean=...) -> Mesh``) replaces ``load_mesh``, for tests.
+    ``loader(path, clean=..., **kwargs) -> Mesh``) replaces ``load_mesh``, for tests; ``kwargs``
+    (budgets, orientation, overrides) must pickle.
     """
     if not timeout > 0:
         raise ValueError(f"timeout must be > 0 seconds, got {timeout}")
@@ -265,7 +269,8 @@ def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean
     try:
         try:
             proc.stdin.write(pickle.dumps([p for p in sys.path if isinstance(p, str)]))
-            proc.stdin.write(pickle.dumps((str(path), clean, loader or load_mesh)))
+            proc.stdin.write(pickle.dumps((str(path), dict(kwargs, clean=clean),
+                                           loader or load_mesh)))
             proc.stdin.close()
         except BrokenPipeError:
             pass                                    # the child died early: reported below
@@ -297,11 +302,11 @@ def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean
 
 
 def _isolated_child(fd: int) -> None:
-    """Child side of ``load_mesh_isolated``: read (path, clean, loader) on stdin, answer on fd."""
+    """Child side of ``load_mesh_isolated``: read (path, kwargs, loader) on stdin, answer on fd."""
     conn = Connection(fd, readable=False)
     try:
-        path, clean, loader = pickle.load(sys.stdin.buffer)
-        result = ("ok", loader(path, clean=clean))
+        path, kwargs, loader = pickle.load(sys.stdin.buffer)
+        result = ("ok", loader(path, **kwargs))
     except IngestError as e:
         result = ("ingest_error", (e.path, e.reason, e.message))
     except BaseException as e:  # noqa: BLE001 - everything goes back to the parent as text
@@ -904,7 +909,7 @@ def _flatten(path: Path, scene, gltf: dict | None, draco: bool = False,
         tris.append(f + offset)
         fmat.append(np.full(len(f), keys[key], np.int64))
         fnode.append(np.full(len(f), len(node_names), np.int64))
-        node_names.append(str(node))
+        node_names.append(node_stem(node))          # trimesh's random suffix dropped
         offset += len(v)
     if not tris:
         return (np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int64),

@@ -68,7 +68,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .artifacts import Mesh, Orientation
+from .artifacts import Mesh, Orientation, node_stem
 
 AXES: dict[str, np.ndarray] = {f"{s}{a}": (1.0 if s == "+" else -1.0) * np.eye(3)[i]
                                for i, a in enumerate("XYZ") for s in "+-"}
@@ -1030,7 +1030,7 @@ class _NameTable:
             if fn.size and fn.min() >= 0 and fn.max() < len(mesh.node_names):
                 # without trimesh's random '_xxxxxx' suffix (its hex letters would be
                 # words such as 'f' or 'bb': a names cue that changed from run to run)
-                self.groupings.append((fn, [_node_stem(n) for n in mesh.node_names]))
+                self.groupings.append((fn, [node_stem(n) for n in mesh.node_names]))
         self.total_area = total = max(float(self.area.sum()), 1e-300)
         self.share = [np.bincount(lab, weights=self.area, minlength=len(names)) / total
                       for lab, names in self.groupings]      # surface share of each group
@@ -1080,12 +1080,6 @@ class _NameTable:
                 w = np.sqrt(np.minimum(self.share[g][hit] * N_SAMPLES, 50.0))
                 out.extend(zip(w.tolist(), self.means(g, value)[hit].tolist()))
         return out
-
-
-def _node_stem(name) -> str:
-    """A node name without the random ``_xxxxxx`` hex suffix trimesh adds to repeated
-    names (``4_77af3b`` -> ``4``)."""
-    return re.sub(r"_[0-9a-f]{6}$", "", str(name))
 
 
 def _vote(votes: list[tuple[float, float]]) -> float:
@@ -1298,7 +1292,7 @@ def _overlapping_vehicles(ctx: _Context, names: "_NameTable") -> bool:
     if len(names.groupings) < 2:
         return False
     node_of_face, node_names = names.groupings[1]
-    stems = list(node_names)                                 # already _node_stem
+    stems = list(node_names)                                 # already node_stem
     stem_ids = {st: k for k, st in enumerate(dict.fromkeys(stems))}
     if len(stem_ids) < 2:
         return False

@@ -92,7 +92,7 @@ def run(args) -> int:
         return 2
     from ..classify import classify_parts
     from ..system import printable
-    from ..ingest import IngestError, describe_exception, load_mesh
+    from ..ingest import IngestError, describe_exception, load_mesh_isolated
     from ..render import render_views
     from ..names import name_priors
     from ..sheets import part_sheet, write_png
@@ -116,7 +116,7 @@ def run(args) -> int:
     for path, name in zip(args.meshes, stems):
         stem = args.out / name
         try:
-            mesh = load_mesh(path, orientation=mode, overrides=overrides)
+            mesh = load_mesh_isolated(path, orientation=mode, overrides=overrides)
             views = render_views(mesh, ring)
             masks = segmenter.segment(mesh, views)
             table = classify_parts(mesh, views, masks, threshold=args.threshold,

@@ -74,7 +74,7 @@ def run(args) -> int:
     import cv2
 
     from ..features import HogExtractor, OnnxExtractor
-    from ..ingest import IngestError, load_mesh
+    from ..ingest import IngestError, load_mesh_isolated
     from ..pose import LEGACY, ROBUST, estimate_pose
 
     if (args.catalog is None) == (args.mesh is None):
@@ -99,7 +99,7 @@ def run(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
-        mesh = load_mesh(args.mesh, orientation=mode, overrides=overrides)
+        mesh = load_mesh_isolated(args.mesh, orientation=mode, overrides=overrides)
     except IngestError as exc:
         print(str(exc), file=sys.stderr)
         return 1

@@ -123,7 +123,7 @@ def run(args) -> int:
     from ucad_catalog.exr import write_viewset_exr
 
     from ..system import printable
-    from ..ingest import IngestError, describe_exception, load_mesh
+    from ..ingest import IngestError, describe_exception, load_mesh_isolated
     from ..render import render_views
     from ..sheets import material_sheet, write_png
 
@@ -144,7 +144,7 @@ def run(args) -> int:
     for path in bar:
         stem = stems[path]
         try:
-            mesh = load_mesh(path, orientation=mode, overrides=overrides)
+            mesh = load_mesh_isolated(path, orientation=mode, overrides=overrides)
             views = render_views(mesh, ring)
             write_viewset_exr(args.out / f"{stem}.views.exr", views, mesh)
             if args.edges:
