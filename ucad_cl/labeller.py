@@ -74,6 +74,7 @@ import numpy as np
 from .artifacts import PART_NAMES, CameraRing, Mesh, ViewSet
 from .names import name_prior
 from .render import render_views
+from .runtime import Runtime
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 MODEL_PATH = MODEL_DIR / "labeller.onnx"
@@ -144,11 +145,12 @@ class MaterialLabels:
 
 
 def label_materials(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
-                    model: "LabellerModel | str | Path | None" = None) -> MaterialLabels:
+                    model: "LabellerModel | str | Path | None" = None,
+                    runtime: Runtime | None = None) -> MaterialLabels:
     """Part probabilities for every material of ``mesh`` (canonical frame) from its ``views``.
     ``model``: a loaded ``LabellerModel`` (keep one to label many meshes) or a path (loaded
-    for this call; default the shipped model)."""
-    table = material_table(mesh, views, use_names=use_names)
+    for this call; default the shipped model); the layer behind glass renders on ``runtime``."""
+    table = material_table(mesh, views, use_names=use_names, runtime=runtime)
     if not isinstance(model, LabellerModel):
         model = LabellerModel(model or MODEL_PATH)
     prob = model.predict(table.X)
@@ -211,7 +213,7 @@ def see_through(mesh: Mesh) -> np.ndarray:
     return out
 
 
-def behind_glass(mesh: Mesh, views: ViewSet
+def behind_glass(mesh: Mesh, views: ViewSet, runtime: Runtime | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The second visibility layer: (view indices (S,), (S, H', W') uint16 material ids rendered
     without the visible see-through faces, 0 where the first layer is not see-through, and the
@@ -243,7 +245,7 @@ def behind_glass(mesh: Mesh, views: ViewSet
     sub = Mesh(path=mesh.path, sha256=mesh.sha256, vertices=mesh.vertices,
                faces=np.asarray(mesh.faces)[keep], face_material=fm[keep],
                materials=mesh.materials)
-    layer2 = render_views(sub, ring).mat_id
+    layer2 = render_views(sub, ring, runtime=runtime).mat_id
     first = _resize_ids(views.mat_id[idx], h, w)
     clear_id = np.zeros(len(mesh.materials) + 1, bool)
     clear_id[1:] = clear
@@ -263,8 +265,10 @@ def _resize_ids(ids: np.ndarray, h: int, w: int) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # features
 # ---------------------------------------------------------------------------------------------
-def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True) -> MaterialTable:
-    """Feature rows of every material (see the module docstring)."""
+def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
+                   runtime: Runtime | None = None) -> MaterialTable:
+    """Feature rows of every material (see the module docstring); the layer behind glass renders
+    on ``runtime`` (default ``get_runtime()``)."""
 
     M, P = len(mesh.materials), len(PART_NAMES)
     D = len(FEATURE_NAMES)
@@ -457,7 +461,7 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True) -> Mat
     put("adj_clear", adj[1:, 1:] @ clear.astype(float) / bsum)
     put("adj_paint", adj[1:, 1 + paint] / bsum)
     behind_px = np.zeros(M)
-    layer = behind_glass(mesh, views)
+    layer = behind_glass(mesh, views, runtime)
     if layer is not None:
         idx, l2, first = layer
         n_ids = M + 1

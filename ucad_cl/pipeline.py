@@ -45,6 +45,7 @@ from .ingest import (Budgets, IngestError, describe_exception, load_mesh, mesh_i
 from .orient import OrientationOverrides, orient_mesh, parse_mode
 from .pose import box_side
 from .render import render_views
+from .runtime import Runtime
 from .names import name_priors
 from .segment import segmenter_from_spec
 from .shade import shade_views
@@ -156,19 +157,22 @@ class Skipped:
 
 
 class Pipeline:
-    """The per-mesh stages with their state (segmenter, feature extractor) built once."""
+    """The per-mesh stages with their state (segmenter, feature extractor) built once; every
+    device step runs on ``runtime`` (default: the process's, ``get_runtime()``)."""
 
-    def __init__(self, options: BuildOptions, loader: Callable | None = None):
+    def __init__(self, options: BuildOptions, loader: Callable | None = None,
+                 runtime: Runtime | None = None):
         self.options = options
+        self.runtime = runtime
         self.loader = loader or load_mesh
         self.budgets = options.budgets()
         self.overrides = OrientationOverrides(dict(options.orientation_overrides))
         self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
                               fov_deg=options.fov_deg, size=options.size)
-        self.segmenter = segmenter_from_spec(options.segmenter)
+        self.segmenter = segmenter_from_spec(options.segmenter, runtime)
         self.extractor = None
         if options.features:
-            self.extractor = HogExtractor()
+            self.extractor = HogExtractor(runtime=runtime)
 
     def identify(self, ref: MeshRef) -> tuple[str, object]:
         """(content key, None), or (key, rejected CatalogEntry) when the file cannot be read."""
@@ -238,7 +242,7 @@ class Pipeline:
         lap("filter")
         if not verdict.accepted:
             return rejected(verdict)
-        views = render_views(mesh, self.ring)
+        views = render_views(mesh, self.ring, runtime=self.runtime)
         lap("render")
         verdict = filter_views(mesh, views, dominant_fraction=o.dominant_fraction,
                                min_visible_materials=o.min_visible_materials)
@@ -252,15 +256,16 @@ class Pipeline:
         artifacts["views.exr"] = exr
         lap("write")
         if o.edges:
-            edges = material_edges(views).edges
+            edges = material_edges(views, runtime=self.runtime).edges
             artifacts["edges.npy.gz"] = npy_gz_bytes(np.packbits(edges > 0, axis=-1))
             lap("edges")
         masks = self.segmenter.segment(mesh, views)
         lap("segment")
-        table = classify_parts(mesh, views, masks, threshold=o.threshold, priors=name_priors(mesh))
+        table = classify_parts(mesh, views, masks, threshold=o.threshold, priors=name_priors(mesh),
+                               runtime=self.runtime)
         lap("classify")
         if self.extractor is not None:
-            images = shade_views(mesh, views, background=(128, 128, 128))
+            images = shade_views(mesh, views, background=(128, 128, 128), runtime=self.runtime)
             feats = view_features(self.extractor, images, views).feats
             artifacts["features.npy"] = npy_bytes(feats.astype(np.float32))
             lap("features")

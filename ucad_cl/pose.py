@@ -56,6 +56,7 @@ from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
 from .foreground import (RENDER_BACKGROUND, ObjectMask, axis_turn, centre_on_axis, composite,
                          mask_box, object_mask, refine_with_silhouette)
 from .render import render_views
+from .runtime import Runtime
 from .search import search as knn_search
 from .shade import face_normals, shade_views
 
@@ -176,8 +177,10 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
                   mask: np.ndarray | None = None, extractor: FeatureExtractor | None = None,
                   azimuth_step: float = 10.0, elevations: Sequence[float] = (0.0, 15.0, 30.0),
                   fov_deg: float = 40.0, size: int = 128, top: int = 5, refine: bool = True,
-                  coarse: PoseRing | None = None, method: PoseMethod = ROBUST) -> PoseEstimate:
-    """Best ``top`` poses of ``mesh`` for the object in ``image`` ((H, W, 3) uint8 RGB).
+                  coarse: PoseRing | None = None, method: PoseMethod = ROBUST,
+                  runtime: Runtime | None = None) -> PoseEstimate:
+    """Best ``top`` poses of ``mesh`` for the object in ``image`` ((H, W, 3) uint8 RGB), rendered
+    on ``runtime`` (default ``get_runtime()``).
 
     The object is ``box`` (x0, y0, x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W) bool).
     The coarse ring has ``azimuth_step`` and ``elevations`` (or is ``coarse``, from
@@ -189,13 +192,14 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
         raise ValueError(f"top={top} must be >= 1")
     image = np.asarray(image)
     if coarse is None:
-        coarse = pose_ring(mesh, extractor or HogExtractor(), azimuth_step=azimuth_step,
+        coarse = pose_ring(mesh, extractor or HogExtractor(runtime=runtime),
+                           azimuth_step=azimuth_step, runtime=runtime,
                            elevations=elevations, fov_deg=fov_deg, size=size)
     if not method.isolate:                  # the box, background included (before issue 12)
         obj = ObjectMask(mask=box_mask(obj.mask.shape, obj.box), source="box", box=obj.box,
                          kept=1.0)
     weights = dict(method.weights if obj.source == "mask" else method.box_weights)
-    search = _Search(mesh, coarse, weights, method, refine)
+    search = _Search(mesh, coarse, weights, method, refine, runtime)
     frame = None
     if method.box_frame is not None and obj.source != "mask":
         b, m = np.array(obj.box, float), np.array(mask_box(obj.mask), float)
@@ -220,36 +224,38 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
 
 def pose_ring(mesh: Mesh, extractor: FeatureExtractor, *, azimuth_step: float = 10.0,
               elevations: Sequence[float] = (0.0, 15.0, 30.0), fov_deg: float = 40.0,
-              size: int = 128) -> PoseRing:
+              size: int = 128, runtime: Runtime | None = None) -> PoseRing:
     """Render, shade and describe the coarse ring of ``mesh`` once (reuse for many queries)."""
     ring = make_ring(azimuth_step, elevations, fov_deg=fov_deg, size=size)
-    cues = render_cues(mesh, ring, extractor)
+    cues = render_cues(mesh, ring, extractor, runtime=runtime)
     return PoseRing(ring=ring, feats=cues.hog, sides=cues.sides * min(ring.width, ring.height),
                     extractor=extractor, azimuth_step=float(azimuth_step), cues=cues)
 
 
 def render_cues(mesh: Mesh, ring: CameraRing, extractor: FeatureExtractor,
-                normals: np.ndarray | None = None) -> Cues:
+                normals: np.ndarray | None = None, runtime: Runtime | None = None) -> Cues:
     """Cues (``ucad_cl.cues``) of shaded renders of every view of ``ring`` (``normals``: the
     mesh's ``shade.face_normals`` when the caller has them)."""
-    views = render_views(mesh, ring)
+    views = render_views(mesh, ring, runtime=runtime)
     empty = np.flatnonzero(~np.isfinite(views.depth).any(axis=(1, 2)))
     if empty.size:
         raise ValueError(f"mesh {mesh.path!r}: nothing visible in view(s) {empty.tolist()}")
     if normals is None:
         normals = face_normals(mesh)
-    images = shade_views(mesh, views, background=RENDER_BACKGROUND, normals=normals)
+    images = shade_views(mesh, views, background=RENDER_BACKGROUND, normals=normals,
+                         runtime=runtime)
     return view_cues(mesh, views, images, extractor, normals=normals)
 
 
 def query_features(image: np.ndarray, extractor: FeatureExtractor | None = None, *, box=None,
-                   mask=None, isolate: bool = True) -> tuple[np.ndarray, ObjectMask]:
+                   mask=None, isolate: bool = True,
+                   runtime: Runtime | None = None) -> tuple[np.ndarray, ObjectMask]:
     """(D,) descriptor of the object in a photo, as the renders' features are computed (the
     background replaced unless ``isolate`` is False), and the object it used."""
     obj = object_mask(image, box=box, mask=mask, grabcut=isolate)
     m = obj.mask if isolate else box_mask(obj.mask.shape, obj.box)
     img = composite(image, m) if isolate else np.asarray(image)
-    return (extractor or HogExtractor()).extract(img[None], m[None]).feats[0], obj
+    return (extractor or HogExtractor(runtime=runtime)).extract(img[None], m[None]).feats[0], obj
 
 
 def rank_features(query: np.ndarray, db: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -308,12 +314,13 @@ def search_catalog(query: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
 
 def search_catalog_batch(queries: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
                          views: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
-                         top: int = 5, *, index=None,
-                         exact: bool = True) -> list[list[CatalogMatch]]:
+                         top: int = 5, *, index=None, exact: bool = True,
+                         runtime: Runtime | None = None) -> list[list[CatalogMatch]]:
     """``search_catalog`` for (Q, D) queries: one OpenCL preselection for the whole batch (the
     way to many queries per second), then the exact float64 re-rank of each query's PRESELECT
     rows; ``exact=False`` keeps the index's own float32 order and squared distances (with an
-    ``index``; an f32 index, or a pca index with rerank, gives exact float32 distances)."""
+    ``index``; an f32 index, or a pca index with rerank, gives exact float32 distances). Without
+    an ``index`` the preselection runs on ``runtime`` (default ``get_runtime()``)."""
     feats = np.asarray(feats)
     n = feats.shape[0] if feats.ndim == 2 else -1
     cols = [np.asarray(a) for a in (mesh_ids, views, azimuth, elevation)]
@@ -329,7 +336,10 @@ def search_catalog_batch(queries: np.ndarray, feats: np.ndarray, mesh_ids: np.nd
     else:
         k = min(n, max(PRESELECT, top)) if exact else top
         qn32 = unit_rows(qs)[0].astype(np.float32)
-        cands, d32 = index.search(qn32, k) if index is not None else knn_search(qn32, feats, k)
+        if index is not None:
+            cands, d32 = index.search(qn32, k)
+        else:
+            cands, d32 = knn_search(qn32, feats, k, runtime=runtime)
         ranked = [] if exact else list(zip(cands, d32.astype(np.float64)))
         for c0 in range(0, len(qs) if exact else 0, RERANK_BATCH):   # rank_features', batched
             cand = cands[c0:c0 + RERANK_BATCH]
@@ -388,8 +398,9 @@ class _Pose:
 class _Search:
     """One photo against one mesh: scoring, coarse ranking, refinement, twins."""
 
-    def __init__(self, mesh, coarse: PoseRing, weights: dict, method: PoseMethod, refine: bool):
-        self.mesh, self.coarse, self.weights = mesh, coarse, weights
+    def __init__(self, mesh, coarse: PoseRing, weights: dict, method: PoseMethod, refine: bool,
+                 runtime: Runtime | None = None):
+        self.mesh, self.coarse, self.weights, self.runtime = mesh, coarse, weights, runtime
         self.method, self.refine = method, refine
         self.twins = method.twins
         ring = coarse.ring
@@ -517,7 +528,8 @@ class _Search:
                               azimuth=np.concatenate([r.azimuth for r in rings]),
                               elevation=np.concatenate([r.elevation for r in rings]),
                               distance=distance, near=r0.near)
-            cues = render_cues(self.mesh, ring, self.coarse.extractor, self.normals)
+            cues = render_cues(self.mesh, ring, self.coarse.extractor, self.normals,
+                               runtime=self.runtime)
             s, d = self.scores(cues)
             side = cues.sides * min(self.size) / float(r0.K[0, 0])
             poses = [_Pose(float(ring.azimuth[v] % 360.0), float(ring.elevation[v]), distance,
@@ -604,7 +616,7 @@ class _Search:
         ring = CameraRing(K=K, w2c=w2c[None], width=W, height=H,
                           azimuth=np.array([p.azimuth]), elevation=np.array([p.elevation]),
                           distance=p.distance, near=0.01 * p.distance)
-        return np.isfinite(render_views(self.mesh, ring).depth[0])
+        return np.isfinite(render_views(self.mesh, ring, runtime=self.runtime).depth[0])
 
 
 # ----------------------------------------------------------------------------- helpers

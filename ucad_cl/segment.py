@@ -46,6 +46,7 @@ import numpy as np
 from .artifacts import PART_NAMES, Mesh, PartMasks, ViewSet
 from .labeller import MODEL_PATH, LabellerModel, label_materials
 from .names import name_prior
+from .runtime import Runtime
 
 
 class Segmenter(Protocol):
@@ -172,20 +173,21 @@ def segmenter_help() -> str:
     return "; ".join(f"{spell}: {what}" for spell, what in SEGMENTER_SPECS.values())
 
 
-def segmenter_from_spec(spec: str):
+def segmenter_from_spec(spec: str, runtime: Runtime | None = None):
     """A segmenter from a ``--segmenter`` SPEC (``SEGMENTER_SPECS``); ValueError naming the
-    accepted spellings otherwise."""
+    accepted spellings otherwise. ``runtime``: the device of segmenters that render."""
     kind, _, arg = str(spec).partition(":")
     model, _, config = arg.partition(":") if kind == "onnx" else (arg, "", "")
-    return make_segmenter(kind, model or None, config or None)
+    return make_segmenter(kind, model or None, config or None, runtime=runtime)
 
 
-def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict | None = None):
+def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict | None = None,
+                   *, runtime: Runtime | None = None):
     """The one factory behind every CLI spelling: ``labeller`` (optionally with a model ``arg``),
     ``prior``, ``masks`` with a folder ``arg``, or ``onnx`` with a model ``arg`` and a
     ``config`` (JSON path or dict). ValueError otherwise."""
     if kind == "labeller":
-        return LabellerSegmenter(arg or None)
+        return LabellerSegmenter(arg or None, runtime=runtime)
     if kind == "prior" and not arg:
         return PriorSegmenter()
     if kind == "masks" and arg:
@@ -458,16 +460,20 @@ class LabellerSegmenter:
     """The learned per-material labeller (``ucad_cl.labeller``) painted into part masks.
 
     ``model``: an ONNX model path (default: the shipped ``ucad_cl/models/labeller.onnx``);
-    ``use_names=False`` ignores material and node names (the names-hidden evaluation)."""
+    ``use_names=False`` ignores material and node names (the names-hidden evaluation);
+    ``runtime``: where the layer behind glass renders (default ``get_runtime()``)."""
 
-    def __init__(self, model: str | Path | None = None, use_names: bool = True):
+    def __init__(self, model: str | Path | None = None, use_names: bool = True,
+                 runtime: Runtime | None = None):
+        self.runtime = runtime
 
         self.model = LabellerModel(model or MODEL_PATH)   # a missing or stale model fails here
         self.use_names = use_names
 
     def segment(self, mesh: Mesh, views: ViewSet) -> PartMasks:
 
-        labels = label_materials(mesh, views, use_names=self.use_names, model=self.model)
+        labels = label_materials(mesh, views, use_names=self.use_names, model=self.model,
+                                 runtime=self.runtime)
         masks = paint_materials(views, labels.prob.astype(np.float64),
                                 source=f"labeller:{self.model.path.name}")
         masks.labels = labels
