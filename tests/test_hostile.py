@@ -519,7 +519,7 @@ def test_environment_faults_are_classified():
     import errno
     import sqlite3
 
-    from ucad_cl.pipeline import environment_code
+    from ucad_cl.jobs import environment_code
     assert environment_code(OSError(errno.ENOSPC, "No space left on device")) == "disk_full"
     assert environment_code(OSError(errno.EDQUOT, "Disk quota exceeded")) == "disk_full"
     assert environment_code(OSError(errno.EIO, "Input/output error")) == "io_error"

@@ -71,7 +71,7 @@ from ucad_catalog.store import Catalog
 from . import reasons
 from .engines import run_local, run_ray
 from .ingest import SUPPORTED_SUFFIXES
-from .pipeline import CODE_VERSION, BuildOptions, BuildStopped, MeshRef, environment_code
+from .jobs import CODE_VERSION, BuildOptions, BuildStopped, MeshRef, environment_code
 from .segment import segmenter_from_spec
 from .system import default_memory_limit_mb, printable, process_memory_mb, tree_rss_mb
 

@@ -38,7 +38,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from ucad_catalog import CatalogError
 
-    from ..pipeline import content_sha256
+    from ..jobs import content_sha256
     from ..glb import donor_materials, write_glb
     from ..ingest import IngestError, load_mesh
     from .common import open_reader

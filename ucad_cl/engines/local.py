@@ -26,8 +26,8 @@ from pathlib import Path
 from typing import Callable
 
 from ..ingest import describe_exception, unreadable_identity
-from ..pipeline import (BuildOptions, BuildStopped, KnownContent, Pipeline, Skipped,
-                        environment_code, rejected_entry)
+from ..jobs import (BuildOptions, BuildStopped, KnownContent, Skipped, environment_code,
+                    rejected_entry)
 from ..system import printable, process_memory_mb
 
 EXIT_MEMORY = 86                 # a worker that hit MemoryError exits with this status
@@ -76,6 +76,8 @@ def _worker_main(wid: int, task_q, conn, state, options_dict: dict, threads: int
     os.environ["POCL_CPU_MAX_CU_NUM"] = str(threads)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     opts = BuildOptions(**{**options_dict, "elevations": tuple(options_dict["elevations"])})
+    # the stages load in the worker only: the driver imports this module and stays small
+    from ..pipeline import Pipeline  # noqa: PLC0415
     pipe = Pipeline(opts, mesh_loader)
     is_known = KnownContent(*known)
     loaded: queue.Queue = queue.Queue(maxsize=1)

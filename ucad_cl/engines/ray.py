@@ -64,8 +64,7 @@ from pathlib import Path
 from typing import Callable
 
 from ..ingest import unreadable_identity
-from ..pipeline import (BuildStopped, KnownContent, Pipeline, Skipped, environment_code,
-                        rejected_entry)
+from ..jobs import BuildStopped, KnownContent, Skipped, environment_code, rejected_entry
 from ..system import printable
 
 INSTALL_HINT = ("the 'ray' engine needs Ray: install it with\n"
@@ -259,6 +258,8 @@ def _pipeline(options, loader=None):
     key = (options.hash(), None if loader is None else repr(loader))
     pipe = _PIPELINES.get(key)
     if pipe is None:
+        # the stages load in the worker only: the driver imports this module and stays small
+        from ..pipeline import Pipeline  # noqa: PLC0415
         pipe = _PIPELINES[key] = Pipeline(options, loader)
     return pipe
 
