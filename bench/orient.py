@@ -28,7 +28,6 @@ Table 4: milliseconds per mesh (process CPU time, median) for 50k-triangle gener
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import math
 import os
@@ -42,6 +41,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from ucad_cl.synth import axis_angle, axis_rotations  # noqa: E402
+
 VEHICLES = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "vehicles"
 MULTI = {"godot_truck_town_vehicles.glb"}          # several vehicles: scored on up only
 
@@ -52,22 +53,9 @@ def angle(a, b) -> float:
     return math.degrees(math.acos(min(1.0, max(-1.0, c))))
 
 
-def axis_rotations() -> list[np.ndarray]:
-    """The 24 proper signed permutation matrices."""
-    out = []
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            m = np.eye(3)[list(perm)] * np.array(signs)[:, None]
-            if np.linalg.det(m) > 0:
-                out.append(m)
-    return out
-
-
 def about(axis, deg) -> np.ndarray:
-    k = np.asarray(axis, float) / np.linalg.norm(axis)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    a = math.radians(deg)
-    return np.eye(3) + math.sin(a) * K + (1 - math.cos(a)) * K @ K
+    """Rotation by ``deg`` degrees about ``axis``."""
+    return axis_angle(axis, math.radians(deg))
 
 
 def repose(mesh, Q):

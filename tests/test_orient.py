@@ -13,7 +13,7 @@ import pytest
 from ucad_cl import orient
 from ucad_cl.ingest import load_mesh
 from ucad_cl.orient import AXES, OrientationOverrides, orient_mesh, parse_mode
-from ucad_cl.synth import make_vehicle
+from ucad_cl.synth import axis_angle, make_vehicle
 
 from .conftest import VEHICLES
 
@@ -28,11 +28,8 @@ def _angle(a, b) -> float:
 
 
 def _rot(axis, deg) -> np.ndarray:
-    """Rotation by ``deg`` degrees about ``axis`` (Rodrigues)."""
-    k = np.asarray(axis, float) / np.linalg.norm(axis)
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    a = math.radians(deg)
-    return np.eye(3) + math.sin(a) * K + (1 - math.cos(a)) * K @ K
+    """Rotation by ``deg`` degrees about ``axis``."""
+    return axis_angle(axis, math.radians(deg))
 
 
 def _repose(mesh, Q):

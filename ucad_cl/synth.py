@@ -936,22 +936,28 @@ def _pose_rotation(pose: str, r: np.random.Generator) -> np.ndarray:
     determinant +1 (uniformly), 'yaw' a uniform angle about +Y, 'tilt' a tilt of up to
     MAX_TILT_DEG about a random horizontal axis followed by a uniform yaw."""
     if pose == "axis":
-        rots = [m for m in (np.eye(3)[list(p)] * np.array(sg)[:, None]
-                            for p in itertools.permutations(range(3))
-                            for sg in itertools.product((1.0, -1.0), repeat=3))
-                if np.linalg.det(m) > 0]
+        rots = axis_rotations()
         return rots[int(r.integers(len(rots)))]
-    yaw = _axis_angle(np.array([0.0, 1.0, 0.0]), r.uniform(0.0, 2 * math.pi))
+    yaw = axis_angle(np.array([0.0, 1.0, 0.0]), r.uniform(0.0, 2 * math.pi))
     if pose == "yaw":
         return yaw
     phi = r.uniform(0.0, 2 * math.pi)
-    tilt = _axis_angle(np.array([math.cos(phi), 0.0, math.sin(phi)]),
+    tilt = axis_angle(np.array([math.cos(phi), 0.0, math.sin(phi)]),
                        math.radians(r.uniform(-MAX_TILT_DEG, MAX_TILT_DEG)))
     return yaw @ tilt
 
 
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    k = axis / np.linalg.norm(axis)
+def axis_rotations() -> list[np.ndarray]:
+    """The 24 rotations that permute the axes with signs (determinant +1), in a fixed order."""
+    return [m for m in (np.eye(3)[list(p)] * np.array(sg)[:, None]
+                        for p in itertools.permutations(range(3))
+                        for sg in itertools.product((1.0, -1.0), repeat=3))
+            if np.linalg.det(m) > 0]
+
+
+def axis_angle(axis, angle: float) -> np.ndarray:
+    """3x3 rotation by ``angle`` radians about ``axis`` (Rodrigues; ``axis`` need not be unit)."""
+    k = np.asarray(axis, float) / np.linalg.norm(axis)
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K
 
