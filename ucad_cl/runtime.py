@@ -327,23 +327,24 @@ def list_devices() -> list[str]:
 
 def usable_device_specs() -> list[str]:
     """Specs ("P:D") of every device that builds and runs a probe kernel, best first."""
-    import pyopencl as cl
-
-    infos = [i for i in device_infos()
-             if _probe(cl.get_platforms()[int(i.spec.split(":")[0])]
-                       .get_devices()[int(i.spec.split(":")[1])])[0]]
-    return [i.spec for i in sorted(infos, key=device_rank)]
+    found = sorted(_devices(), key=lambda t: device_rank(t[0]))
+    return [info.spec for info, dev in found if _probe(dev)[0]]
 
 
 def device_infos() -> list[DeviceInfo]:
     """``DeviceInfo`` of every OpenCL device, in platform / device order (no context made)."""
+    return [info for info, _ in _devices()]
+
+
+def _devices() -> list[tuple[DeviceInfo, Any]]:
+    """(DeviceInfo, pyopencl.Device) of every OpenCL device, in platform / device order."""
     import pyopencl as cl
 
     try:
         platforms = cl.get_platforms()
     except Exception as exc:
         raise OpenCLUnavailable(f"{INSTALL_HINT}\n(pyopencl said: {exc})") from exc
-    return [device_info(f"{pi}:{di}", p, d)
+    return [(device_info(f"{pi}:{di}", p, d), d)
             for pi, p in enumerate(platforms) for di, d in enumerate(p.get_devices())]
 
 
