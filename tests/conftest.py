@@ -22,7 +22,7 @@ def pytest_configure(config):
     config.addinivalue_line("markers", "every_device: run once per device of UCAD_TEST_DEVICES")
 
 
-def test_device_specs() -> list[str | None]:
+def device_specs_under_test() -> list[str | None]:
     """Device specs from ``UCAD_TEST_DEVICES``; [None] (the default device) when unset."""
     value = os.environ.get("UCAD_TEST_DEVICES", "").strip()
     if not value:
@@ -33,13 +33,11 @@ def test_device_specs() -> list[str | None]:
     return [s.strip() for s in value.split(",") if s.strip()]
 
 
-test_device_specs.__test__ = False          # a helper, not a test
-
 
 def pytest_generate_tests(metafunc):
     if "runtime" in metafunc.fixturenames and metafunc.definition.get_closest_marker(
             "every_device"):
-        specs = test_device_specs()
+        specs = device_specs_under_test()
         metafunc.parametrize("runtime", specs, indirect=True, scope="session",
                              ids=[f"device={s}" if s else "default" for s in specs])
 

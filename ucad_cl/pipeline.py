@@ -83,25 +83,24 @@ class Pipeline:
         return mesh, {"ingest": t1 - t0, "orient": time.perf_counter() - t1}
 
     def load_entry(self, ref: MeshRef, sha: str):
-        """``load`` with every input fault turned into a rejected entry: (mesh, secs, None) or
-        (None, 0, entry). MemoryError passes through (the caller attributes it)."""
+        """``load`` with every input fault turned into a rejected entry: (mesh, {stage: seconds},
+        None) or (None, {}, entry). MemoryError passes through (the caller attributes it)."""
         try:
             mesh, secs = self.load(ref)
             return mesh, secs, None
         except IngestError as exc:
-            return None, 0.0, rejected_entry(ref, sha, exc.reason, str(exc))
+            return None, {}, rejected_entry(ref, sha, exc.reason, str(exc))
         except MemoryError:
             raise
         except Exception as exc:             # a reader quirk on a strange file: an input fault
-            return None, 0.0, rejected_entry(ref, sha, "unreadable",
+            return None, {}, rejected_entry(ref, sha, "unreadable",
                                              f"{ref.path}: {describe_exception(exc)}")
 
-    def process(self, ref: MeshRef, mesh, load_seconds: float | dict, staging: Path):
+    def process(self, ref: MeshRef, mesh, load_seconds: dict, staging: Path):
         """Everything after ingest; returns a CatalogEntry (accepted or rejected).
-        ``load_seconds``: the ingest seconds, or ``{stage: seconds}`` from ``load``."""
+        ``load_seconds``: ``{stage: seconds}`` from ``load``."""
         o = self.options
-        timings = (dict(load_seconds) if isinstance(load_seconds, dict)
-                   else {"ingest": load_seconds})
+        timings = dict(load_seconds)
         t = time.perf_counter()
         notes = "; ".join(mesh.report.notes)
 
@@ -170,7 +169,7 @@ class Pipeline:
             verdict=Verdict(True, "", notes), mesh=mesh, table=table, ring=self.ring,
             artifacts=artifacts, timings=timings, view_stats=view_stats)
 
-    def process_entry(self, ref: MeshRef, mesh, load_seconds: float, staging: Path):
+    def process_entry(self, ref: MeshRef, mesh, load_seconds: dict, staging: Path):
         """``process`` with an unexpected error recorded as ``pipeline_error``. Environment
         faults (``environment_code``) and MemoryError pass through."""
         try:
