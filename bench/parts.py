@@ -117,7 +117,7 @@ def print_confusion(title, conf):
 def accuracy_table(args):
     from ucad_cl import labeller_train as T
 
-    models = T.load_real_models(VEHICLES)
+    models = T.load_real_models(VEHICLES, frame=args.frame)
     if args.folds:
         scored = [m for m in models if m.file in args.folds]
     else:
@@ -189,6 +189,123 @@ def load_synth_rows(args):
     cache.parent.mkdir(parents=True, exist_ok=True)
     np.savez(cache, X=rows.X, y=rows.y, w=rows.w, group=rows.group)
     return rows
+
+
+def real_tables(models, args) -> dict[str, dict]:
+    """{file: cached per-model facts} for the fast loop: feature rows on ring 0 (the build's
+    ring, also the real training rows' ring, ``REAL_RINGS``) with names kept (``Xn``) and hidden
+    (``Xh``), truth ``y`` (part index, -1 for a material the manifest does not name), ``alt``
+    (M, P) accepted parts (truth and ``ambiguous_alternatives``), first-layer ``pixels`` and
+    ``behind`` pixels. Cached in ``--cache`` keyed by the feature and orientation code, the
+    frame, the file's sha256 and its manifest entry."""
+    import hashlib
+
+    from ucad_cl import labeller_train as T
+
+    import ucad_cl.labeller
+    import ucad_cl.orient
+
+    src = b"".join(Path(m.__file__).read_bytes() for m in (ucad_cl.labeller, ucad_cl.orient))
+    out = {}
+    for rm in models:
+        key = hashlib.sha256(src + json.dumps([args.frame, rm.file, rm.mesh.sha256, rm.truth,
+                                               rm.alternatives]).encode()).hexdigest()[:12]
+        cache = Path(args.cache) / f"real_{key}.npz"
+        if not cache.exists():
+            views = render_views(rm.mesh, T.make_ring_of(0))
+            tn = T.material_table(rm.mesh, views)
+            th = T.material_table(T.hide_names(rm.mesh), views)
+            names = [m.name for m in rm.mesh.materials]
+            y = np.array([PART_NAMES.index(rm.truth[n]) if n in rm.truth else -1 for n in names])
+            alt = np.zeros((len(names), len(PART_NAMES)), bool)
+            for i, n in enumerate(names):
+                for p in ([rm.truth[n]] if n in rm.truth else []) + list(rm.alternatives.get(n, [])):
+                    alt[i, PART_NAMES.index(p)] = True
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            np.savez(cache, Xn=tn.X, Xh=th.X, y=y, alt=alt, pixels=tn.pixels,
+                     behind=tn.behind_pixels, names=np.array(names, object))
+        z = np.load(cache, allow_pickle=True)
+        out[rm.file] = {k: z[k] for k in z.files}
+    return out
+
+
+def fast_verdicts(t: dict, prob: np.ndarray, min_pixels: int = 4) -> tuple[Score, list]:
+    """Material verdicts of the labeller's probabilities without masks: argmax part (ties ->
+    PART_NAMES order), 'unseen' under ``min_pixels`` pixels unless seen behind glass (then its
+    behind-glass pixels weigh it), as ``classify_parts`` decides on self-painted masks (each
+    material's pixels all lie in its own argmax part, so every view scores it 1). Left out: the
+    mirror-pair unification of ``classify_parts``."""
+    from types import SimpleNamespace
+
+    sc, wrong = Score(), []
+    for m, y in enumerate(t["y"]):
+        if y < 0:
+            continue
+        part = PART_NAMES[int(np.argmax(prob[m]))]
+        px = int(t["pixels"][m])
+        if px < min_pixels:
+            px = int(t["behind"][m])
+            if px < min_pixels:
+                part, px = "unseen", 0
+        alts = [PART_NAMES[k] for k in np.flatnonzero(t["alt"][m])]
+        if not sc.add(PART_NAMES[y], alts, SimpleNamespace(part=part, pixels=px)):
+            wrong.append((m, part))
+    return sc, wrong
+
+
+def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
+    """Leave-one-model-out over cached feature rows (``real_tables``): for every real model,
+    fit on the generated rows + the other real models' named rows (``fit(rows)``, default
+    ``labeller_train.fit`` with the recipe's seed), predict its names-kept and names-hidden
+    rows, and score with ``fast_verdicts``. Returns {"named": Score, "hidden": Score,
+    "per_model": {file: {...}}}."""
+    from ucad_cl import labeller_train as T
+
+    models = T.load_real_models(VEHICLES, frame=args.frame) if tables is None else None
+    tables = tables if tables is not None else real_tables(models, args)
+    synth = synth if synth is not None else load_synth_rows(args)
+    fit = fit or (lambda rows: T.fit(rows, args.seed))
+    real = {f: T.Rows(t["Xn"][t["y"] >= 0], t["y"][t["y"] >= 0],
+                      np.full(int((t["y"] >= 0).sum()), T.REAL_WEIGHT),
+                      np.array([f"real:{f}"] * int((t["y"] >= 0).sum()), object))
+            for f, t in tables.items()}
+    tot = {"named": Score(), "hidden": Score()}
+    per = {}
+    scored = [f for f in tables if not args.folds or f in args.folds]
+    for f in scored:
+        t0 = time.perf_counter()
+        clf = fit(T.Rows.concat([synth] + [r for g, r in real.items() if g != f]))
+        t = tables[f]
+        res = {}
+        for tag, X in (("named", t["Xn"]), ("hidden", t["Xh"])):
+            prob = T.predict(clf, X)
+            sc, wrong = fast_verdicts(t, prob)
+            tot[tag] += sc
+            res[tag] = (sc, wrong, prob)
+        per[f] = res
+        if log:
+            log(f"{f:44s} {res['named'][0].n:4d} | {res['named'][0].acc:6.0%} "
+                f"{res['named'][0].pix:6.0%} | {res['hidden'][0].acc:6.0%} "
+                f"{res['hidden'][0].pix:6.0%} | "
+                + "; ".join(f"{t['names'][m]}:{p}/{PART_NAMES[t['y'][m]]}"
+                            for m, p in res["hidden"][1][:6])
+                + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+    return {"named": tot["named"], "hidden": tot["hidden"], "per_model": per, "tables": tables}
+
+
+def fast_table(args):
+    """``--fast``: the leave-one-model-out table from cached feature rows (minutes)."""
+    print(f"\n## Labeller, fast leave-one-model-out over cached feature rows (frame "
+          f"{args.frame}; {args.vehicles} generated vehicles seed {args.seed} + the other real "
+          "models; per-material argmax, no masks)")
+    print(f"{'model':44s} {'mats':>4s} | {'named':>13s} | {'hidden':>13s} | wrong (names hidden)")
+    res = fast_lomo(args, log=lambda *a, **k: print(*a, **k))
+    for k in ("named", "hidden"):
+        sc = res[k]
+        print(f"  names {k:7s} materials right {sc.ok:4d}/{sc.n:<4d} = {sc.acc:6.1%}   "
+              f"pixel-weighted {sc.pix:6.1%}   unseen {sc.unseen}")
+    print_confusion("Confusion, labeller, names hidden, fast leave-one-model-out",
+                    res["hidden"].conf)
 
 
 def generated_table(args, synth, real):
@@ -281,6 +398,12 @@ def main():
     ap.add_argument("--cache", default="/tmp/ucad-labeller-cache")
     ap.add_argument("--no-prior", action="store_true", help="skip the prior segmenter's columns")
     ap.add_argument("--skip-accuracy", action="store_true")
+    ap.add_argument("--frame", choices=("auto", "manifest"), default="auto",
+                    help="how the real models reach the vehicle frame: the orientation stage "
+                         "(auto, what the pipeline does; default) or their manifest up/front")
+    ap.add_argument("--fast", action="store_true",
+                    help="leave-one-model-out from cached feature rows, per-material argmax "
+                         "(no masks, no prior columns; minutes instead of the full path)")
     ap.add_argument("--local-sizes", type=lambda s: [int(x) for x in s.split(",")],
                     default=[1, 4, 16, 64, 256])
     ap.add_argument("--ppi", type=lambda s: [int(x) for x in s.split(",")],
@@ -292,7 +415,7 @@ def main():
         args.vehicles = DEFAULT_VEHICLES
     if not args.skip_accuracy:
         if (VEHICLES / "manifest.json").exists():
-            accuracy_table(args)
+            fast_table(args) if args.fast else accuracy_table(args)
         else:
             print(f"(no vehicles at {VEHICLES}; accuracy table skipped)")
     if not args.skip_speed:

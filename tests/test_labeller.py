@@ -394,3 +394,74 @@ def test_same_labels_in_all_24_axis_aligned_poses(tmp_path, runtime):
     assert len(labels) == 24
     same = [sum(lab[k] == labels[0][k] for k in labels[0]) / len(labels[0]) for lab in labels]
     assert min(same) >= 0.99, same
+
+
+# ---------------------------------------------------------------------------------------------
+# relative features (each material against the others of its vehicle) and the realism traits
+# that real libraries showed and the generator lacked
+# ---------------------------------------------------------------------------------------------
+def test_relative_features_on_the_hand_made_car(car_views):
+    from ucad_cl.labeller import RELATIVE_NAMES
+
+    mesh, views = car_views
+    X = material_table(mesh, views).X
+    assert FEATURE_NAMES[-len(RELATIVE_NAMES):] == RELATIVE_NAMES      # appended at the end
+    c = lambda name: X[:, COL[name]]  # noqa: E731
+    paint, tyre, rim, glass, seat, hidden = range(6)
+    # the paint has the most pixels and the largest area: 0 against itself
+    assert c("rel_pix")[paint] == 0 and c("rel_area")[paint] == 0
+    assert (c("rel_pix")[[tyre, rim, glass]] < 0).all()
+    assert c("h_rel_paint")[paint] == 0 and c("u_rel_paint")[paint] == 0
+    assert -0.25 < c("h_rel_paint")[tyre] < -0.12            # tyre centres 0.2, body 0.39 high
+    # the tyre (L about 1.5) is the darkest: nobody darker; the rim (L about 92) the lightest
+    assert c("dark_frac")[tyre] == 0 and c("dark_frac")[rim] == 1
+    # the paint (red) is the most colourful
+    assert c("chroma_frac")[paint] == 0
+    # the main glass is the only see-through material: 1 against itself, 0 for opaque ones
+    assert c("glass_rel_pix")[glass] == 1 and (np.delete(c("glass_rel_pix"), glass) == 0).all()
+    assert c("d_glass")[glass] == 0 and c("h_rel_glass")[glass] == 0
+    assert c("h_rel_glass")[tyre] < -0.4                     # the glass band is far above tyres
+    assert (c("rel_emission") == 0).all()                    # nothing glows
+    # hidden (grey L 76) and rim (L 92, same hue) are not the same colour; no two materials are
+    assert (c("same_colour") == 0).all()
+
+
+def test_relative_features_follow_a_permutation_of_the_materials(car_views):
+    mesh, views = car_views
+    X = material_table(mesh, views).X
+    perm = np.array([3, 5, 0, 1, 4, 2])                     # new index k holds old perm[k]
+    inv = np.argsort(perm)
+    pm = replace(mesh, materials=[mesh.materials[k] for k in perm],
+                 face_material=inv[np.asarray(mesh.face_material)].astype(np.uint16))
+    from ucad_cl.render import render_views
+
+    Y = material_table(pm, render_views(pm, views.cameras)).X
+    rel = [COL[n] for n in ("rel_area", "rel_pix", "dark_frac", "chroma_frac", "same_colour",
+                            "h_rel_paint", "u_rel_paint", "h_rel_glass", "d_glass",
+                            "glass_rel_pix")]
+    np.testing.assert_allclose(Y[:, rel], X[perm][:, rel], atol=1e-5)
+
+
+def test_two_tone_and_dark_glass_traits():
+    from ucad_cl.labeller import _lab
+    from ucad_cl.synth import make_vehicle
+
+    plain = make_vehicle(5, "sedan").mesh()
+    for seed in (5, 6, 7):
+        v = make_vehicle(seed, "sedan", realism=["two_tone"])
+        mats = {m.name: m for m in v.mesh().materials}
+        assert v.truth["materials"]["paint_second"] == "body"
+        second = np.asarray(mats["paint_second"].base_color[:3])
+        first = np.asarray(next(m for n, m in mats.items()
+                                if n.startswith("paint_") and n != "paint_second").base_color[:3])
+        assert np.abs(second - first).max() > 0.35
+    d = make_vehicle(5, "sedan", realism=["dark_glass"])
+    glass = [m for m in d.mesh().materials if d.truth["materials"][m.name] == "window"]
+    # every window keeps its own material, now opaque, dark and not see-through
+    assert len(glass) == sum(plain_m.name.startswith("glass") for plain_m in plain.materials)
+    assert len({m.base_color for m in glass}) == 1
+    for m in glass:
+        assert m.alpha_mode == "OPAQUE" and m.transmission == 0 and m.base_color[3] == 1
+        assert _lab(np.asarray(m.base_color[:3]))[0] < 45
+    assert not see_through(d.mesh())[[i for i, m in enumerate(d.mesh().materials)
+                                      if m in glass]].any()

@@ -104,7 +104,12 @@ def _feature_names() -> tuple[str, ...]:
     return tuple(geo + app + vis + names + ctx)
 
 
-FEATURE_NAMES: tuple[str, ...] = _feature_names()
+#: relative (context) columns, appended after the base ones: each material against the other
+#: materials of the same vehicle (``relative_features``)
+RELATIVE_NAMES: tuple[str, ...] = (
+    "rel_area", "rel_pix", "dark_frac", "chroma_frac", "same_colour", "rel_emission",
+    "h_rel_paint", "u_rel_paint", "h_rel_glass", "u_rel_glass", "d_glass", "glass_rel_pix")
+FEATURE_NAMES: tuple[str, ...] = _feature_names() + RELATIVE_NAMES
 
 
 @dataclass
@@ -497,10 +502,61 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     put("ctx_log_mats", np.log10(max(M, 1)))
     put("ctx_wheels", float(len(wheels)))
     put("ctx_clear", float(clear.any()))
+    relative_features(X, col)
     return MaterialTable(X=X.astype(np.float32), pixels=pix.astype(np.int64),
                          behind_pixels=behind_px.astype(np.int64), face_comp=comp,
                          comp_material=comp_mat, comp_area=carea, comp_box=cbox,
                          comp_rho=crho, wheels=wheels)
+
+
+def relative_features(X: np.ndarray, col: dict[str, int]) -> None:
+    """Fill the ``RELATIVE_NAMES`` columns of (M, D) ``X`` in place from its base columns: each
+    material against the others of the same vehicle.
+
+    rel_area, rel_pix: log10 area share / pixel share minus the largest material's (0 = the
+    largest); dark_frac, chroma_frac: share of the other materials darker (CIELAB L) / more
+    chromatic than this one (0 = the darkest / the most colourful; tie-free); same_colour:
+    share of the other materials within CIELAB distance 5 (swatches, paint panels);
+    rel_emission: emission / the vehicle's largest (0 when nothing glows); h_rel_paint,
+    u_rel_paint: mean height / |length position| minus those of the paint (the material with
+    the most pixels, ties -> lower index); h_rel_glass, u_rel_glass, d_glass: the same and the
+    CIELAB distance against the main glass (the see-through material with the most pixels;
+    0, 0, 100 when there is none); glass_rel_pix: a see-through material's pixels / the main
+    glass's (0 for opaque materials). Order-free: permuting the materials permutes the rows."""
+    M = X.shape[0]
+    if M == 0:
+        return
+
+    def c(name):
+        return X[:, col[name]]
+
+    X[:, col["rel_area"]] = c("log_area") - c("log_area").max()
+    lp = np.log10(c("pix_share") + 1e-4)
+    X[:, col["rel_pix"]] = lp - lp.max()
+    lab = np.stack([c("lab_l"), c("lab_a"), c("lab_b")], axis=1)
+    others = max(M - 1, 1)
+    X[:, col["dark_frac"]] = (c("lab_l")[None, :] < c("lab_l")[:, None]).sum(axis=1) / others
+    X[:, col["chroma_frac"]] = (c("chroma")[None, :] > c("chroma")[:, None]).sum(axis=1) / others
+    d = np.linalg.norm(lab[:, None] - lab[None], axis=2)
+    X[:, col["same_colour"]] = ((d < 5).sum(axis=1) - 1) / others
+    em = c("emission")
+    X[:, col["rel_emission"]] = em / em.max() if em.max() > 0 else 0.0
+    pix = c("pix_share")
+    paint = int(np.argmax(pix))                                   # ties -> lower index
+    X[:, col["h_rel_paint"]] = c("h_mean") - c("h_mean")[paint]
+    X[:, col["u_rel_paint"]] = c("u_mean") - c("u_mean")[paint]
+    clear = (c("see_through") > 0) & (pix > 0)
+    if clear.any():
+        g = int(np.flatnonzero(clear)[np.argmax(pix[clear])])      # ties -> lower index
+        X[:, col["h_rel_glass"]] = c("h_mean") - c("h_mean")[g]
+        X[:, col["u_rel_glass"]] = c("u_mean") - c("u_mean")[g]
+        X[:, col["d_glass"]] = d[:, g]
+        X[:, col["glass_rel_pix"]] = np.where(c("see_through") > 0, pix / pix[g], 0.0)
+    else:
+        X[:, col["h_rel_glass"]] = 0.0
+        X[:, col["u_rel_glass"]] = 0.0
+        X[:, col["d_glass"]] = 100.0
+        X[:, col["glass_rel_pix"]] = 0.0
 
 
 def _rank(x: np.ndarray) -> np.ndarray:

@@ -45,7 +45,7 @@ REALISM_PROB: dict[str, float] = {
     "brake_discs": 0.3, "lens_lamps": 0.4, "rich_interior": 0.5, "no_rims": 0.2,
     "chassis_only": 0.12, "one_paint": 0.75, "paint_rims": 0.15, "shared_black": 0.25,
     "dark_trim": 0.4, "textured_body": 0.12, "varied_looks": 0.5, "mtl_like": 0.25,
-    "opaque_glass": 0.15,
+    "opaque_glass": 0.15, "dark_glass": 0.12, "two_tone": 0.25,
     "plain_lights": 0.35, "lamp_variety": 0.4, "ground_base": 0.15,
     "meaningless_names": 0.2, "misleading_names": 0.1,
 }
@@ -148,22 +148,30 @@ class RealModel:
     alternatives: dict
 
 
-def load_real_models(folder: str | Path, *, skip=("ferrari_458.glb",)) -> list[RealModel]:
-    """The manifest's models (``skip``: duplicates), oriented by their manifest ``up``/``front``
-    (models without a front keep the file's horizontal axes)."""
+def load_real_models(folder: str | Path, *, skip=("ferrari_458.glb",),
+                     frame: str = "manifest") -> list[RealModel]:
+    """The manifest's models (``skip``: duplicates) in the vehicle frame. ``frame``:
+    ``"manifest"`` rotates them by their manifest ``up``/``front`` (models without a front keep
+    the file's horizontal axes); ``"auto"`` lets the orientation stage estimate the frame, as
+    the pipeline does for a file nobody labelled (``load_mesh(orientation="auto")``)."""
 
+    if frame not in ("manifest", "auto"):
+        raise ValueError(f"frame must be 'manifest' or 'auto', not {frame!r}")
     folder = Path(folder)
     manifest = json.loads((folder / "manifest.json").read_text(encoding="utf-8"))
     out = []
     for m in manifest["models"]:
         if m["file"] in skip:
             continue
-        mesh = load_mesh(folder / m["file"], orientation=None)    # the manifest orients it
-        up, front = m.get("up") or "+Y", m.get("front")
-        if front is None:
-            front = "+X" if up[1] != "X" else "+Z"
-        R = manifest_rotation(up, front)
-        mesh = replace(mesh, vertices=np.asarray(mesh.vertices) @ R.T)
+        if frame == "auto":
+            mesh = load_mesh(folder / m["file"], orientation="auto")
+        else:
+            mesh = load_mesh(folder / m["file"], orientation=None)    # the manifest orients it
+            up, front = m.get("up") or "+Y", m.get("front")
+            if front is None:
+                front = "+X" if up[1] != "X" else "+Z"
+            R = manifest_rotation(up, front)
+            mesh = replace(mesh, vertices=np.asarray(mesh.vertices) @ R.T)
         out.append(RealModel(m["file"], mesh, dict(m["materials"]),
                              dict(m.get("ambiguous_alternatives", {}))))
     return out

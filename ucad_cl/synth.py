@@ -72,7 +72,7 @@ HUGE_TRIANGLES = 2_000_000  # default triangle count of the 'huge' trait
 REALISM_TRAITS: tuple[str, ...] = (
     "brake_discs", "lens_lamps", "rich_interior", "no_rims", "chassis_only", "one_paint",
     "paint_rims", "shared_black", "dark_trim", "textured_body", "varied_looks", "mtl_like",
-    "opaque_glass",
+    "opaque_glass", "dark_glass", "two_tone",
     "plain_lights", "lamp_variety", "ground_base", "meaningless_names", "misleading_names")
 
 
@@ -1086,7 +1086,10 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
     ``varied_looks`` (every material's colour pulled up to 60 % toward a random colour, metallic
     and roughness moved by up to 0.35), ``mtl_like`` (OBJ/MTL materials: metallic 0, roughness 1,
     no emission, no transmission),
-    ``opaque_glass`` (glass is opaque light blue), ``plain_lights`` (lamps without emission),
+    ``opaque_glass`` (glass is opaque light blue), ``dark_glass`` (glass is opaque and dark:
+    black, grey or a dark tint, one random colour), ``two_tone`` (a group of body panels, the
+    roof and pillars, the lower panels or every other panel, in a second paint far from the
+    first: part body), ``plain_lights`` (lamps without emission),
     ``lamp_variety`` (lamps as real libraries build them: an amber indicator beside every lamp,
     tail lamps behind a tinted red see-through lens with a grey reflector inside, headlamps as a
     clear lens over a chrome-like reflector; all part light), ``ground_base`` (the vehicle stands
@@ -1179,6 +1182,17 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
                     q.material = shared(q.material.name, q.material,
                                         base_color=(0.55, 0.7, 0.85, 1.0), alpha_mode="OPAQUE",
                                         transmission=0.0)
+        elif t == "dark_glass":
+            rgb = r.uniform(0.0, 0.12) + r.uniform(0.0, 0.1, 3)
+            for q in parts:
+                if q.part == "window":
+                    q.material = shared(q.material.name, q.material,
+                                        base_color=(*(float(x) for x in rgb), 1.0),
+                                        alpha_mode="OPAQUE", transmission=0.0,
+                                        metallic=float(r.uniform(0.0, 0.3)),
+                                        roughness=float(r.uniform(0.05, 0.5)))
+        elif t == "two_tone":
+            parts = _two_tone(parts, r, shared)
         elif t == "plain_lights":
             for q in parts:
                 if q.part == "light" and max(q.material.emissive) > 0:
@@ -1291,6 +1305,32 @@ def _lamp_variety(parts: list[_Part], r: np.random.Generator, shared) -> list[_P
         v, f = _box([lo[0], lo[1], z0], [hi[0], lo[1] + 0.6 * size[1], z0 + 0.08], 0.04)
         out.append(_Part(f"indicator_{q.node}", "light", shared("indicator", amber), v, f))
     return out
+
+
+def _two_tone(parts: list[_Part], r: np.random.Generator, shared) -> list[_Part]:
+    """A second paint on a group of body panels (``apply_realism``): the roof and pillars, the
+    panels below the belt line, or every other panel; its colour differs from the first paint
+    in lightness or hue (a random colour at least 0.35 away in RGB)."""
+    paint = [q for q in parts if q.part == "body" and q.material.name.startswith("paint")]
+    if not paint:
+        return parts
+    first = np.asarray(paint[0].material.base_color[:3])
+    for _ in range(8):
+        rgb = r.uniform(0, 1, 3)
+        if np.abs(rgb - first).max() > 0.35:
+            break
+    mode = int(r.integers(3))
+    lo = np.min([_bbox(q)[0] for q in parts], axis=0)
+    hi = np.max([_bbox(q)[1] for q in parts], axis=0)
+    belt = lo[1] + 0.45 * (hi[1] - lo[1])
+    for k, q in enumerate(paint):
+        pick = (("roof" in q.node or "pillar" in q.node or "rail" in q.node) if mode == 0
+                else bool(_bbox(q)[1][1] < belt + 0.02 * (hi[1] - lo[1])) if mode == 1
+                else k % 2 == 1)
+        if pick:
+            q.material = shared("paint_second", q.material,
+                                base_color=(*(float(x) for x in rgb), 1.0))
+    return parts
 
 
 def _ground_base(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
