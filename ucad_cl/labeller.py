@@ -42,6 +42,12 @@ Features (``FEATURE_NAMES``, one row per material, float32):
   each part. ``use_names=False`` zeros both (the "names hidden" evaluation).
 * context (same for every material of a mesh): length/height and width/height, material count,
   wheels found, see-through material present.
+* relative (``RELATIVE_NAMES``, ``relative_features``; appended last): each material against
+  the others of its vehicle: area and pixels against the largest, the share of materials darker
+  / more colourful, of materials of the same colour, emission against the brightest, height and
+  length position against the paint and against the main glass, colour distance to the main
+  glass and pixels against it (a lamp lens is a small see-through material, the windows the
+  large one).
 
 See through glass (the documented rule): a material is *see-through* when its transmission
 > 0.05, or its alpha < 0.95 with alpha mode BLEND, or its alpha < 0.9 in any mode. When a mesh
