@@ -465,3 +465,41 @@ def test_two_tone_and_dark_glass_traits():
         assert _lab(np.asarray(m.base_color[:3]))[0] < 45
     assert not see_through(d.mesh())[[i for i, m in enumerate(d.mesh().materials)
                                       if m in glass]].any()
+
+
+def test_one_glass_and_glass_looks_traits():
+    from ucad_cl.synth import make_vehicle
+
+    plain = make_vehicle(9, "van")
+    v = make_vehicle(9, "van", realism=["one_glass"])
+    windows = [m for m in v.mesh().materials if v.truth["materials"][m.name] == "window"]
+    assert [m.name for m in windows] == ["glass"]                # the whole glasshouse
+    n_plain = sum(plain.truth["materials"][m.name] == "window" for m in plain.mesh().materials)
+    assert n_plain > 1
+    looks = set()
+    for seed in range(12):
+        g = make_vehicle(seed, "sedan", realism=["glass_looks"])
+        mesh = g.mesh()
+        win = [i for i, m in enumerate(mesh.materials) if g.truth["materials"][m.name] == "window"]
+        for i in win:
+            m = mesh.materials[i]
+            assert m.transmission == 0                          # alpha only, never transmission
+            # see-through exactly when alpha < 0.9 (the documented see-through rule)
+            assert see_through(mesh)[i] == (m.base_color[3] < 0.9)
+        looks.add((mesh.materials[win[0]].base_color[3] < 1, mesh.materials[win[0]].alpha_mode))
+    assert len(looks) >= 2                                      # see-through and opaque both drawn
+
+
+def test_grey_trim_trait():
+    from ucad_cl.synth import make_vehicle
+
+    greys = set()
+    for seed in (3, 4, 5):
+        v = make_vehicle(seed, "sedan", realism=["grey_trim"])
+        mats = {m.name: m for m in v.mesh().materials}
+        assert v.truth["materials"]["trim_grey"] == "chrome"        # the trim policy
+        assert not any(n.startswith(("bumper_", "grille", "chrome_trim_")) for n in mats)
+        r, g, b, a = mats["trim_grey"].base_color
+        assert a == 1 and abs(r - g) < 1e-6 and 0.04 < g < 0.71
+        greys.add(round(g, 3))
+    assert len(greys) == 3                                         # the grey is drawn per vehicle

@@ -46,6 +46,7 @@ REALISM_PROB: dict[str, float] = {
     "chassis_only": 0.12, "one_paint": 0.75, "paint_rims": 0.15, "shared_black": 0.25,
     "dark_trim": 0.4, "textured_body": 0.12, "varied_looks": 0.5, "mtl_like": 0.25,
     "opaque_glass": 0.15, "dark_glass": 0.12, "two_tone": 0.25,
+    "one_glass": 0.6, "glass_looks": 0.5, "grey_trim": 0.3,
     "plain_lights": 0.35, "lamp_variety": 0.4, "ground_base": 0.15,
     "meaningless_names": 0.2, "misleading_names": 0.1,
 }

@@ -72,7 +72,7 @@ HUGE_TRIANGLES = 2_000_000  # default triangle count of the 'huge' trait
 REALISM_TRAITS: tuple[str, ...] = (
     "brake_discs", "lens_lamps", "rich_interior", "no_rims", "chassis_only", "one_paint",
     "paint_rims", "shared_black", "dark_trim", "textured_body", "varied_looks", "mtl_like",
-    "opaque_glass", "dark_glass", "two_tone",
+    "opaque_glass", "dark_glass", "two_tone", "one_glass", "glass_looks", "grey_trim",
     "plain_lights", "lamp_variety", "ground_base", "meaningless_names", "misleading_names")
 
 
@@ -1089,7 +1089,12 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
     ``opaque_glass`` (glass is opaque light blue), ``dark_glass`` (glass is opaque and dark:
     black, grey or a dark tint, one random colour), ``two_tone`` (a group of body panels, the
     roof and pillars, the lower panels or every other panel, in a second paint far from the
-    first: part body), ``plain_lights`` (lamps without emission),
+    first: part body), ``one_glass`` (every window shares one glass material: the whole
+    glasshouse, as most real libraries build it), ``glass_looks`` (the glass looks as real
+    libraries make it: see-through by alpha only (0.1-0.7, alpha mode BLEND or OPAQUE, no
+    transmission) or opaque, light or dark grey or tinted, any metallic and roughness),
+    ``grey_trim`` (grille, bumpers, mirror housings and side trim in one grey material,
+    lightness and gloss drawn at random: part chrome, the trim policy), ``plain_lights`` (lamps without emission),
     ``lamp_variety`` (lamps as real libraries build them: an amber indicator beside every lamp,
     tail lamps behind a tinted red see-through lens with a grey reflector inside, headlamps as a
     clear lens over a chrome-like reflector; all part light), ``ground_base`` (the vehicle stands
@@ -1193,6 +1198,31 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
                                         roughness=float(r.uniform(0.05, 0.5)))
         elif t == "two_tone":
             parts = _two_tone(parts, r, shared)
+        elif t == "grey_trim":
+            g = float(r.uniform(0.05, 0.7))
+            trim = Material("trim_grey", (g, g, g * float(r.uniform(0.95, 1.05)), 1.0), "OPAQUE",
+                            float(r.choice([0.0, 1.0, r.uniform(0, 1)])),
+                            float(r.choice([1.0, r.uniform(0.2, 1)])))
+            for q in parts:
+                if is_(q, "grille", "bumper_", "paint_mirror_", "chrome_trim_"):
+                    q.material = shared("trim_grey", trim)
+                    q.part = "chrome"
+        elif t == "one_glass":
+            glass = next((q.material for q in parts if q.part == "window"), None)
+            for q in parts:
+                if glass is not None and q.part == "window":
+                    q.material = shared("glass", glass)
+        elif t == "glass_looks":
+            grey = float(r.choice([r.uniform(0.0, 0.2), r.uniform(0.5, 0.95)]))
+            rgb = np.clip(grey + r.uniform(-0.08, 0.08, 3), 0, 1)
+            alpha = float(r.uniform(0.1, 0.7)) if r.random() < 0.7 else 1.0
+            mode = "BLEND" if alpha < 1 and r.random() < 0.6 else "OPAQUE"
+            looks = dict(base_color=(*(float(x) for x in rgb), alpha), alpha_mode=mode,
+                         transmission=0.0, metallic=float(r.choice([0.0, 1.0, r.uniform(0, 1)])),
+                         roughness=float(r.choice([0.0, 1.0, r.uniform(0, 1)])))
+            for q in parts:
+                if q.part == "window":
+                    q.material = shared(q.material.name, q.material, **looks)
         elif t == "plain_lights":
             for q in parts:
                 if q.part == "light" and max(q.material.emissive) > 0:
