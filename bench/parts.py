@@ -3,6 +3,7 @@ vehicles, and the IoU-pass speed.
 
     .venv/bin/python bench/parts.py                       # everything (about 15-25 min on 2 cores)
     .venv/bin/python bench/parts.py --skip-speed --folds kenney_sedan/sedan.glb,o3dv_car.glb
+    .venv/bin/python bench/parts.py --skip-speed --fast   # LOMO from cached feature rows (minutes)
 
 Accuracy (needs the ``[train]`` extra). The learned labeller (``ucad_cl.labeller``) is retrained
 for every fold without the scored real model (generated vehicles of the training recipe + the
@@ -14,7 +15,17 @@ side on the same renders (it was tuned on these models: its figures are not held
 material is right when its part is the manifest's or one of its ``ambiguous_alternatives``;
 'unseen' counts as not right (and is counted). Pixel-weighted: each material weighs its visible
 pixels (behind-glass pixels for materials labelled through glass). The real models are brought
-into the vehicle frame by the manifest's ``up``/``front`` (``labeller_train.load_real_models``).
+into the vehicle frame by the orientation stage (``--frame auto``, the default: what the
+pipeline does with a file nobody labelled) or by the manifest's ``up``/``front``
+(``--frame manifest``), for scoring and for the other folds' training rows alike
+(``labeller_train.load_real_models``).
+
+``--fast``: the same leave-one-model-out from feature rows cached per model in ``--cache``
+(names kept and hidden, truth, pixels; ``real_tables``), scored per material by the argmax of
+the labeller's probabilities (``fast_verdicts``: what ``classify_parts`` decides on the
+labeller's own masks, less its mirror-pair unification), minutes instead of the full path; it
+reproduced the full path's totals within a material (names kept 126 vs 125 of 162, hidden 116
+vs 115, before the relative features).
 Generated vehicles: seeds of another run than the training run (never trained on or tuned on),
 scored with the model trained on all training data, against the generator's truth.
 

@@ -539,12 +539,16 @@ def relative_features(X: np.ndarray, col: dict[str, int]) -> None:
     X[:, col["rel_area"]] = c("log_area") - c("log_area").max()
     lp = np.log10(c("pix_share") + 1e-4)
     X[:, col["rel_pix"]] = lp - lp.max()
-    lab = np.stack([c("lab_l"), c("lab_a"), c("lab_b")], axis=1)
+    from scipy.spatial import cKDTree
+
+    lab = np.stack([c("lab_l"), c("lab_a"), c("lab_b")], axis=1).astype(np.float64)
     others = max(M - 1, 1)
-    X[:, col["dark_frac"]] = (c("lab_l")[None, :] < c("lab_l")[:, None]).sum(axis=1) / others
-    X[:, col["chroma_frac"]] = (c("chroma")[None, :] > c("chroma")[:, None]).sum(axis=1) / others
-    d = np.linalg.norm(lab[:, None] - lab[None], axis=2)
-    X[:, col["same_colour"]] = ((d < 5).sum(axis=1) - 1) / others
+    # sorted counts and a k-d tree: O(M log M), a 2000-material file stays cheap
+    light, chroma = np.sort(c("lab_l")), np.sort(c("chroma"))
+    X[:, col["dark_frac"]] = np.searchsorted(light, c("lab_l"), side="left") / others
+    X[:, col["chroma_frac"]] = (M - np.searchsorted(chroma, c("chroma"), side="right")) / others
+    near = cKDTree(lab).query_ball_point(lab, r=np.nextafter(5.0, 0.0), return_length=True)
+    X[:, col["same_colour"]] = (np.asarray(near) - 1) / others
     em = c("emission")
     X[:, col["rel_emission"]] = em / em.max() if em.max() > 0 else 0.0
     pix = c("pix_share")
@@ -556,7 +560,7 @@ def relative_features(X: np.ndarray, col: dict[str, int]) -> None:
         g = int(np.flatnonzero(clear)[np.argmax(pix[clear])])      # ties -> lower index
         X[:, col["h_rel_glass"]] = c("h_mean") - c("h_mean")[g]
         X[:, col["u_rel_glass"]] = c("u_mean") - c("u_mean")[g]
-        X[:, col["d_glass"]] = d[:, g]
+        X[:, col["d_glass"]] = np.linalg.norm(lab - lab[g], axis=1)
         X[:, col["glass_rel_pix"]] = np.where(c("see_through") > 0, pix / pix[g], 0.0)
     else:
         X[:, col["h_rel_glass"]] = 0.0
