@@ -14,7 +14,9 @@ the same decisions; ties go to fixed rules written next to the code):
 1. **Samples.** 4,096 area-weighted surface points with their face normals and 4,096 faces
    drawn by count (finely tessellated parts such as tyres get many), from a fixed random
    stream. A ground sheet, cloth or display base under the vehicle (one thin material broader
-   than the rest, all of the rest on one side) is left out and says which way is up.
+   than the rest, all of the rest on one side) is left out and says which way is up. Several
+   vehicles apart in one file (separate clusters of surface): only the largest one's
+   samples are kept, so the file is oriented by that vehicle (and flagged).
 2. **Mirror plane** (the width axis). Candidate normals (the principal axes, the file axes and
    in-between directions; not the length axis of an elongated body) are ranked by how many
    reflected samples land on the surface; the best are refined by a point-to-plane
@@ -384,6 +386,11 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
         S, base_up = base
         p = S.points
         flags.append("ground_plane")
+    one = _largest_vehicle(S)
+    if one is not None:                                    # vehicles apart: orient by one
+        S = one
+        p = S.points
+        flags.append("multiple_vehicles")
     mu = p.mean(axis=0)
     evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
     pca = evecs[:, ::-1]                                   # columns: major -> minor
@@ -419,7 +426,8 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
         flags.append("up_ambiguous")
     if front_conf < UNCERTAIN_BELOW:
         flags.append("front_ambiguous")
-    if _several_vehicles(ctx) or _overlapping_vehicles(ctx, names):
+    if "multiple_vehicles" not in flags and (_several_vehicles(ctx)
+                                             or _overlapping_vehicles(ctx, names)):
         flags.append("multiple_vehicles")
     R = _snap(ctx.b, front_sign * ctx.a, snap_up)
     cues = {f"up.{k}": round(float(up_sign * v), 4) for k, v in up_cues.items()}
@@ -428,6 +436,47 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
                     front_confidence=round(front_conf, 4), source="auto", cues=cues,
                     flags=tuple(f for f in FLAGS if f in flags), symmetry=round(sym, 4))
     return o, (ctx.w, ctx.wd, mu - (mu @ ctx.w - ctx.wd) * ctx.w)
+
+
+def _largest_vehicle(S: _Samples) -> _Samples | None:
+    """Several vehicles apart in one file: the samples of the largest one, or None. The
+    area samples are clustered on voxels of 1/40 of their extent along their principal
+    axis (one voxel of gap joins); two or more clusters each holding 15 % of the samples and
+    spanning 30 % of that extent are vehicles. The largest (most samples; tie: the one holding the earliest
+    sample, an order that does not depend on the pose) keeps its area samples and the face
+    samples in its voxels."""
+    from scipy import ndimage
+
+    p = S.points
+    lo = p.min(axis=0)
+    major = np.linalg.eigh(np.cov((p - p.mean(axis=0)).T))[1][:, -1]
+    cell = float(np.ptp(p @ major)) / 40.0
+    if not cell > 0.0:
+        return None
+    i = np.floor((p - lo) / cell).astype(np.intp)
+    dims = i.max(axis=0) + 1
+    if np.prod(dims) > 4_000_000:
+        return None
+    g = np.zeros(dims, bool)
+    g[i[:, 0], i[:, 1], i[:, 2]] = True
+    lab, k = ndimage.label(ndimage.binary_dilation(g), structure=np.ones((3, 3, 3)))
+    if k < 2:
+        return None
+    who = lab[i[:, 0], i[:, 1], i[:, 2]]
+    cnt = np.bincount(who, minlength=k + 1)
+    big = [c for c in range(1, k + 1) if cnt[c] >= 0.15 * len(p)
+           and float(np.ptp(p[who == c] @ major)) >= 0.3 * 40.0 * cell]
+    if len(big) < 2:
+        return None
+    first = {c: int(np.argmax(who == c)) for c in big}
+    keep = min(big, key=lambda c: (-cnt[c], first[c]))
+    on = who == keep
+    j = np.floor((S.detail_points - lo) / cell).astype(np.intp)
+    inside = np.all((j >= 0) & (j < dims), axis=1)
+    don = np.zeros(len(j), bool)
+    don[inside] = lab[j[inside, 0], j[inside, 1], j[inside, 2]] == keep
+    return _Samples(p[on], S.normals[on], S.face[on], S.detail_points[don],
+                    S.detail_normals[don], S.face_centroid, S.face_area)
 
 
 def _ground_sheet(mesh: Mesh, S: _Samples):
@@ -550,9 +599,8 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
         if len(picked) < 2 and all(abs(float(n @ k[0])) < math.cos(math.radians(3.0))
                                    for k in picked):
             picked.append((n, d))
-    # on from where the two rough steps left off (tau already down to 1.5 spacings)
     nk, dk = _refine_planes(ctree, coarse, coarse_n, np.array([k[0] for k in picked]),
-                            np.array([k[1] for k in picked]), 1.4 * step, start=2)
+                            np.array([k[1] for k in picked]), 1.4 * step)
     dist = _near(tree, _reflect_many(sub, nk, dk).reshape(-1, 3), 2.5 * step)[0]
     dist = dist.reshape(len(nk), -1)
     refined = [(float(np.mean(dist[k] < step)), float(np.ptp(sub @ nk[k])), nk[k], float(dk[k]),
