@@ -386,13 +386,15 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
         S, base_up = base
         p = S.points
         flags.append("ground_plane")
-    one = _largest_vehicle(S)
+    mu = p.mean(axis=0)
+    evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
+    one = _largest_vehicle(S, evecs[:, -1])
     if one is not None:                                    # vehicles apart: orient by one
         S = one
         p = S.points
         flags.append("multiple_vehicles")
-    mu = p.mean(axis=0)
-    evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
+        mu = p.mean(axis=0)
+        evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
     pca = evecs[:, ::-1]                                   # columns: major -> minor
     w, wd, sym = _mirror_plane(p, S.normals, mu, pca, evals[::-1])
     if sym < 0.35:
@@ -438,19 +440,18 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
     return o, (ctx.w, ctx.wd, mu - (mu @ ctx.w - ctx.wd) * ctx.w)
 
 
-def _largest_vehicle(S: _Samples) -> _Samples | None:
+def _largest_vehicle(S: _Samples, major: np.ndarray) -> _Samples | None:
     """Several vehicles apart in one file: the samples of the largest one, or None. The
-    area samples are clustered on voxels of 1/40 of their extent along their principal
-    axis (one voxel of gap joins); two or more clusters each holding 15 % of the samples and
-    spanning 30 % of that extent are vehicles. The largest (most samples; tie: the one holding the earliest
+    area samples are clustered on voxels of 1/20 of their extent along their principal
+    axis ``major`` (touching voxels, diagonals too, join); two or more clusters each holding
+    15 % of the samples and spanning 30 % of that extent are vehicles. The largest (most samples; tie: the one holding the earliest
     sample, an order that does not depend on the pose) keeps its area samples and the face
     samples in its voxels."""
     from scipy import ndimage
 
     p = S.points
     lo = p.min(axis=0)
-    major = np.linalg.eigh(np.cov((p - p.mean(axis=0)).T))[1][:, -1]
-    cell = float(np.ptp(p @ major)) / 40.0
+    cell = float(np.ptp(p @ major)) / 20.0
     if not cell > 0.0:
         return None
     i = np.floor((p - lo) / cell).astype(np.intp)
@@ -459,13 +460,13 @@ def _largest_vehicle(S: _Samples) -> _Samples | None:
         return None
     g = np.zeros(dims, bool)
     g[i[:, 0], i[:, 1], i[:, 2]] = True
-    lab, k = ndimage.label(ndimage.binary_dilation(g), structure=np.ones((3, 3, 3)))
+    lab, k = ndimage.label(g, structure=np.ones((3, 3, 3)))
     if k < 2:
         return None
     who = lab[i[:, 0], i[:, 1], i[:, 2]]
     cnt = np.bincount(who, minlength=k + 1)
     big = [c for c in range(1, k + 1) if cnt[c] >= 0.15 * len(p)
-           and float(np.ptp(p[who == c] @ major)) >= 0.3 * 40.0 * cell]
+           and float(np.ptp(p[who == c] @ major)) >= 0.3 * 20.0 * cell]
     if len(big) < 2:
         return None
     first = {c: int(np.argmax(who == c)) for c in big}
