@@ -308,7 +308,11 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     # area-weighted means per material: sparse (M, F) x (F,) products, one per column (each
     # column contiguous: an (F, k) block would be copied to row order first, 5x slower)
     from scipy.sparse import csr_matrix
-    S = csr_matrix((area / safe[fm], (fm, np.arange(F))), shape=(M, F))
+    order = np.argsort(fm, kind="stable")          # faces by material, then face index
+    indptr = np.zeros(M + 1, np.int64)
+    np.cumsum(np.bincount(fm, minlength=M), out=indptr[1:])
+    # built as CSR directly (what the COO (fm, face) form converts to, without the conversion)
+    S = csr_matrix(((area / safe[fm])[order], order, indptr), shape=(M, F))
 
     def means(cols: dict) -> None:
         """put() the area-weighted mean of every per-face column of ``cols``."""
@@ -318,7 +322,6 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     def mean(x):
         return S @ np.ascontiguousarray(x, np.float64) if F else np.zeros(M)
 
-    order = np.argsort(fm, kind="stable")
     starts = np.searchsorted(fm[order], np.arange(M))
     present = np.bincount(fm, minlength=M) > 0
 
@@ -475,13 +478,17 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
 
     # ---- names (material and node names)
     if use_names:
+        said: dict[str, str | None] = {}            # name -> part; material and node names repeat
+        for nm in [mat.name for mat in mesh.materials] + list(mesh.node_names):
+            if nm not in said:
+                said[nm] = name_prior(nm)
         for m, mat in enumerate(mesh.materials):
-            p = name_prior(mat.name)
+            p = said[mat.name]
             if p is not None:
                 X[m, col[f"name_{p}"]] = 1.0
         fn = mesh.face_node
         if fn is not None and len(mesh.node_names) and F:
-            npart = np.array([PART_NAMES.index(p) if (p := name_prior(nm)) else -1
+            npart = np.array([PART_NAMES.index(p) if (p := said[nm]) else -1
                               for nm in mesh.node_names] + [-1])
             fp = npart[np.asarray(fn, np.int64)]                      # -1 node -> last entry
             named = fp >= 0
@@ -650,11 +657,13 @@ def _rho(c, la, wa, wheels) -> np.ndarray:
 def _adjacency(mat_id: np.ndarray, n: int) -> np.ndarray:
     """(n, n) counts of 4-neighbour pixel pairs with different ids, summed over views."""
     adj = np.zeros(n * n, np.int64)
+    mat_id = np.ascontiguousarray(mat_id)
     for a, b in ((mat_id[:, :, 1:], mat_id[:, :, :-1]), (mat_id[:, 1:, :], mat_id[:, :-1, :])):
         d = a != b
         x, y = a[d].astype(np.int64), b[d].astype(np.int64)
-        adj += np.bincount(x * n + y, minlength=n * n) + np.bincount(y * n + x, minlength=n * n)
-    return adj.reshape(n, n)
+        adj += np.bincount(x * n + y, minlength=n * n)
+    adj = adj.reshape(n, n)
+    return adj + adj.T                              # pairs counted both ways
 
 
 # ---------------------------------------------------------------------------------------------
