@@ -567,11 +567,12 @@ def _components(v, f, fm, M):
     # the face-corner graph as CSR directly: node f < F is face f with edges to its three
     # corner nodes F + nid (rows already in order: no sort, no COO conversion); the corner
     # nodes have no rows of their own (undirected components follow edges both ways)
-    indptr = np.full(F + N + 1, 3 * F, np.int64)
-    indptr[:F + 1] = np.arange(0, 3 * F + 1, 3)
     it = np.int32 if 3 * F + N < 2 ** 31 else np.int64      # scipy's own types: no conversion
-    g = csr_matrix((np.ones(3 * F), (nid + F).ravel().astype(it), indptr.astype(it)),
-                   shape=(F + N, F + N))
+    indptr = np.full(F + N + 1, 3 * F, it)
+    indptr[:F + 1] = np.arange(0, 3 * F + 1, 3, dtype=it)
+    corner = nid.astype(it).ravel()
+    corner += F
+    g = csr_matrix((np.ones(3 * F), corner, indptr), shape=(F + N, F + N))
     _, lab = connected_components(g, directed=False)
     fl = lab[:F]
     # renumber by (material, first face) so ids do not depend on scipy's numbering
@@ -648,9 +649,9 @@ def _rho(c, la, wa, wheels) -> np.ndarray:
     rho2 = np.full(c.shape[0], np.inf)
     cu, ch, cw = (np.ascontiguousarray(c[:, k]) for k in (la, 1, wa))
     for u0, h0, w0, R, hw in wheels:
-        r2 = ((cu - u0) ** 2 + (ch - h0) ** 2) / (R * R)
-        inside = np.abs(cw - w0) < hw + 0.5 * R
-        np.minimum(rho2, r2, out=rho2, where=inside)
+        sel = np.flatnonzero(np.abs(cw - w0) < hw + 0.5 * R)    # the faces on its side
+        r2 = ((cu[sel] - u0) ** 2 + (ch[sel] - h0) ** 2) / (R * R)
+        rho2[sel] = np.minimum(rho2[sel], r2)
     return np.sqrt(rho2)
 
 
