@@ -17,6 +17,7 @@ minimum; CPU ms the same for process time. One PoCL thread (``POCL_MAX_PTHREAD_C
 a build worker, views 72 x 256 px at 15 degrees as the build's default ring.
 
     python bench/label_speed.py                    # 6 generated meshes + the real models
+    python bench/label_speed.py --before 9ad7800   # against the code before the speed pass
     python bench/label_speed.py --before HEAD~3 --count 10 --reps 7
 """
 from __future__ import annotations
