@@ -560,9 +560,10 @@ def _components(v, f, fm, M):
     owner[wf.ravel()] = np.repeat(fm, 3)
     mixed = owner[wf] != fm[:, None]
     nid = wf.copy()
-    if mixed.any():
-        _, extra = np.unique((fm[:, None] * nw + wf)[mixed], return_inverse=True)
-        nid[mixed] = nw + extra.ravel()
+    if mixed.any():                                     # few corners: keys of those only
+        sel = np.flatnonzero(mixed)                     # flat corner indices, row-major
+        _, extra = np.unique(fm[sel // 3] * nw + wf.reshape(-1)[sel], return_inverse=True)
+        nid.reshape(-1)[sel] = nw + extra.ravel()
     N = int(nid.max()) + 1
     # the face-corner graph as CSR directly: node f < F is face f with edges to its three
     # corner nodes F + nid (rows already in order: no sort, no COO conversion); the corner
