@@ -131,6 +131,9 @@ def label_row(lib: Path, args) -> None:
     """Median seconds per mesh of the labeller and of the prior segmenter (same meshes, views)."""
     import numpy as np
 
+    # one PoCL thread, as each build worker has (engines/local.py); set before PoCL starts
+    # in this process (the build's workers set their own)
+    os.environ["POCL_MAX_PTHREAD_COUNT"] = os.environ["POCL_CPU_MAX_CU_NUM"] = "1"
     from ucad_cl.cameras import make_ring
     from ucad_cl.filter import filter_mesh
     from ucad_cl.ingest import IngestError, load_mesh

@@ -111,6 +111,62 @@ def car_views(runtime):
 # ---------------------------------------------------------------------------------------------
 # features
 # ---------------------------------------------------------------------------------------------
+def reference_components(mesh):
+    """Union-find over faces, face by face: two faces of one material are joined when they
+    share a vertex position on the ``WELD`` grid. Ids numbered by (material, first face)."""
+    from ucad_cl.labeller import WELD
+
+    fm = np.asarray(mesh.face_material, np.int64)
+    key = [tuple(k) for k in np.round(np.asarray(mesh.vertices) / WELD).astype(np.int64)]
+    parent = list(range(len(fm)))
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    seen = {}
+    for i, face in enumerate(np.asarray(mesh.faces)):
+        for c in face:
+            j = seen.setdefault((int(fm[i]), key[c]), i)
+            a, b = root(i), root(j)
+            parent[max(a, b)] = min(a, b)
+    roots = [root(i) for i in range(len(fm))]
+    first = sorted({r: None for r in roots}, key=lambda r: (fm[r], r))   # root = lowest face
+    ids = {r: k for k, r in enumerate(first)}
+    return np.array([ids[r] for r in roots]), np.array([fm[r] for r in first])
+
+
+def test_components_equal_union_find_reference(car_views):
+    """Connected components (faces joined through welded vertices, per material) against a
+    union-find: vertices duplicated at one position (split seams), shared by two materials,
+    1e-7 apart (welded), a face touching another at one corner, a shuffled face order."""
+    mesh, views = car_views
+    rng = np.random.default_rng(3)
+    v = np.asarray(mesh.vertices)
+    f = np.asarray(mesh.faces).astype(np.int64)
+    fm = np.asarray(mesh.face_material)
+    # split every face of the body onto its own vertex copies (a seam everywhere), 1e-7 off
+    body = np.flatnonzero(fm == 0)
+    copies = v[f[body]].reshape(-1, 3) + 1e-7 * (rng.random((3 * body.size, 3)) < 0.5)
+    f2 = f.copy()
+    f2[body] = v.shape[0] + np.arange(3 * body.size).reshape(-1, 3)
+    v2 = np.concatenate([v, copies])
+    # a glass triangle sharing one corner with a tyre face, and a lone tyre triangle far away
+    f2 = np.concatenate([f2, [[f[fm == 1][0][0], 0, 1]], [[len(v2), len(v2) + 1, len(v2) + 2]]])
+    v2 = np.concatenate([v2, [[0.4, 0.4, 0.4], [0.41, 0.4, 0.4], [0.4, 0.41, 0.4]]])
+    fm2 = np.concatenate([fm, [3, 1]]).astype(np.uint16)
+    perm = rng.permutation(len(f2))
+    m2 = replace(mesh, vertices=v2, faces=f2[perm].astype(np.uint32), face_material=fm2[perm],
+                 face_node=None)
+    for m in (mesh, m2):
+        t = material_table(m, views)
+        comp, comp_mat = reference_components(m)
+        np.testing.assert_array_equal(t.face_comp, comp)
+        np.testing.assert_array_equal(t.comp_material, comp_mat)
+
+
 def test_a_ring_is_a_ring_and_a_disc_a_disc(car_views):
     mesh, views = car_views
     t = material_table(mesh, views)

@@ -553,3 +553,27 @@ def test_name_prior_regex_matches_the_per_keyword_rule():
         names.append(s)
     assert sum(reference(n) is not None for n in names) > 2000
     assert [name_prior(n) for n in names] == [reference(n) for n in names]
+
+
+def test_painting_with_few_and_many_material_ids_equals_reference():
+    """paint_materials against the unpacked reference on both of its lookups: <= 256 ids (an
+    8-bit table) and more (np.take view by view), with absent ids, an all-background view and
+    ties in the probabilities (-> PART_NAMES order)."""
+    from ucad_cl.segment import paint_materials
+
+    rng = np.random.default_rng(11)
+    P = len(PART_NAMES)
+    for M in (1, 40, 255, 256, 300, 2000):
+        prob = rng.random((M, P))
+        prob[::7] = 1.0                                    # all tied -> first part
+        prob /= prob.sum(axis=1, keepdims=True)
+        mat = rng.integers(0, M + 1, (3, 17, 23)).astype(np.uint16)
+        mat[1] = 0
+        mat[mat == M // 2 + 1] = 0                         # one material never seen
+        pm = paint_materials(flat_views(mat), prob, source="test")
+        masks, conf = reference_prior_segment(prob, mat)
+        np.testing.assert_array_equal(pm.masks, masks, err_msg=f"{M} materials")
+        np.testing.assert_array_equal(pm.confidence.view(np.uint32), conf.view(np.uint32))
+    with pytest.raises(ValueError, match="material id"):   # an id beyond the materials
+        paint_materials(flat_views(np.full((1, 2, 2), 5, np.uint16)), np.ones((3, P)) / P,
+                        source="test")

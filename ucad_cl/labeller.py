@@ -316,24 +316,23 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     au, aw = np.abs(u), np.abs(w)
     tot = np.bincount(fm, weights=area, minlength=M)
     safe = np.maximum(tot, 1e-30)
-    # area-weighted means per material: one sparse (M, F) x (F, k) product for k columns
+    # area-weighted means per material: sparse (M, F) x (F,) products, one per column (each
+    # column contiguous: an (F, k) block would be copied to row order first, 5x slower)
     from scipy.sparse import csr_matrix
-    S = csr_matrix((area / safe[fm], (fm, np.arange(F))), shape=(M, F))
+    order = np.argsort(fm, kind="stable")          # faces by material, then face index
+    indptr = np.zeros(M + 1, np.int64)
+    np.cumsum(np.bincount(fm, minlength=M), out=indptr[1:])
+    # built as CSR directly (what the COO (fm, face) form converts to, without the conversion)
+    S = csr_matrix(((area / safe[fm])[order], order, indptr), shape=(M, F))
 
     def means(cols: dict) -> None:
         """put() the area-weighted mean of every per-face column of ``cols``."""
-        if cols:
-            Q = np.empty((len(cols), F))                  # rows: contiguous writes
-            for k, x in enumerate(cols.values()):
-                Q[k] = x
-            res = S @ Q.T if F else np.zeros((M, len(cols)))
-            for k, name in enumerate(cols):
-                put(name, res[:, k])
+        for name, x in cols.items():
+            put(name, mean(x))
 
     def mean(x):
-        return S @ np.asarray(x, np.float64) if F else np.zeros(M)
+        return S @ np.ascontiguousarray(x, np.float64) if F else np.zeros(M)
 
-    order = np.argsort(fm, kind="stable")
     starts = np.searchsorted(fm[order], np.arange(M))
     present = np.bincount(fm, minlength=M) > 0
 
@@ -341,7 +340,8 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
         """(k, M) per-material ``ufunc`` reduction of k per-face rows (0 for no faces)."""
         out = np.zeros((len(rows), M), np.float64)
         if F:
-            r = ufunc.reduceat(np.stack(rows)[:, order], np.minimum(starts, F - 1), axis=1)
+            r = ufunc.reduceat(np.stack(rows).take(order, axis=1), np.minimum(starts, F - 1),
+                               axis=1)
             out[:, present] = r[:, present]
         return out
 
@@ -373,8 +373,8 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     put("log_faces", np.log10(np.maximum(nf / max(F, 1), 1e-7)))
     # per-material mean of u u^T (area-weighted), its largest eigenvalue: 1 for a plane
     uT = unit.T
-    outer = (S @ (uT[:, None, :] * uT[None, :, :]).reshape(9, F).T if F
-             else np.zeros((M, 9))).reshape(M, 3, 3)
+    uu = (uT[:, None, :] * uT[None, :, :]).reshape(9, F)
+    outer = (np.stack([S @ r for r in uu], axis=1) if F else np.zeros((M, 9))).reshape(M, 3, 3)
     put("flat", np.linalg.eigvalsh(outer)[:, -1])
     put("log_tri_size", np.log10(np.maximum(tot / np.maximum(nf, 1), 1e-12)))
 
@@ -395,10 +395,12 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     put("comp_wheel", np.bincount(comp_mat, weights=carea * wheel_like, minlength=M) / safe)
     # radial spread inside wheel-like components: r / R from the component's own axle
     fr = np.zeros(F)
-    if F and wheel_like.any():
-        fc = wc[comp]
-        fr = np.hypot(c[:, la] - fc[:, 0], c[:, 1] - fc[:, 1]) / np.maximum(fc[:, 3], 1e-12)
     inwc = wheel_like[comp] if F else np.zeros(0, bool)
+    if F and wheel_like.any():                  # r / R of the faces in wheel-like components
+        sel = np.flatnonzero(inwc)
+        fc = wc[comp[sel]]
+        fr[sel] = (np.hypot(c[sel, la] - fc[:, 0], c[sel, 1] - fc[:, 1])
+                   / np.maximum(fc[:, 3], 1e-12))
     wsum = np.bincount(fm, weights=area * inwc, minlength=M)
     rr = np.bincount(fm, weights=area * inwc * fr, minlength=M) / np.maximum(wsum, 1e-30)
     rr2 = np.bincount(fm, weights=area * inwc * fr * fr, minlength=M) / np.maximum(wsum, 1e-30)
@@ -487,13 +489,17 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
 
     # ---- names (material and node names)
     if use_names:
+        said: dict[str, str | None] = {}            # name -> part; material and node names repeat
+        for nm in [mat.name for mat in mesh.materials] + list(mesh.node_names):
+            if nm not in said:
+                said[nm] = name_prior(nm)
         for m, mat in enumerate(mesh.materials):
-            p = name_prior(mat.name)
+            p = said[mat.name]
             if p is not None:
                 X[m, col[f"name_{p}"]] = 1.0
         fn = mesh.face_node
         if fn is not None and len(mesh.node_names) and F:
-            npart = np.array([PART_NAMES.index(p) if (p := name_prior(nm)) else -1
+            npart = np.array([PART_NAMES.index(p) if (p := said[nm]) else -1
                               for nm in mesh.node_names] + [-1])
             fp = npart[np.asarray(fn, np.int64)]                      # -1 node -> last entry
             named = fp >= 0
@@ -620,20 +626,22 @@ def _components(v, f, fm, M):
     owner[wf.ravel()] = np.repeat(fm, 3)
     mixed = owner[wf] != fm[:, None]
     nid = wf.copy()
-    if mixed.any():
-        _, extra = np.unique((fm[:, None] * nw + wf)[mixed], return_inverse=True)
-        nid[mixed] = nw + extra.ravel()
+    if mixed.any():                                     # few corners: keys of those only
+        sel = np.flatnonzero(mixed)                     # flat corner indices, row-major
+        _, extra = np.unique(fm[sel // 3] * nw + wf.reshape(-1)[sel], return_inverse=True)
+        nid.reshape(-1)[sel] = nw + extra.ravel()
     N = int(nid.max()) + 1
-    rows = np.concatenate([nid[:, 0], nid[:, 1]])
-    cols = np.concatenate([nid[:, 1], nid[:, 2]])
-    # the edge list as CSR directly (rows sorted, duplicates kept: same components), which
-    # spares scipy's COO conversion
-    indptr = np.zeros(N + 1, np.int64)
-    np.cumsum(np.bincount(rows, minlength=N), out=indptr[1:])
-    g = csr_matrix((np.ones(rows.size), cols[np.argsort(rows, kind="stable")], indptr),
-                   shape=(N, N))
+    # the face-corner graph as CSR directly: node f < F is face f with edges to its three
+    # corner nodes F + nid (rows already in order: no sort, no COO conversion); the corner
+    # nodes have no rows of their own (undirected components follow edges both ways)
+    it = np.int32 if 3 * F + N < 2 ** 31 else np.int64      # scipy's own types: no conversion
+    indptr = np.full(F + N + 1, 3 * F, it)
+    indptr[:F + 1] = np.arange(0, 3 * F + 1, 3, dtype=it)
+    corner = nid.astype(it).ravel()
+    corner += F
+    g = csr_matrix((np.ones(3 * F), corner, indptr), shape=(F + N, F + N))
     _, lab = connected_components(g, directed=False)
-    fl = lab[nid[:, 0]]
+    fl = lab[:F]
     # renumber by (material, first face) so ids do not depend on scipy's numbering
     order = np.argsort(fl, kind="stable")                 # faces by label, then face index
     labels, start = np.unique(fl[order], return_index=True)
@@ -650,8 +658,8 @@ def _comp_boxes(tmin, tmax, comp, C) -> np.ndarray:
     if C:
         order = np.argsort(comp, kind="stable")
         starts = np.searchsorted(comp[order], np.arange(C))
-        box[:, :3] = np.minimum.reduceat(tmin.T[:, order], starts, axis=1).T
-        box[:, 3:] = np.maximum.reduceat(tmax.T[:, order], starts, axis=1).T
+        box[:, :3] = np.minimum.reduceat(tmin.T.take(order, axis=1), starts, axis=1).T
+        box[:, 3:] = np.maximum.reduceat(tmax.T.take(order, axis=1), starts, axis=1).T
     return box
 
 
@@ -708,20 +716,22 @@ def _rho(c, la, wa, wheels) -> np.ndarray:
     rho2 = np.full(c.shape[0], np.inf)
     cu, ch, cw = (np.ascontiguousarray(c[:, k]) for k in (la, 1, wa))
     for u0, h0, w0, R, hw in wheels:
-        r2 = ((cu - u0) ** 2 + (ch - h0) ** 2) / (R * R)
-        inside = np.abs(cw - w0) < hw + 0.5 * R
-        np.minimum(rho2, r2, out=rho2, where=inside)
+        sel = np.flatnonzero(np.abs(cw - w0) < hw + 0.5 * R)    # the faces on its side
+        r2 = ((cu[sel] - u0) ** 2 + (ch[sel] - h0) ** 2) / (R * R)
+        rho2[sel] = np.minimum(rho2[sel], r2)
     return np.sqrt(rho2)
 
 
 def _adjacency(mat_id: np.ndarray, n: int) -> np.ndarray:
     """(n, n) counts of 4-neighbour pixel pairs with different ids, summed over views."""
     adj = np.zeros(n * n, np.int64)
+    mat_id = np.ascontiguousarray(mat_id)
     for a, b in ((mat_id[:, :, 1:], mat_id[:, :, :-1]), (mat_id[:, 1:, :], mat_id[:, :-1, :])):
         d = a != b
         x, y = a[d].astype(np.int64), b[d].astype(np.int64)
-        adj += np.bincount(x * n + y, minlength=n * n) + np.bincount(y * n + x, minlength=n * n)
-    return adj.reshape(n, n)
+        adj += np.bincount(x * n + y, minlength=n * n)
+    adj = adj.reshape(n, n)
+    return adj + adj.T                              # pairs counted both ways
 
 
 # ---------------------------------------------------------------------------------------------

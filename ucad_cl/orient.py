@@ -14,7 +14,9 @@ the same decisions; ties go to fixed rules written next to the code):
 1. **Samples.** 4,096 area-weighted surface points with their face normals and 4,096 faces
    drawn by count (finely tessellated parts such as tyres get many), from a fixed random
    stream. A ground sheet, cloth or display base under the vehicle (one thin material broader
-   than the rest, all of the rest on one side) is left out and says which way is up.
+   than the rest, all of the rest on one side) is left out and says which way is up. Several
+   vehicles apart in one file (separate clusters of surface): only the largest one's
+   samples are kept, so the file is oriented by that vehicle (and flagged).
 2. **Mirror plane** (the width axis). Candidate normals (the principal axes, the file axes and
    in-between directions; not the length axis of an elongated body) are ranked by how many
    reflected samples land on the surface; the best are refined by a point-to-plane
@@ -75,6 +77,7 @@ AXES: dict[str, np.ndarray] = {f"{s}{a}": (1.0 if s == "+" else -1.0) * np.eye(3
 N_SAMPLES = 4096                # area-weighted surface samples
 MIRROR_STRIDE = 4               # every 4th sample (1,024) builds the mirror plane
 SAMPLE_SEED = 0x0DE7            # fixed random stream: the same mesh gives the same samples
+FACE_BLOCK = 8192               # faces per block in per-face passes (temporaries stay in cache)
 SNAP_DEG = 1.5                  # snap front, and up levelled on wheels, within this angle
 SNAP_DEG_COARSE = 6.0           # snap up within this angle when no wheels level it
 UNCERTAIN_BELOW = Orientation.UNCERTAIN_BELOW   # confidence under which it is flagged
@@ -318,12 +321,19 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) ->
     v = np.asarray(mesh.vertices, np.float64)
     f = np.asarray(mesh.faces)
     x, y, z = np.ascontiguousarray(v.T)
-    f0, f1, f2 = np.ascontiguousarray(f.T).astype(np.intp)
-    x0, y0, z0 = x[f0], y[f0], z[f0]
-    ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
-    bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
-    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-    a2 = np.sqrt(cx * cx + cy * cy + cz * cz)             # twice the face areas
+    F = len(f)
+    a2, fc = np.empty(F), np.empty((F, 3))                # twice the face areas, centroids
+    for lo in range(0, F, FACE_BLOCK):                    # in blocks: the temporaries stay
+        hi = min(lo + FACE_BLOCK, F)                      # in cache (same bits as one pass)
+        f0, f1, f2 = f[lo:hi].T.astype(np.intp)
+        x0, y0, z0 = x[f0], y[f0], z[f0]
+        ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
+        bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
+        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+        a2[lo:hi] = np.sqrt(cx * cx + cy * cy + cz * cz)
+        fc[lo:hi, 0] = x0 + (ax + bx) / 3.0
+        fc[lo:hi, 1] = y0 + (ay + by) / 3.0
+        fc[lo:hi, 2] = z0 + (az + bz) / 3.0
     if skip_material >= 0:
         a2 = np.where(np.asarray(mesh.face_material) == skip_material, 0.0, a2)
     cum = np.cumsum(a2)
@@ -334,16 +344,25 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) ->
           if total > 0.0 else np.zeros(n, np.intp))
     flip = r1 + r2 > 1.0
     r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
-    p = np.stack([x0[fi] + r1 * ax[fi] + r2 * bx[fi], y0[fi] + r1 * ay[fi] + r2 * by[fi],
-                  z0[fi] + r1 * az[fi] + r2 * bz[fi]], axis=1)
-    nrm = np.stack([cx[fi], cy[fi], cz[fi]], axis=1) / np.maximum(a2[fi], 1e-300)[:, None]
+    p, nrm = _face_points(v, f, fi, r1, r2)
     live = np.flatnonzero(a2 > 0.0)
     fd = live[rng.integers(0, live.size, n)] if live.size else np.zeros(0, np.intp)
-    dp = np.stack([x0[fd] + (ax[fd] + bx[fd]) / 3.0, y0[fd] + (ay[fd] + by[fd]) / 3.0,
-                   z0[fd] + (az[fd] + bz[fd]) / 3.0], axis=1)
-    dn = np.stack([cx[fd], cy[fd], cz[fd]], axis=1) / a2[fd][:, None]
-    fc = np.stack([x0 + (ax + bx) / 3.0, y0 + (ay + by) / 3.0, z0 + (az + bz) / 3.0], axis=1)
+    dp, dn = fc[fd], _face_points(v, f, fd, r1[:0], r2[:0])[1]
     return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
+
+
+def _face_points(v: np.ndarray, f: np.ndarray, fi: np.ndarray, r1: np.ndarray,
+                 r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``p0 + r1 (p1 - p0) + r2 (p2 - p0)`` of faces ``fi`` (none when r1 is empty)
+    and the faces' unit normals (zero for a degenerate face)."""
+    corner = v.take(f[fi].astype(np.intp).ravel(), axis=0).reshape(-1, 3, 3)
+    x, a, b = corner[:, 0], corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0]
+    c = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                  a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+    c /= np.maximum(np.sqrt(c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1] + c[:, 2] * c[:, 2]),
+                    1e-300)[:, None]
+    p = x + r1[:, None] * a + r2[:, None] * b if r1.size else x[:0]
+    return p, c
 
 
 def _quantile(x: np.ndarray, f: float) -> float:
@@ -369,6 +388,13 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
         flags.append("ground_plane")
     mu = p.mean(axis=0)
     evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
+    one = _largest_vehicle(S, evecs[:, -1])
+    if one is not None:                                    # vehicles apart: orient by one
+        S = one
+        p = S.points
+        flags.append("multiple_vehicles")
+        mu = p.mean(axis=0)
+        evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
     pca = evecs[:, ::-1]                                   # columns: major -> minor
     w, wd, sym = _mirror_plane(p, S.normals, mu, pca, evals[::-1])
     if sym < 0.35:
@@ -402,7 +428,8 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
         flags.append("up_ambiguous")
     if front_conf < UNCERTAIN_BELOW:
         flags.append("front_ambiguous")
-    if _several_vehicles(ctx) or _overlapping_vehicles(ctx, names):
+    if "multiple_vehicles" not in flags and (_several_vehicles(ctx)
+                                             or _overlapping_vehicles(ctx, names)):
         flags.append("multiple_vehicles")
     R = _snap(ctx.b, front_sign * ctx.a, snap_up)
     cues = {f"up.{k}": round(float(up_sign * v), 4) for k, v in up_cues.items()}
@@ -411,6 +438,46 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
                     front_confidence=round(front_conf, 4), source="auto", cues=cues,
                     flags=tuple(f for f in FLAGS if f in flags), symmetry=round(sym, 4))
     return o, (ctx.w, ctx.wd, mu - (mu @ ctx.w - ctx.wd) * ctx.w)
+
+
+def _largest_vehicle(S: _Samples, major: np.ndarray) -> _Samples | None:
+    """Several vehicles apart in one file: the samples of the largest one, or None. The
+    area samples are clustered on voxels of 1/20 of their extent along their principal
+    axis ``major`` (touching voxels, diagonals too, join); two or more clusters each holding
+    15 % of the samples and spanning 30 % of that extent are vehicles. The largest (most samples; tie: the one holding the earliest
+    sample, an order that does not depend on the pose) keeps its area samples and the face
+    samples in its voxels."""
+    from scipy import ndimage
+
+    p = S.points
+    lo = p.min(axis=0)
+    cell = float(np.ptp(p @ major)) / 20.0
+    if not cell > 0.0:
+        return None
+    i = np.floor((p - lo) / cell).astype(np.intp)
+    dims = i.max(axis=0) + 1
+    if np.prod(dims) > 4_000_000:
+        return None
+    g = np.zeros(dims, bool)
+    g[i[:, 0], i[:, 1], i[:, 2]] = True
+    lab, k = ndimage.label(g, structure=np.ones((3, 3, 3)))
+    if k < 2:
+        return None
+    who = lab[i[:, 0], i[:, 1], i[:, 2]]
+    cnt = np.bincount(who, minlength=k + 1)
+    big = [c for c in range(1, k + 1) if cnt[c] >= 0.15 * len(p)
+           and float(np.ptp(p[who == c] @ major)) >= 0.3 * 20.0 * cell]
+    if len(big) < 2:
+        return None
+    first = {c: int(np.argmax(who == c)) for c in big}
+    keep = min(big, key=lambda c: (-cnt[c], first[c]))
+    on = who == keep
+    j = np.floor((S.detail_points - lo) / cell).astype(np.intp)
+    inside = np.all((j >= 0) & (j < dims), axis=1)
+    don = np.zeros(len(j), bool)
+    don[inside] = lab[j[inside, 0], j[inside, 1], j[inside, 2]] == keep
+    return _Samples(p[on], S.normals[on], S.face[on], S.detail_points[don],
+                    S.detail_normals[don], S.face_centroid, S.face_area)
 
 
 def _ground_sheet(mesh: Mesh, S: _Samples):
@@ -467,6 +534,11 @@ def _reflect(p: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
     return p - 2.0 * (p @ n - d)[:, None] * n
 
 
+def _reflect_many(p: np.ndarray, n: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(K, N, 3): the points ``p`` (N, 3) reflected in each plane ``x . n[k] = d[k]``."""
+    return p[None] - 2.0 * (n @ p.T - d[:, None])[:, :, None] * n[:, None, :]
+
+
 def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarray,
                   evals: np.ndarray | None = None):
     """(unit normal n, offset d, quality) of the best mirror plane ``x . n = d``.
@@ -477,7 +549,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     elongated body (``evals``: largest variance twice the next) none within 30 degrees of its
     length axis. They are ranked by the share of 128 reflected samples landing near a sample
     (KD tree of every 2 x MIRROR_STRIDE-th sample); the best six get two refinement steps
-    (``_refine_plane``, on the same samples; neighbouring candidates can fall into different
+    (``_refine_planes``, on the same samples; neighbouring candidates can fall into different
     basins), and the two best distinct results are refined in full. The winner has the most
     of every MIRROR_STRIDE-th sample whose reflection lands within one sample spacing of a
     sample (a tight test: a long box's diagonal planes pass a loose one), except that among
@@ -509,29 +581,31 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     coarse, coarse_n = sub[::2], sub_n[::2]                # ranking and refining: half of them
     ctree = cKDTree(coarse)
     few = coarse[::max(1, len(coarse) // 128)]
-    scores = [float(np.mean(_near(ctree, _reflect(few, n, float(mu @ n)), 4.0 * step)[0]
-                            < 4.0 * step)) for n in cands]
+    # every candidate's reflections in one KD query (the same per-point answers)
+    N = np.array(cands)
+    hit = _near(ctree, _reflect_many(few, N, N @ mu).reshape(-1, 3), 4.0 * step)[0] < 4.0 * step
+    scores = hit.reshape(len(cands), -1).mean(axis=1).tolist()
     order = sorted(range(len(cands)), key=lambda i: (-scores[i], i))   # tie: candidate order
-    # two refinement steps for the six best, then the two best distinct results in full
-    rough = []
-    for rank, i in enumerate(order[:6]):
-        n, d = _refine_plane(ctree, coarse, coarse_n, cands[i], float(mu @ cands[i]),
-                             1.4 * step, iters=2)
-        hit = float(np.mean(_near(ctree, _reflect(coarse[::2], n, d), 1.5 * step)[0]
-                            < 1.5 * step))
-        rough.append((hit, rank, n, d))
-    rough.sort(key=lambda r: (-r[0], r[1]))                        # tie: the earlier rank
+    # two refinement steps for the six best (in lockstep), then the two best distinct
+    # results in full
+    top6 = N[order[:6]]
+    n6, d6 = _refine_planes(ctree, coarse, coarse_n, top6, top6 @ mu, 1.4 * step, iters=2)
+    half = coarse[::2]
+    hit = _near(ctree, _reflect_many(half, n6, d6).reshape(-1, 3), 1.5 * step)[0] < 1.5 * step
+    hits = hit.reshape(len(n6), -1).mean(axis=1).tolist()
+    rough = sorted(zip(hits, range(len(n6)), n6, d6.tolist()),
+                   key=lambda r: (-r[0], r[1]))                    # tie: the earlier rank
     picked: list = []
     for _, _, n, d in rough:
         if len(picked) < 2 and all(abs(float(n @ k[0])) < math.cos(math.radians(3.0))
                                    for k in picked):
             picked.append((n, d))
-    refined = []
-    for n, d in picked:
-        n, d = _refine_plane(ctree, coarse, coarse_n, n, d, 1.4 * step)
-        dist, _ = _near(tree, _reflect(sub, n, d), 2.5 * step)
-        refined.append((float(np.mean(dist < step)), float(np.ptp(sub @ n)), n, d,
-                        float(np.mean(dist < 2.5 * step))))
+    nk, dk = _refine_planes(ctree, coarse, coarse_n, np.array([k[0] for k in picked]),
+                            np.array([k[1] for k in picked]), 1.4 * step)
+    dist = _near(tree, _reflect_many(sub, nk, dk).reshape(-1, 3), 2.5 * step)[0]
+    dist = dist.reshape(len(nk), -1)
+    refined = [(float(np.mean(dist[k] < step)), float(np.ptp(sub @ nk[k])), nk[k], float(dk[k]),
+                float(np.mean(dist[k] < 2.5 * step))) for k in range(len(nk))]
     top = max(r[0] for r in refined)
     tied = [r for r in refined if r[0] >= top - 0.05]
     if len(tied) >= 2 and max(r[1] for r in tied) > 1.5 * min(r[1] for r in tied):
@@ -556,41 +630,57 @@ def _cross3(a, b) -> np.ndarray:
                      a[0] * b[1] - a[1] * b[0]])
 
 
-def _refine_plane(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: float,
-                  step: float, iters: int = 8) -> tuple[np.ndarray, float]:
-    """Symmetric ICP, point to plane: each sample x is reflected, paired with the nearest
-    sample y (kept when closer than tau and when the reflected normal of x agrees with the
-    normal of y within 45 degrees), and the plane is moved to minimise the squared distances
-    of the reflected samples to the tangent planes at their partners (Gauss-Newton on the
-    normal's two degrees of freedom and the offset). tau halves from 6 to 1.5 sample
-    spacings (``step``); it stops when the normal moves less than 0.02 degree. Converges from
-    about 10 degrees off to a few hundredths of a degree on a mirror-symmetric surface."""
-    tau, tau_min = 6.0 * step, 1.5 * step
-    for it in range(iters):
+def _refine_planes(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: np.ndarray,
+                   step: float, iters: int = 8, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric ICP, point to plane, for K planes in lockstep (normals ``n`` (K, 3), offsets
+    ``d`` (K,); each moves as if refined alone, one KD query per step for all of them): each
+    sample x is reflected, paired with the nearest sample y (kept when closer than tau and
+    when the reflected normal of x agrees with the normal of y within 45 degrees), and the
+    plane is moved to minimise the squared distances of the reflected samples to the tangent
+    planes at their partners (Gauss-Newton on the normal's two degrees of freedom and the
+    offset). tau halves from 6 to 1.5 sample spacings (``step``); a plane stops when its
+    normal moves less than 0.02 degree at tau = 1.5 spacings, or when fewer than 16 pairs
+    are kept. Converges from about 10 degrees off to a few hundredths of a degree on a
+    mirror-symmetric surface. ``start``: go on from step ``start`` of an earlier call (tau
+    and the sample stride as they would be there)."""
+    n, d = np.array(n, np.float64), np.array(d, np.float64)
+    live = np.ones(len(n), bool)
+    tau_min = 1.5 * step
+    tau = max(6.0 * step * 0.5 ** start, tau_min)
+    for it in range(start, iters):
+        k_live = np.flatnonzero(live)
+        if k_live.size == 0:
+            break
         stride = 2 if it < 2 else 1                       # the first steps on fewer samples
         half, half_n = p[::stride], nrm[::stride]
-        rx = _reflect(half, n, d)
-        dist, j = _near(tree, rx, tau)
-        m = nrm[j]
-        rn = half_n - 2.0 * (half_n @ n)[:, None] * n
-        ok = (dist < tau) & (np.abs(np.einsum("ij,ij->i", rn, m)) > 0.7)
-        if ok.sum() < 16:
-            break
-        x, mm = half[ok], m[ok]
-        u = _cross3(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
-        u /= math.sqrt(u @ u)
-        v = _cross3(n, u)
-        e0 = np.einsum("ij,ij->i", rx[ok] - p[j[ok]], mm)
-        xn, mn = x @ n - d, mm @ n
-        J = np.stack([-2.0 * (x @ u) * mn - 2.0 * xn * (mm @ u),
-                      -2.0 * (x @ v) * mn - 2.0 * xn * (mm @ v), 2.0 * mn], axis=1)
-        step = np.linalg.solve(J.T @ J + 1e-12 * np.eye(3), -(J.T @ e0))
-        n2 = n + step[0] * u + step[1] * v
-        n2 /= np.linalg.norm(n2)
-        moved = float(n2 @ n)
-        n, d = n2, d + float(step[2])
-        if tau <= tau_min and moved > math.cos(math.radians(0.02)):
-            break
+        nl, dl = n[k_live], d[k_live]
+        rx = _reflect_many(half, nl, dl)                  # (K, H, 3)
+        dist, j = _near(tree, rx.reshape(-1, 3), tau)
+        dist, j = dist.reshape(len(k_live), -1), j.reshape(len(k_live), -1)
+        m = nrm[j]                                        # (K, H, 3) partners' normals
+        rn = half_n[None] - 2.0 * (nl @ half_n.T)[:, :, None] * nl[:, None, :]
+        ok = (dist < tau) & (np.abs(np.einsum("khi,khi->kh", rn, m)) > 0.7)
+        for row, k in enumerate(k_live):
+            okk = ok[row]
+            if okk.sum() < 16:
+                live[k] = False
+                continue
+            nk, dk = n[k], float(d[k])
+            x, mm = half[okk], m[row, okk]
+            u = _cross3(nk, (1.0, 0.0, 0.0) if abs(nk[0]) < 0.9 else (0.0, 1.0, 0.0))
+            u /= math.sqrt(u @ u)
+            v = _cross3(nk, u)
+            e0 = np.einsum("ij,ij->i", rx[row, okk] - p[j[row, okk]], mm)
+            xn, mn = x @ nk - dk, mm @ nk
+            J = np.stack([-2.0 * (x @ u) * mn - 2.0 * xn * (mm @ u),
+                          -2.0 * (x @ v) * mn - 2.0 * xn * (mm @ v), 2.0 * mn], axis=1)
+            delta = np.linalg.solve(J.T @ J + 1e-12 * np.eye(3), -(J.T @ e0))
+            n2 = nk + delta[0] * u + delta[1] * v
+            n2 /= np.linalg.norm(n2)
+            moved = float(n2 @ nk)
+            n[k], d[k] = n2, dk + float(delta[2])
+            if tau <= tau_min and moved > math.cos(math.radians(0.02)):
+                live[k] = False
         tau = max(0.5 * tau, tau_min)
     return n, d
 
@@ -1298,11 +1388,14 @@ def _overlapping_vehicles(ctx: _Context, names: "_NameTable") -> bool:
         return False
     K = len(stem_ids)
     group = np.array([stem_ids[st] for st in stems])[node_of_face]
-    fm = np.asarray(mesh.face_material).astype(np.intp)
+    fm = names.groupings[0][0]                               # material of each face
     special = (names.glass | names.lamp)[fm]
     # counts per group in one pass each: faces, glazing or lamp faces, distinct materials
     M = max(len(mesh.materials), 1)
-    n_mat = np.bincount(np.unique(group * M + fm) // M, minlength=K)
+    if K * M <= 4_000_000:
+        n_mat = (np.bincount(group * M + fm, minlength=K * M) > 0).reshape(K, M).sum(axis=1)
+    else:
+        n_mat = np.bincount(np.unique(group * M + fm) // M, minlength=K)
     cand = np.flatnonzero((np.bincount(group, minlength=K) >= 4) & (n_mat >= 2)
                           & (np.bincount(group, weights=special.astype(float), minlength=K) > 0))
     if cand.size < 2:
