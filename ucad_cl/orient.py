@@ -68,6 +68,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .artifacts import Mesh, Orientation, node_stem
@@ -86,6 +88,37 @@ FRONT_SCALE = 0.8
 WHEEL_MIN_VOTES = 10            # Hough votes a wheel circle needs (3 x 3 cells)
 MIRROR_CENTRE_MAX = 0.02        # z-centre on the mirror plane when it is off the box centre
 MIRROR_MIN_SHIFT = 0.002        # by more than this and at most that (bbox-diagonal units)
+
+
+class Budget(NamedTuple):
+    """How much work one pass of the estimate does: area samples and face samples
+    (``_surface_samples``), the mirror plane built on every ``mirror_stride``-th of them, candidates
+    refined two steps and then in full in the mirror search, Hough radii and peaks per radius in the wheel search,
+    and the Hough votes a wheel needs (it scales with the samples)."""
+    samples: int
+    face_samples: int
+    mirror_stride: int
+    mirror_refined: int
+    mirror_final: int
+    radii: int
+    peaks: int
+    wheel_votes: int
+    wheel_gap_deg: float
+
+
+#: today's estimate; FAST: the cheap first pass of the cascade (see ``_estimate``)
+FULL = Budget(samples=N_SAMPLES, face_samples=N_SAMPLES, mirror_stride=MIRROR_STRIDE, mirror_refined=6, mirror_final=2,
+              radii=8,
+              peaks=5, wheel_votes=WHEEL_MIN_VOTES,
+              wheel_gap_deg=90.0)
+FAST = Budget(samples=1024, face_samples=2048, mirror_stride=1, mirror_refined=3, mirror_final=1,
+              radii=6, peaks=3,
+              wheel_votes=5, wheel_gap_deg=90.0)
+#: the cheap pass is kept when it raises no flag and both confidences reach these
+#: (chosen on tuning data only: generator seeds 800000-800499 and the real models)
+FAST_ACCEPT_UP = 0.8
+FAST_ACCEPT_FRONT = 0.8
+FAST_ACCEPT_SYMMETRY = 0.5
 FLAGS = ("multiple_vehicles", "no_wheels", "front_ambiguous", "up_ambiguous", "asymmetric",
          "ground_plane")
 
@@ -313,11 +346,36 @@ class _Samples:
         self.face_centroid, self.face_area = face_centroid, face_area   # all faces (F, 3), (F,)
 
 
-def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) -> _Samples:
+def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1,
+                     geometry: tuple[np.ndarray, np.ndarray] | None = None,
+                     n_faces: int | None = None) -> _Samples:
     """``n`` points drawn uniformly over the surface (face by area, then a uniform point in
-    it) from a fixed random stream. The stream does not depend on coordinates, so an
+    it) and ``n_faces`` (default ``n``) faces drawn by count, from a fixed random stream. The stream does not depend on coordinates, so an
     axis-permuted copy of a mesh gets the same faces and the permuted points. Faces of
-    material ``skip_material`` get none."""
+    material ``skip_material`` get none. ``geometry``: ``_face_geometry(mesh)`` when known."""
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces)
+    a2, fc = _face_geometry(mesh) if geometry is None else geometry
+    if skip_material >= 0:
+        a2 = np.where(np.asarray(mesh.face_material) == skip_material, 0.0, a2)
+    cum = np.cumsum(a2)
+    rng = np.random.default_rng(SAMPLE_SEED)
+    u, r1, r2 = rng.random(n), rng.random(n), rng.random(n)
+    total = float(cum[-1]) if cum.size else 0.0
+    fi = (np.minimum(np.searchsorted(cum, u * total, side="right"), len(a2) - 1)
+          if total > 0.0 else np.zeros(n, np.intp))
+    flip = r1 + r2 > 1.0
+    r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
+    p, nrm = _face_points(v, f, fi, r1, r2)
+    live = np.flatnonzero(a2 > 0.0)
+    fd = (live[rng.integers(0, live.size, n if n_faces is None else n_faces)] if live.size
+          else np.zeros(0, np.intp))
+    dp, dn = fc[fd], _face_points(v, f, fd, r1[:0], r2[:0])[1]
+    return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
+
+
+def _face_geometry(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(twice the face areas (F,), face centroids (F, 3))."""
     v = np.asarray(mesh.vertices, np.float64)
     f = np.asarray(mesh.faces)
     x, y, z = np.ascontiguousarray(v.T)
@@ -334,21 +392,7 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) ->
         fc[lo:hi, 0] = x0 + (ax + bx) / 3.0
         fc[lo:hi, 1] = y0 + (ay + by) / 3.0
         fc[lo:hi, 2] = z0 + (az + bz) / 3.0
-    if skip_material >= 0:
-        a2 = np.where(np.asarray(mesh.face_material) == skip_material, 0.0, a2)
-    cum = np.cumsum(a2)
-    rng = np.random.default_rng(SAMPLE_SEED)
-    u, r1, r2 = rng.random(n), rng.random(n), rng.random(n)
-    total = float(cum[-1]) if cum.size else 0.0
-    fi = (np.minimum(np.searchsorted(cum, u * total, side="right"), len(a2) - 1)
-          if total > 0.0 else np.zeros(n, np.intp))
-    flip = r1 + r2 > 1.0
-    r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
-    p, nrm = _face_points(v, f, fi, r1, r2)
-    live = np.flatnonzero(a2 > 0.0)
-    fd = live[rng.integers(0, live.size, n)] if live.size else np.zeros(0, np.intp)
-    dp, dn = fc[fd], _face_points(v, f, fd, r1[:0], r2[:0])[1]
-    return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
+    return a2, fc
 
 
 def _face_points(v: np.ndarray, f: np.ndarray, fi: np.ndarray, r1: np.ndarray,
@@ -374,14 +418,40 @@ def _quantile(x: np.ndarray, f: float) -> float:
 # ----------------------------------------------------------------------------- estimate
 
 def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tuple | None]:
-    """(orientation, mirror plane (normal, offset, a point on it) or None)."""
-    S = _surface_samples(mesh)
+    """(orientation, mirror plane (normal, offset, a point on it) or None), by a cascade:
+    a cheap pass (budget FAST) is kept when it is clearly decided; otherwise the full
+    estimate (budget FULL) decides. The cheap pass gives up as soon as it cannot be kept."""
+    geometry = _face_geometry(mesh)
+    fast = _estimate_pass(mesh, disabled, FAST, geometry, give_up=True)
+    if fast is not None:
+        return fast
+    return _estimate_pass(mesh, disabled, FULL, geometry)
+
+
+def _clearly_decided(o: Orientation) -> bool:
+    """A cheap pass is kept when it raises no flag, its mirror plane is good (symmetry at
+    least FAST_ACCEPT_SYMMETRY) and both confidences reach FAST_ACCEPT_UP / _FRONT."""
+    return (not o.flags and o.symmetry >= FAST_ACCEPT_SYMMETRY
+            and o.up_confidence >= FAST_ACCEPT_UP and o.front_confidence >= FAST_ACCEPT_FRONT)
+
+
+def _estimate_pass(mesh: Mesh, disabled: Sequence[str], budget: Budget,
+                   geometry: tuple[np.ndarray, np.ndarray], give_up: bool = False
+                   ) -> tuple[Orientation, tuple | None] | None:
+    """One pass of the estimate with the given budget (see ``_estimate``). ``give_up``:
+    None as soon as the result cannot be clearly decided (``_clearly_decided``): a flag
+    is raised or a confidence or the symmetry falls under its margin; the steps are ordered
+    so that the likeliest reasons (no wheels) come before the costly cues."""
+    S = _surface_samples(mesh, budget.samples, geometry=geometry, n_faces=budget.face_samples)
     p = S.points
     if not np.isfinite(p).all() or np.ptp(p, axis=0).max() <= 0.0:
-        return Orientation(rotation=np.eye(3), source="auto",
-                           flags=("up_ambiguous", "front_ambiguous")), None
+        return None if give_up else (Orientation(rotation=np.eye(3), source="auto",
+                                                 flags=("up_ambiguous", "front_ambiguous")),
+                                     None)
     flags: list[str] = []
-    base = _ground_sheet(mesh, S)
+    base = _ground_sheet(mesh, S, budget, geometry)
+    if base is not None and give_up:
+        return None
     if base is not None:
         S, base_up = base
         p = S.points
@@ -389,6 +459,8 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
     mu = p.mean(axis=0)
     evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
     one = _largest_vehicle(S, evecs[:, -1])
+    if one is not None and give_up:
+        return None
     if one is not None:                                    # vehicles apart: orient by one
         S = one
         p = S.points
@@ -396,11 +468,15 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
         mu = p.mean(axis=0)
         evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
     pca = evecs[:, ::-1]                                   # columns: major -> minor
-    w, wd, sym = _mirror_plane(p, S.normals, mu, pca, evals[::-1])
+    w, wd, sym = _mirror_plane(p, S.normals, mu, pca, evals[::-1], budget)
     if sym < 0.35:
         flags.append("asymmetric")
+    if give_up and sym < FAST_ACCEPT_SYMMETRY:
+        return None
     ctx = _Context(mesh, S, w, wd)
-    wheels = _find_wheels(ctx)
+    wheels = _find_wheels(ctx, budget)
+    if wheels is None and give_up:
+        return None
     if wheels is not None:
         ctx.set_length_axis(wheels.ground_dir)
     else:
@@ -413,6 +489,9 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
     up_cues = {k: v for k, v in up_cues.items() if k not in disabled}
     up_score = sum(UP_WEIGHTS[k] * v for k, v in up_cues.items())
     up_sign = 1.0 if up_score >= 0 else -1.0               # tie: +b (a fixed rule)
+    up_conf = 1.0 - math.exp(-abs(up_score) / UP_SCALE)
+    if give_up and round(up_conf, 4) < FAST_ACCEPT_UP:
+        return None
     ctx.flip_up(up_sign < 0)
     snap_up = SNAP_DEG
     if wheels is not None:
@@ -422,8 +501,9 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
     front_cues = {k: v for k, v in _front_cues(ctx, wheels, names).items() if k not in disabled}
     front_score = sum(FRONT_WEIGHTS[k] * v for k, v in front_cues.items())
     front_sign = 1.0 if front_score >= 0 else -1.0         # tie: +a (a fixed rule)
-    up_conf = 1.0 - math.exp(-abs(up_score) / UP_SCALE)
     front_conf = 1.0 - math.exp(-abs(front_score) / FRONT_SCALE)
+    if give_up and round(front_conf, 4) < FAST_ACCEPT_FRONT:
+        return None
     if up_conf < UNCERTAIN_BELOW:
         flags.append("up_ambiguous")
     if front_conf < UNCERTAIN_BELOW:
@@ -437,6 +517,8 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
     o = Orientation(rotation=R, up_confidence=round(up_conf, 4),
                     front_confidence=round(front_conf, 4), source="auto", cues=cues,
                     flags=tuple(f for f in FLAGS if f in flags), symmetry=round(sym, 4))
+    if give_up and not _clearly_decided(o):
+        return None
     return o, (ctx.w, ctx.wd, mu - (mu @ ctx.w - ctx.wd) * ctx.w)
 
 
@@ -480,12 +562,13 @@ def _largest_vehicle(S: _Samples, major: np.ndarray) -> _Samples | None:
                     S.detail_normals[don], S.face_centroid, S.face_area)
 
 
-def _ground_sheet(mesh: Mesh, S: _Samples):
+def _ground_sheet(mesh: Mesh, S: _Samples, budget: Budget = FULL, geometry=None):
     """A ground plane, cloth or display base under the vehicle: one material holding at
     least 25 % of the surface that is flat-ish (its smallest spread under 40 % of its
     largest: a draped cloth counts), at least 1.3 times as broad as the rest of the model in
     both of its long directions, with at least 90 % of the rest on one side of it. Returns
-    (new samples of the rest, unit normal toward the rest) or None."""
+    (new samples of the rest as many as ``budget`` says, unit normal toward the rest)
+    or None."""
     fm = np.asarray(mesh.face_material)[S.face]
     cnt = np.bincount(fm, minlength=len(mesh.materials))
     p = S.points
@@ -505,7 +588,8 @@ def _ground_sheet(mesh: Mesh, S: _Samples):
         above = float(np.mean(side > 0))
         if max(above, 1.0 - above) < 0.9:
             continue
-        return (_surface_samples(mesh, skip_material=int(m)),
+        return (_surface_samples(mesh, budget.samples, skip_material=int(m), geometry=geometry,
+                                 n_faces=budget.face_samples),
                 V[:, 0] if above >= 0.5 else -V[:, 0])
     return None
 
@@ -540,7 +624,7 @@ def _reflect_many(p: np.ndarray, n: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarray,
-                  evals: np.ndarray | None = None):
+                  evals: np.ndarray | None = None, budget: Budget = FULL):
     """(unit normal n, offset d, quality) of the best mirror plane ``x . n = d``.
 
     Candidates: the principal axes, the file axes and in-between directions (15-degree steps
@@ -574,7 +658,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
         cands = [n for n in distinct if abs(float(n @ pca[:, 0])) < math.cos(math.radians(30))]
     else:
         cands = distinct
-    sub, sub_n = p[::MIRROR_STRIDE], nrm[::MIRROR_STRIDE]
+    sub, sub_n = p[::budget.mirror_stride], nrm[::budget.mirror_stride]
     tree = cKDTree(sub)
     spacing, _ = tree.query(sub[::8], k=2)
     step = float(_quantile(spacing[:, 1], 0.5)) + 1e-12    # typical sample spacing
@@ -588,7 +672,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     order = sorted(range(len(cands)), key=lambda i: (-scores[i], i))   # tie: candidate order
     # two refinement steps for the six best (in lockstep), then the two best distinct
     # results in full
-    top6 = N[order[:6]]
+    top6 = N[order[:budget.mirror_refined]]
     n6, d6 = _refine_planes(ctree, coarse, coarse_n, top6, top6 @ mu, 1.4 * step, iters=2)
     half = coarse[::2]
     hit = _near(ctree, _reflect_many(half, n6, d6).reshape(-1, 3), 1.5 * step)[0] < 1.5 * step
@@ -597,7 +681,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
                    key=lambda r: (-r[0], r[1]))                    # tie: the earlier rank
     picked: list = []
     for _, _, n, d in rough:
-        if len(picked) < 2 and all(abs(float(n @ k[0])) < math.cos(math.radians(3.0))
+        if len(picked) < budget.mirror_final and all(abs(float(n @ k[0])) < math.cos(math.radians(3.0))
                                    for k in picked):
             picked.append((n, d))
     nk, dk = _refine_planes(ctree, coarse, coarse_n, np.array([k[0] for k in picked]),
@@ -834,7 +918,7 @@ def _cross2(o, a, b) -> float:
     return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
 
 
-def _find_wheels(ctx: _Context) -> _Wheels | None:
+def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
     """Road wheels in the side view, or None. Tyre treads: samples (area and face samples)
     away from the mirror plane whose normals are perpendicular to the width axis vote, for
     each of 8 radii from 2.5 % to 13 % of the length, for the circle centre p - r n (a Hough
@@ -856,7 +940,7 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
     m /= np.maximum(np.hypot(m[:, 0], m[:, 1]), 1e-12)[:, None]
     left, aq = q[sel] > 0, np.abs(q[sel])
     found, tried = [], []
-    for r in 2 * L * np.geomspace(0.025, 0.13, 8):
+    for r in 2 * L * np.geomspace(0.025, 0.13, budget.radii):
         h = 0.15 * r
         cx, cy = x - r * m[:, 0], y - r * m[:, 1]
         ix = np.floor((cx + L) / h).astype(np.intp)
@@ -865,10 +949,10 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
         ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
         cnt = np.bincount(ix[ok] * ny + iy[ok], minlength=nx * ny).reshape(nx, ny)
         box = _box3(cnt)
-        peak = np.flatnonzero(((box >= WHEEL_MIN_VOTES) & (box == _max3(box))).ravel())
+        peak = np.flatnonzero(((box >= budget.wheel_votes) & (box == _max3(box))).ravel())
         if peak.size == 0:
             continue
-        peak = peak[np.argsort(-box.ravel()[peak], kind="stable")[:5]]
+        peak = peak[np.argsort(-box.ravel()[peak], kind="stable")[:budget.peaks]]
         for i, j in zip(*np.unravel_index(peak, box.shape)):
             centre = np.array([(i + 1.0) * h - L, (j + 1.0) * h - H - r])    # 3 x 3 middle
             if abs(centre[1]) < 0.25 * H or r > 0.32 * L:
@@ -880,7 +964,8 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
             mem = np.flatnonzero(ok & (np.abs(ix - i) <= 1) & (np.abs(iy - j) <= 1))
             c0 = np.array([cx[mem].mean(), cy[mem].mean()])
             box_ = np.flatnonzero((np.abs(x - c0[0]) < 1.5 * r) & (np.abs(y - c0[1]) < 1.5 * r))
-            wheel = _check_circle(x[box_], y[box_], m[box_], left[box_], aq[box_], c0, r, L, H)
+            wheel = _check_circle(x[box_], y[box_], m[box_], left[box_], aq[box_], c0, r, L, H,
+                                  budget.wheel_votes, budget.wheel_gap_deg)
             if wheel is not None:
                 found.append(wheel)
     if not found:
@@ -954,7 +1039,8 @@ def _stands(group: list, side: np.ndarray, half_len: float) -> bool:
     return False
 
 
-def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
+def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN_VOTES,
+                  max_gap_deg=90.0):
     """(score, radius, centre) of the wheel pair around a Hough peak (centre ``c``, radius
     ``r``), or None. Its support: the voters within 15 % of r from the circle whose normal
     points along the radius (either sign); centre and radius are refitted to it (algebraic
@@ -970,7 +1056,7 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
         d = np.hypot(dx, dy)
         near = (np.abs(d - r) < 0.15 * r) & (np.abs(dx * m[:, 0] + dy * m[:, 1])
                                               > 0.9 * np.maximum(d, 1e-12))
-        if near.sum() < WHEEL_MIN_VOTES:
+        if near.sum() < min_votes:
             return None
         X, Y = x[near], y[near]
         c, r = _fit_circle(X, Y)
@@ -983,7 +1069,7 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
     if _band_share(aq[near], 0.25) < 0.6:
         return None                                       # spread across: a body arc
     a = np.sort(np.arctan2(Y - c[1], X - c[0]))
-    if np.max(np.diff(np.r_[a, a[0] + 2 * math.pi])) > math.radians(90):
+    if np.max(np.diff(np.r_[a, a[0] + 2 * math.pi])) > math.radians(max_gap_deg):
         return None                                       # an arc (a wheel arch), not a circle
     hist = np.bincount((np.floor((a + math.pi) / (2 * math.pi) * 8) % 8).astype(np.intp),
                        minlength=8)
