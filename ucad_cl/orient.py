@@ -109,6 +109,7 @@ class Budget(NamedTuple):
     samples: int
     face_samples: int
     mirror_stride: int
+    mirror_ranked: int
     mirror_refined: int
     mirror_final: int
     radii: int
@@ -118,13 +119,15 @@ class Budget(NamedTuple):
 
 
 #: today's estimate; FAST: the cheap first pass of the cascade (see ``_estimate``)
-FULL = Budget(samples=N_SAMPLES, face_samples=N_SAMPLES, mirror_stride=MIRROR_STRIDE, mirror_refined=6, mirror_final=2,
+FULL = Budget(samples=N_SAMPLES, face_samples=N_SAMPLES, mirror_stride=MIRROR_STRIDE, mirror_ranked=128,
+              mirror_refined=6, mirror_final=2,
               radii=8,
               peaks=5, wheel_votes=WHEEL_MIN_VOTES,
               wheel_gap_deg=90.0)
-FAST = Budget(samples=1024, face_samples=2048, mirror_stride=1, mirror_refined=3, mirror_final=1,
+FAST = Budget(samples=1024, face_samples=4096, mirror_stride=1, mirror_ranked=128,
+              mirror_refined=3, mirror_final=1,
               radii=6, peaks=3,
-              wheel_votes=5, wheel_gap_deg=90.0)
+              wheel_votes=6, wheel_gap_deg=90.0)
 #: the cheap pass is kept when it raises no flag and both confidences reach these
 #: (chosen on tuning data only: generator seeds 800000-800499 and the real models)
 FAST_ACCEPT_UP = 0.8
@@ -651,7 +654,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     between the two minor axes, whose order is arbitrary when width and height are alike;
     45 degrees between the major and each minor one), each through the centroid; for a clearly
     elongated body (``evals``: largest variance twice the next) none within 30 degrees of its
-    length axis. They are ranked by the share of 128 reflected samples landing near a sample
+    length axis. They are ranked by the share of ``budget.mirror_ranked`` (128) reflected samples landing near a sample
     (KD tree of every 2 x MIRROR_STRIDE-th sample); the best six get two refinement steps
     (``_refine_planes``, on the same samples; neighbouring candidates can fall into different
     basins), and the two best distinct results are refined in full. The winner has the most
@@ -684,7 +687,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     step = float(_quantile(spacing[:, 1], 0.5)) + 1e-12    # typical sample spacing
     coarse, coarse_n = sub[::2], sub_n[::2]                # ranking and refining: half of them
     ctree = cKDTree(coarse)
-    few = coarse[::max(1, len(coarse) // 128)]
+    few = coarse[::max(1, len(coarse) // budget.mirror_ranked)]
     # every candidate's reflections in one KD query (the same per-point answers)
     N = np.array(cands)
     hit = _near(ctree, _reflect_many(few, N, N @ mu).reshape(-1, 3), 4.0 * step)[0] < 4.0 * step
