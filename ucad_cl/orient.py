@@ -103,31 +103,25 @@ MIRROR_MIN_SHIFT = 0.002        # by more than this and at most that (bbox-diago
 
 class Budget(NamedTuple):
     """How much work one pass of the estimate does: area samples and face samples
-    (``_surface_samples``), the mirror plane built on every ``mirror_stride``-th of them, candidates
-    refined two steps and then in full in the mirror search, Hough radii and peaks per radius in the wheel search,
-    and the Hough votes a wheel needs (it scales with the samples)."""
+    (``_surface_samples``); the mirror plane built on every ``mirror_stride``-th area
+    sample, with ``mirror_refined`` candidates refined two steps and ``mirror_final`` of
+    them in full (``_mirror_plane``); Hough radii and peaks per radius in the wheel search,
+    and the Hough votes a wheel needs (it scales with the samples; ``_find_wheels``)."""
     samples: int
     face_samples: int
     mirror_stride: int
-    mirror_ranked: int
     mirror_refined: int
     mirror_final: int
     radii: int
     peaks: int
     wheel_votes: int
-    wheel_gap_deg: float
 
 
 #: today's estimate; FAST: the cheap first pass of the cascade (see ``_estimate``)
-FULL = Budget(samples=N_SAMPLES, face_samples=N_SAMPLES, mirror_stride=MIRROR_STRIDE, mirror_ranked=128,
-              mirror_refined=6, mirror_final=2,
-              radii=8,
-              peaks=5, wheel_votes=WHEEL_MIN_VOTES,
-              wheel_gap_deg=90.0)
-FAST = Budget(samples=1024, face_samples=4096, mirror_stride=1, mirror_ranked=128,
-              mirror_refined=3, mirror_final=1,
-              radii=6, peaks=3,
-              wheel_votes=6, wheel_gap_deg=90.0)
+FULL = Budget(samples=N_SAMPLES, face_samples=N_SAMPLES, mirror_stride=MIRROR_STRIDE,
+              mirror_refined=6, mirror_final=2, radii=8, peaks=5, wheel_votes=WHEEL_MIN_VOTES)
+FAST = Budget(samples=1024, face_samples=4096, mirror_stride=1, mirror_refined=3,
+              mirror_final=1, radii=6, peaks=3, wheel_votes=6)
 #: the cheap pass is kept when it raises no flag and both confidences reach these
 #: (chosen on tuning data only: generator seeds 800000-800499 and the real models)
 FAST_ACCEPT_UP = 0.8
@@ -372,9 +366,10 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1,
                      geometry: tuple[np.ndarray, np.ndarray] | None = None,
                      n_faces: int | None = None) -> _Samples:
     """``n`` points drawn uniformly over the surface (face by area, then a uniform point in
-    it) and ``n_faces`` (default ``n``) faces drawn by count, from a fixed random stream. The stream does not depend on coordinates, so an
-    axis-permuted copy of a mesh gets the same faces and the permuted points. Faces of
-    material ``skip_material`` get none. ``geometry``: ``_face_geometry(mesh)`` when known."""
+    it) and ``n_faces`` (default ``n``) faces drawn by count, from a fixed random stream.
+    The stream does not depend on coordinates, so an axis-permuted copy of a mesh gets the
+    same faces and the permuted points. Faces of material ``skip_material`` get none.
+    ``geometry``: ``_face_geometry(mesh)`` when known."""
     v = np.asarray(mesh.vertices, np.float64)
     f = np.asarray(mesh.faces)
     a2, fc = _face_geometry(mesh) if geometry is None else geometry
@@ -654,15 +649,16 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     between the two minor axes, whose order is arbitrary when width and height are alike;
     45 degrees between the major and each minor one), each through the centroid; for a clearly
     elongated body (``evals``: largest variance twice the next) none within 30 degrees of its
-    length axis. They are ranked by the share of ``budget.mirror_ranked`` (128) reflected samples landing near a sample
-    (KD tree of every 2 x MIRROR_STRIDE-th sample); the best six get two refinement steps
-    (``_refine_planes``, on the same samples; neighbouring candidates can fall into different
-    basins), and the two best distinct results are refined in full. The winner has the most
-    of every MIRROR_STRIDE-th sample whose reflection lands within one sample spacing of a
-    sample (a tight test: a long box's diagonal planes pass a loose one), except that among
-    planes within 0.05 of the best the one whose normal is the longest extent (1.5 times
-    another's) is dropped: a vehicle is longer than wide, so a front/back-symmetric body keeps
-    its width axis. Quality (returned): the share within 2.5 sample spacings."""
+    length axis. They are ranked by the share of 128 reflected samples landing near a sample
+    (KD tree of every 2 x ``budget.mirror_stride``-th sample); the best six
+    (``budget.mirror_refined``) get two refinement steps (``_refine_planes``, on the same
+    samples; neighbouring candidates can fall into different basins), and the two best
+    distinct results (``budget.mirror_final``) are refined in full. The winner has the most
+    of every ``budget.mirror_stride``-th sample whose reflection lands within one sample
+    spacing of a sample (a tight test: a long box's diagonal planes pass a loose one), except
+    that among planes within 0.05 of the best the one whose normal is the longest extent (1.5
+    times another's) is dropped: a vehicle is longer than wide, so a front/back-symmetric body
+    keeps its width axis. Quality (returned): the share within 2.5 sample spacings."""
     from scipy.spatial import cKDTree
 
     cands = [pca[:, 0], pca[:, 1], pca[:, 2], *np.eye(3)]
@@ -687,7 +683,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     step = float(_quantile(spacing[:, 1], 0.5)) + 1e-12    # typical sample spacing
     coarse, coarse_n = sub[::2], sub_n[::2]                # ranking and refining: half of them
     ctree = cKDTree(coarse)
-    few = coarse[::max(1, len(coarse) // budget.mirror_ranked)]
+    few = coarse[::max(1, len(coarse) // 128)]
     # every candidate's reflections in one KD query (the same per-point answers)
     N = np.array(cands)
     hit = _near(ctree, _reflect_many(few, N, N @ mu).reshape(-1, 3), 4.0 * step)[0] < 4.0 * step
@@ -704,8 +700,8 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
                    key=lambda r: (-r[0], r[1]))                    # tie: the earlier rank
     picked: list = []
     for _, _, n, d in rough:
-        if len(picked) < budget.mirror_final and all(abs(float(n @ k[0])) < math.cos(math.radians(3.0))
-                                   for k in picked):
+        if len(picked) < budget.mirror_final and all(
+                abs(float(n @ k[0])) < math.cos(math.radians(3.0)) for k in picked):
             picked.append((n, d))
     nk, dk = _refine_planes(ctree, coarse, coarse_n, np.array([k[0] for k in picked]),
                             np.array([k[1] for k in picked]), 1.4 * step)
@@ -944,11 +940,12 @@ def _cross2(o, a, b) -> float:
 def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
     """Road wheels in the side view, or None. Tyre treads: samples (area and face samples)
     away from the mirror plane whose normals are perpendicular to the width axis vote, for
-    each of 8 radii from 2.5 % to 13 % of the length, for the circle centre p - r n (a Hough
-    transform with normals; cells of 0.15 r summed over 3 x 3). The 5 highest peaks per radius
-    that are not at mid-height are checked (``_check_circle``: a whole, round tyre pair); of
-    concentric circles (tyre, rim, hub) the outermost is kept; the wheels are the best group
-    standing on the ground (``_wheel_group``), on a line within 30 degrees of the length axis."""
+    each of 8 radii (``budget.radii``) from 2.5 % to 13 % of the length, for the circle
+    centre p - r n (a Hough transform with normals; cells of 0.15 r summed over 3 x 3). The 5
+    (``budget.peaks``) highest peaks per radius that are not at mid-height are checked
+    (``_check_circle``: a whole, round tyre pair); of concentric circles (tyre, rim, hub) the
+    outermost is kept; the wheels are the best group standing on the ground (``_wheel_group``),
+    on a line within 30 degrees of the length axis."""
     L, H = ctx.half_len, ctx.half_h
     S = ctx.S
     pts = np.r_[S.points, S.detail_points]                 # area samples and face samples
@@ -988,7 +985,7 @@ def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
             c0 = np.array([cx[mem].mean(), cy[mem].mean()])
             box_ = np.flatnonzero((np.abs(x - c0[0]) < 1.5 * r) & (np.abs(y - c0[1]) < 1.5 * r))
             wheel = _check_circle(x[box_], y[box_], m[box_], left[box_], aq[box_], c0, r, L, H,
-                                  budget.wheel_votes, budget.wheel_gap_deg)
+                                  budget.wheel_votes)
             if wheel is not None:
                 found.append(wheel)
     if not found:
@@ -1062,8 +1059,7 @@ def _stands(group: list, side: np.ndarray, half_len: float) -> bool:
     return False
 
 
-def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN_VOTES,
-                  max_gap_deg=90.0):
+def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN_VOTES):
     """(score, radius, centre) of the wheel pair around a Hough peak (centre ``c``, radius
     ``r``), or None. Its support: the voters within 15 % of r from the circle whose normal
     points along the radius (either sign); centre and radius are refitted to it (algebraic
@@ -1092,7 +1088,7 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN
     if _band_share(aq[near], 0.25) < 0.6:
         return None                                       # spread across: a body arc
     a = np.sort(np.arctan2(Y - c[1], X - c[0]))
-    if np.max(np.diff(np.r_[a, a[0] + 2 * math.pi])) > math.radians(max_gap_deg):
+    if np.max(np.diff(np.r_[a, a[0] + 2 * math.pi])) > math.radians(90):
         return None                                       # an arc (a wheel arch), not a circle
     hist = np.bincount((np.floor((a + math.pi) / (2 * math.pi) * 8) % 8).astype(np.intp),
                        minlength=8)
