@@ -19,8 +19,10 @@ and must come out flagged uncertain). Held out.
 Table 3: ablation, each cue left out in turn (real models in 3 poses each; generated: the first
 --ablate vehicles of table 2).
 
-Table 4: milliseconds per mesh (process CPU time, median) for 50k-triangle generated vehicles
-(all seven kinds) and for the real models, next to their ingest time.
+Table 4: milliseconds per mesh (process CPU time, median and p90) for 50k-triangle generated
+vehicles (all seven kinds) and for the real models: the coarse-to-fine cascade against the
+full estimate alone, interleaved, split by the path the cascade takes, with the fast-path
+share. Table 2 also gives the fast-path share of the generated vehicles.
 
     python bench/orient.py                      # the full run (~15 min on a loaded 2-core box)
     python bench/orient.py --generated 60 --ablate 30 --real-yaws 3     # quick look
@@ -185,9 +187,9 @@ def generated_case(i: int, seed0: int, detail_tris: int):
 
 def generated(args, disabled_sets=None):
     from ucad_cl.ingest import load_mesh
-    from ucad_cl.orient import estimate_orientation
+    from ucad_cl.orient import estimate_orientation, takes_fast_path
 
-    rows, base, cases, misses = [], [], [], []
+    rows, base, cases, misses, fast_path = [], [], [], [], []
     flags_ok = {"symmetric_ends": [], "two_vehicles": []}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -197,6 +199,7 @@ def generated(args, disabled_sets=None):
             t = v.truth["orientation"]
             front = t["front"] if t["front_defined"] else None
             o = estimate_orientation(mesh)
+            fast_path.append(takes_fast_path(mesh))
             r = score(o.rotation, t["up"], front)
             rows.append(r)
             base.append(score(baseline(mesh), t["up"], front))
@@ -211,7 +214,7 @@ def generated(args, disabled_sets=None):
           f"{args.seed + args.generated - 1} (held out), through GLB + ingest "
           f"({time.perf_counter() - t0:.0f} s)")
     print(f"{'group':30s} {'n':>4s} {'up %':>6s} {'front %':>8s} {'yaw med':>8s} | "
-          f"{'base up':>8s} {'base fr':>8s}")
+          f"{'base up':>8s} {'base fr':>8s} | {'fast %':>7s}")
     for label, sel in [("pooled", lambda c: True)] + [
             (f"pose {p}", lambda c, p=p: c[1] == p) for p in POSES] + [
             (f"body {bd}", lambda c, bd=bd: c[2] == bd) for bd in dict.fromkeys(BODIES)]:
@@ -221,7 +224,7 @@ def generated(args, disabled_sets=None):
         s_ = summary([rows[k] for k in idx])
         b_ = summary([base[k] for k in idx])
         print(f"{label:30s} {len(idx):4d} {s_[0]:6.1f} {s_[1]:8.1f} {s_[2]:8.2f} | {b_[0]:8.1f} "
-              f"{b_[1]:8.1f}")
+              f"{b_[1]:8.1f} | {100 * np.mean([fast_path[k] for k in idx]):7.1f}")
     print("goals: up >= 99.5 %, front >= 98 %")
     for body, ok in flags_ok.items():
         if ok:
@@ -268,32 +271,49 @@ def ablation(args, loaded, cases):
 # ----------------------------------------------------------------------------- speed
 
 def speed(args, loaded):
-    from ucad_cl.orient import orient_mesh
+    """Cascade (``estimate_orientation``) against the full estimate alone (``cascade=False``,
+    today's estimate before the cascade), timed interleaved mesh by mesh, split by the path
+    the cascade takes (``takes_fast_path``)."""
+    from ucad_cl.orient import estimate_orientation, takes_fast_path
     from ucad_cl.synth import KINDS, make_vehicle
 
-    meshes = [make_vehicle(args.seed + 10_000 + k, kind, target_triangles=50_000).mesh()
-              for k, kind in enumerate(KINDS)]
-    for m in meshes:
-        orient_mesh(m, "auto")                               # warm up (imports, caches)
-    cpu = []
-    for _ in range(args.repeats):
-        for m in meshes:
-            t = time.process_time()
-            orient_mesh(m, "auto")
-            cpu.append(time.process_time() - t)
-    print("\nTable 4: orientation time (process CPU seconds, median; the machine is shared)")
-    print(f"{'meshes':44s} {'triangles':>10s} {'ms median':>10s} {'ms p90':>8s}")
-    tris = int(np.median([m.n_faces for m in meshes]))
-    print(f"{'generated, 7 kinds, x %d runs' % args.repeats:44s} {tris:>10d} "
-          f"{1000 * np.median(cpu):10.1f} {1000 * np.quantile(cpu, 0.9):8.1f}")
-    for name, mesh in loaded.items():
-        t = []
+    gen = [make_vehicle(args.seed + 10_000 + k, KINDS[k % len(KINDS)],
+                        target_triangles=50_000).mesh() for k in range(args.speed_meshes)]
+    sets = [("generated 50k", gen), ("real models", list(loaded.values()))]
+
+    def cpu(fn, mesh) -> float:
+        t = time.process_time()
+        fn(mesh)
+        return time.process_time() - t
+
+    print("\nTable 4: orientation time, process CPU ms per mesh: the cascade against the full "
+          "estimate alone,\ninterleaved mesh by mesh, x %d runs (the machine is shared: "
+          "compare the columns, not runs)" % args.repeats)
+    print(f"{'meshes':34s} {'n':>4s} {'fast %':>7s} | {'cascade med':>11s} {'p90':>6s} | "
+          f"{'full med':>9s} {'p90':>6s} | {'ratio med':>9s}")
+    for label, meshes in sets:
+        if not meshes:
+            continue
+        fast = [takes_fast_path(m) for m in meshes]
+        for m in meshes:                                     # warm up (imports, caches)
+            estimate_orientation(m)
+        ours = [[] for _ in meshes]
+        full = [[] for _ in meshes]
         for _ in range(args.repeats):
-            c = time.process_time()
-            orient_mesh(mesh, "auto")
-            t.append(time.process_time() - c)
-        print(f"{name[:44]:44s} {mesh.n_faces:>10d} {1000 * np.median(t):10.1f} "
-              f"{1000 * np.quantile(t, 0.9):8.1f}")
+            for k, m in enumerate(meshes):
+                ours[k].append(cpu(estimate_orientation, m))
+                full[k].append(cpu(lambda m_: estimate_orientation(m_, cascade=False), m))
+        for sub, sel in (("fast path", [f for f in fast]), ("full path", [not f for f in fast]),
+                         ("all", [True] * len(fast))):
+            idx = [k for k, on in enumerate(sel) if on]
+            if not idx:
+                continue
+            o = 1000 * np.array([t for k in idx for t in ours[k]])
+            f = 1000 * np.array([t for k in idx for t in full[k]])
+            print(f"{label[:22] + ', ' + sub:34s} {len(idx):4d} "
+                  f"{100 * np.mean([fast[k] for k in idx]):7.1f} | {np.median(o):11.1f} "
+                  f"{np.quantile(o, 0.9):6.1f} | {np.median(f):9.1f} {np.quantile(f, 0.9):6.1f} | "
+                  f"{np.median(o) / np.median(f):9.2f}")
     print("goal: <= 10 ms median per 50k-triangle mesh")
 
 
@@ -306,6 +326,8 @@ def main() -> None:
     ap.add_argument("--real-yaws", type=int, default=10, help="random yaws per real model")
     ap.add_argument("--ablate", type=int, default=120, help="generated vehicles in table 3")
     ap.add_argument("--repeats", type=int, default=3, help="timing repeats (table 4)")
+    ap.add_argument("--speed-meshes", type=int, default=21,
+                    help="generated 50k-triangle vehicles timed in table 4")
     ap.add_argument("--skip", nargs="*", default=[], choices=["real", "generated", "ablation",
                                                              "speed"])
     args = ap.parse_args()

@@ -99,6 +99,28 @@ def test_front_back_symmetric_body_reports_low_confidence():
     assert "front_ambiguous" in o.flags
 
 
+def test_cascade_fast_path_on_a_plain_sedan_full_path_on_an_ambiguous_body():
+    """The cheap pass decides a plain sedan, in every pose (the path does not depend on the
+    pose), with the full estimate's rotation (exactly for axis poses, within 0.5 degree when
+    yawed); a van with both ends alike (front ambiguous) falls through to the full estimate,
+    whose record the cascade returns unchanged."""
+    mesh = _synth(23).mesh()
+    for Q in (np.eye(3), _rot([1, 0, 0], 90), _rot([0, 0, 1], 180) @ _rot([0, 1, 0], 90),
+              _rot([0, 1, 0], 37)):
+        m = _repose(mesh, Q)
+        assert orient.takes_fast_path(m)
+        o, ref = orient.estimate_orientation(m), orient.estimate_orientation(m, cascade=False)
+        assert not o.flags and min(o.up_confidence, o.front_confidence) >= orient.FAST_ACCEPT_UP
+        assert _angle(o.rotation[0], ref.rotation[0]) < 0.5
+        assert _angle(o.rotation[1], ref.rotation[1]) < 0.5
+        if np.array_equal(np.abs(ref.rotation), np.abs(np.round(ref.rotation))):
+            assert np.array_equal(o.rotation, ref.rotation)
+    amb = _repose(_synth(5, "van", body="symmetric_ends").mesh(), _rot([0, 1, 0], 120))
+    assert not orient.takes_fast_path(amb)
+    o, ref = orient.estimate_orientation(amb), orient.estimate_orientation(amb, cascade=False)
+    assert o.as_dict() == ref.as_dict() and "front_ambiguous" in o.flags
+
+
 def test_two_vehicles_in_one_file_are_flagged():
     v = _synth(9, "hatchback", body="two_vehicles")
     o = orient.estimate_orientation(_repose(v.mesh(), _rot([0, 0, 1], 90)))

@@ -46,6 +46,17 @@ the same decisions; ties go to fixed rules written next to the code):
    a whole vehicle), ``no_wheels``, ``asymmetric`` (a poor mirror plane), ``ground_plane``,
    ``up_ambiguous`` / ``front_ambiguous`` (confidence under UNCERTAIN_BELOW).
 
+**Cascade** (coarse to fine). The steps above run first on a small budget (``FAST``: 1,024
+area and 2,048 face samples, fewer mirror candidates refined, 6 Hough radii); that cheap pass
+is kept when it is clearly decided: no flag raised, symmetry at least FAST_ACCEPT_SYMMETRY and
+both confidences at least FAST_ACCEPT_UP / FAST_ACCEPT_FRONT (margins chosen on tuning data:
+generator seeds 800000-800499 and the real models; none of the cheap pass's kept decisions
+differed from the full estimate there). It gives up as soon as it cannot be kept (the
+commonest reason, no wheels found on the small budget, comes before the costly cues), and
+the full estimate (``FULL``: the budgets above) decides. Both passes draw their samples
+from the same content-independent stream, so the path taken and the result are the same for
+a file and any re-posing of it.
+
 Confidences are in [0, 1]: ``1 - exp(-|score| / scale)`` of the summed cue scores, so one
 strong cue or several weak agreeing ones give a confident answer, and cues that cancel give
 a low one. ``Orientation.uncertain`` is ``min(up, front) < UNCERTAIN_BELOW``. The cues and
@@ -68,6 +79,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .artifacts import Mesh, Orientation, node_stem
@@ -86,6 +99,34 @@ FRONT_SCALE = 0.8
 WHEEL_MIN_VOTES = 10            # Hough votes a wheel circle needs (3 x 3 cells)
 MIRROR_CENTRE_MAX = 0.02        # z-centre on the mirror plane when it is off the box centre
 MIRROR_MIN_SHIFT = 0.002        # by more than this and at most that (bbox-diagonal units)
+
+
+class Budget(NamedTuple):
+    """How much work one pass of the estimate does: area samples and face samples
+    (``_surface_samples``); the mirror plane built on every ``mirror_stride``-th area
+    sample, with ``mirror_refined`` candidates refined two steps and ``mirror_final`` of
+    them in full (``_mirror_plane``); Hough radii and peaks per radius in the wheel search,
+    and the Hough votes a wheel needs (it scales with the samples; ``_find_wheels``)."""
+    samples: int
+    face_samples: int
+    mirror_stride: int
+    mirror_refined: int
+    mirror_final: int
+    radii: int
+    peaks: int
+    wheel_votes: int
+
+
+#: today's estimate; FAST: the cheap first pass of the cascade (see ``_estimate``)
+FULL = Budget(samples=N_SAMPLES, face_samples=N_SAMPLES, mirror_stride=MIRROR_STRIDE,
+              mirror_refined=6, mirror_final=2, radii=8, peaks=5, wheel_votes=WHEEL_MIN_VOTES)
+FAST = Budget(samples=1024, face_samples=4096, mirror_stride=1, mirror_refined=3,
+              mirror_final=1, radii=6, peaks=3, wheel_votes=6)
+#: the cheap pass is kept when it raises no flag and both confidences reach these
+#: (chosen on tuning data only: generator seeds 800000-800499 and the real models)
+FAST_ACCEPT_UP = 0.8
+FAST_ACCEPT_FRONT = 0.8
+FAST_ACCEPT_SYMMETRY = 0.5
 FLAGS = ("multiple_vehicles", "no_wheels", "front_ambiguous", "up_ambiguous", "asymmetric",
          "ground_plane")
 
@@ -118,9 +159,17 @@ def orient_mesh(mesh: Mesh, mode: str | tuple[str, str] = "auto", *,
                                     front_confidence=1.0, source="override"))
 
 
-def estimate_orientation(mesh: Mesh, *, disabled: Sequence[str] = ()) -> Orientation:
-    """The :class:`Orientation` ``orient_mesh(mesh, "auto")`` would apply (rotation only)."""
-    return _estimate(mesh, disabled)[0]
+def estimate_orientation(mesh: Mesh, *, disabled: Sequence[str] = (),
+                         cascade: bool = True) -> Orientation:
+    """The :class:`Orientation` ``orient_mesh(mesh, "auto")`` would apply (rotation only).
+    ``cascade=False``: the full estimate alone, without trying the cheap pass first (the
+    reference the cascade is checked against; slower)."""
+    return _estimate(mesh, disabled, cascade)[0]
+
+
+def takes_fast_path(mesh: Mesh, *, disabled: Sequence[str] = ()) -> bool:
+    """True when the cascade's cheap pass decides ``mesh`` (the full estimate is not run)."""
+    return _estimate_pass(mesh, disabled, FAST, _face_geometry(mesh), give_up=True) is not None
 
 
 def in_frame(mesh: Mesh, file_to_norm: np.ndarray) -> Mesh:
@@ -313,11 +362,37 @@ class _Samples:
         self.face_centroid, self.face_area = face_centroid, face_area   # all faces (F, 3), (F,)
 
 
-def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) -> _Samples:
+def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1,
+                     geometry: tuple[np.ndarray, np.ndarray] | None = None,
+                     n_faces: int | None = None) -> _Samples:
     """``n`` points drawn uniformly over the surface (face by area, then a uniform point in
-    it) from a fixed random stream. The stream does not depend on coordinates, so an
-    axis-permuted copy of a mesh gets the same faces and the permuted points. Faces of
-    material ``skip_material`` get none."""
+    it) and ``n_faces`` (default ``n``) faces drawn by count, from a fixed random stream.
+    The stream does not depend on coordinates, so an axis-permuted copy of a mesh gets the
+    same faces and the permuted points. Faces of material ``skip_material`` get none.
+    ``geometry``: ``_face_geometry(mesh)`` when known."""
+    v = np.asarray(mesh.vertices, np.float64)
+    f = np.asarray(mesh.faces)
+    a2, fc = _face_geometry(mesh) if geometry is None else geometry
+    if skip_material >= 0:
+        a2 = np.where(np.asarray(mesh.face_material) == skip_material, 0.0, a2)
+    cum = np.cumsum(a2)
+    rng = np.random.default_rng(SAMPLE_SEED)
+    u, r1, r2 = rng.random(n), rng.random(n), rng.random(n)
+    total = float(cum[-1]) if cum.size else 0.0
+    fi = (np.minimum(np.searchsorted(cum, u * total, side="right"), len(a2) - 1)
+          if total > 0.0 else np.zeros(n, np.intp))
+    flip = r1 + r2 > 1.0
+    r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
+    p, nrm = _face_points(v, f, fi, r1, r2)
+    live = np.flatnonzero(a2 > 0.0)
+    fd = (live[rng.integers(0, live.size, n if n_faces is None else n_faces)] if live.size
+          else np.zeros(0, np.intp))
+    dp, dn = fc[fd], _face_points(v, f, fd, r1[:0], r2[:0])[1]
+    return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
+
+
+def _face_geometry(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """(twice the face areas (F,), face centroids (F, 3))."""
     v = np.asarray(mesh.vertices, np.float64)
     f = np.asarray(mesh.faces)
     x, y, z = np.ascontiguousarray(v.T)
@@ -334,21 +409,7 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1) ->
         fc[lo:hi, 0] = x0 + (ax + bx) / 3.0
         fc[lo:hi, 1] = y0 + (ay + by) / 3.0
         fc[lo:hi, 2] = z0 + (az + bz) / 3.0
-    if skip_material >= 0:
-        a2 = np.where(np.asarray(mesh.face_material) == skip_material, 0.0, a2)
-    cum = np.cumsum(a2)
-    rng = np.random.default_rng(SAMPLE_SEED)
-    u, r1, r2 = rng.random(n), rng.random(n), rng.random(n)
-    total = float(cum[-1]) if cum.size else 0.0
-    fi = (np.minimum(np.searchsorted(cum, u * total, side="right"), len(a2) - 1)
-          if total > 0.0 else np.zeros(n, np.intp))
-    flip = r1 + r2 > 1.0
-    r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
-    p, nrm = _face_points(v, f, fi, r1, r2)
-    live = np.flatnonzero(a2 > 0.0)
-    fd = live[rng.integers(0, live.size, n)] if live.size else np.zeros(0, np.intp)
-    dp, dn = fc[fd], _face_points(v, f, fd, r1[:0], r2[:0])[1]
-    return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
+    return a2, fc
 
 
 def _face_points(v: np.ndarray, f: np.ndarray, fi: np.ndarray, r1: np.ndarray,
@@ -373,15 +434,42 @@ def _quantile(x: np.ndarray, f: float) -> float:
 
 # ----------------------------------------------------------------------------- estimate
 
-def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tuple | None]:
-    """(orientation, mirror plane (normal, offset, a point on it) or None)."""
-    S = _surface_samples(mesh)
+def _estimate(mesh: Mesh, disabled: Sequence[str] = (),
+              cascade: bool = True) -> tuple[Orientation, tuple | None]:
+    """(orientation, mirror plane (normal, offset, a point on it) or None), by a cascade:
+    a cheap pass (budget FAST) is kept when it is clearly decided; otherwise the full
+    estimate (budget FULL) decides. The cheap pass gives up as soon as it cannot be kept."""
+    geometry = _face_geometry(mesh)
+    fast = _estimate_pass(mesh, disabled, FAST, geometry, give_up=True) if cascade else None
+    if fast is not None:
+        return fast
+    return _estimate_pass(mesh, disabled, FULL, geometry)
+
+
+def _clearly_decided(o: Orientation) -> bool:
+    """A cheap pass is kept when it raises no flag, its mirror plane is good (symmetry at
+    least FAST_ACCEPT_SYMMETRY) and both confidences reach FAST_ACCEPT_UP / _FRONT."""
+    return (not o.flags and o.symmetry >= FAST_ACCEPT_SYMMETRY
+            and o.up_confidence >= FAST_ACCEPT_UP and o.front_confidence >= FAST_ACCEPT_FRONT)
+
+
+def _estimate_pass(mesh: Mesh, disabled: Sequence[str], budget: Budget,
+                   geometry: tuple[np.ndarray, np.ndarray], give_up: bool = False
+                   ) -> tuple[Orientation, tuple | None] | None:
+    """One pass of the estimate with the given budget (see ``_estimate``). ``give_up``:
+    None as soon as the result cannot be clearly decided (``_clearly_decided``): a flag
+    is raised or a confidence or the symmetry falls under its margin; the steps are ordered
+    so that the likeliest reasons (no wheels) come before the costly cues."""
+    S = _surface_samples(mesh, budget.samples, geometry=geometry, n_faces=budget.face_samples)
     p = S.points
     if not np.isfinite(p).all() or np.ptp(p, axis=0).max() <= 0.0:
-        return Orientation(rotation=np.eye(3), source="auto",
-                           flags=("up_ambiguous", "front_ambiguous")), None
+        return None if give_up else (Orientation(rotation=np.eye(3), source="auto",
+                                                 flags=("up_ambiguous", "front_ambiguous")),
+                                     None)
     flags: list[str] = []
-    base = _ground_sheet(mesh, S)
+    base = _ground_sheet(mesh, S, budget, geometry)
+    if base is not None and give_up:
+        return None
     if base is not None:
         S, base_up = base
         p = S.points
@@ -389,6 +477,8 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
     mu = p.mean(axis=0)
     evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
     one = _largest_vehicle(S, evecs[:, -1])
+    if one is not None and give_up:
+        return None
     if one is not None:                                    # vehicles apart: orient by one
         S = one
         p = S.points
@@ -396,11 +486,15 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
         mu = p.mean(axis=0)
         evals, evecs = np.linalg.eigh(np.cov((p - mu).T))
     pca = evecs[:, ::-1]                                   # columns: major -> minor
-    w, wd, sym = _mirror_plane(p, S.normals, mu, pca, evals[::-1])
+    w, wd, sym = _mirror_plane(p, S.normals, mu, pca, evals[::-1], budget)
     if sym < 0.35:
         flags.append("asymmetric")
+    if give_up and sym < FAST_ACCEPT_SYMMETRY:
+        return None
     ctx = _Context(mesh, S, w, wd)
-    wheels = _find_wheels(ctx)
+    wheels = _find_wheels(ctx, budget)
+    if wheels is None and give_up:
+        return None
     if wheels is not None:
         ctx.set_length_axis(wheels.ground_dir)
     else:
@@ -413,6 +507,9 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
     up_cues = {k: v for k, v in up_cues.items() if k not in disabled}
     up_score = sum(UP_WEIGHTS[k] * v for k, v in up_cues.items())
     up_sign = 1.0 if up_score >= 0 else -1.0               # tie: +b (a fixed rule)
+    up_conf = 1.0 - math.exp(-abs(up_score) / UP_SCALE)
+    if give_up and round(up_conf, 4) < FAST_ACCEPT_UP:
+        return None
     ctx.flip_up(up_sign < 0)
     snap_up = SNAP_DEG
     if wheels is not None:
@@ -422,8 +519,9 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
     front_cues = {k: v for k, v in _front_cues(ctx, wheels, names).items() if k not in disabled}
     front_score = sum(FRONT_WEIGHTS[k] * v for k, v in front_cues.items())
     front_sign = 1.0 if front_score >= 0 else -1.0         # tie: +a (a fixed rule)
-    up_conf = 1.0 - math.exp(-abs(up_score) / UP_SCALE)
     front_conf = 1.0 - math.exp(-abs(front_score) / FRONT_SCALE)
+    if give_up and round(front_conf, 4) < FAST_ACCEPT_FRONT:
+        return None
     if up_conf < UNCERTAIN_BELOW:
         flags.append("up_ambiguous")
     if front_conf < UNCERTAIN_BELOW:
@@ -437,6 +535,8 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = ()) -> tuple[Orientation, tu
     o = Orientation(rotation=R, up_confidence=round(up_conf, 4),
                     front_confidence=round(front_conf, 4), source="auto", cues=cues,
                     flags=tuple(f for f in FLAGS if f in flags), symmetry=round(sym, 4))
+    if give_up and not _clearly_decided(o):
+        return None
     return o, (ctx.w, ctx.wd, mu - (mu @ ctx.w - ctx.wd) * ctx.w)
 
 
@@ -480,12 +580,13 @@ def _largest_vehicle(S: _Samples, major: np.ndarray) -> _Samples | None:
                     S.detail_normals[don], S.face_centroid, S.face_area)
 
 
-def _ground_sheet(mesh: Mesh, S: _Samples):
+def _ground_sheet(mesh: Mesh, S: _Samples, budget: Budget = FULL, geometry=None):
     """A ground plane, cloth or display base under the vehicle: one material holding at
     least 25 % of the surface that is flat-ish (its smallest spread under 40 % of its
     largest: a draped cloth counts), at least 1.3 times as broad as the rest of the model in
     both of its long directions, with at least 90 % of the rest on one side of it. Returns
-    (new samples of the rest, unit normal toward the rest) or None."""
+    (new samples of the rest as many as ``budget`` says, unit normal toward the rest)
+    or None."""
     fm = np.asarray(mesh.face_material)[S.face]
     cnt = np.bincount(fm, minlength=len(mesh.materials))
     p = S.points
@@ -505,7 +606,8 @@ def _ground_sheet(mesh: Mesh, S: _Samples):
         above = float(np.mean(side > 0))
         if max(above, 1.0 - above) < 0.9:
             continue
-        return (_surface_samples(mesh, skip_material=int(m)),
+        return (_surface_samples(mesh, budget.samples, skip_material=int(m), geometry=geometry,
+                                 n_faces=budget.face_samples),
                 V[:, 0] if above >= 0.5 else -V[:, 0])
     return None
 
@@ -540,7 +642,7 @@ def _reflect_many(p: np.ndarray, n: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarray,
-                  evals: np.ndarray | None = None):
+                  evals: np.ndarray | None = None, budget: Budget = FULL):
     """(unit normal n, offset d, quality) of the best mirror plane ``x . n = d``.
 
     Candidates: the principal axes, the file axes and in-between directions (15-degree steps
@@ -548,14 +650,15 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     45 degrees between the major and each minor one), each through the centroid; for a clearly
     elongated body (``evals``: largest variance twice the next) none within 30 degrees of its
     length axis. They are ranked by the share of 128 reflected samples landing near a sample
-    (KD tree of every 2 x MIRROR_STRIDE-th sample); the best six get two refinement steps
-    (``_refine_planes``, on the same samples; neighbouring candidates can fall into different
-    basins), and the two best distinct results are refined in full. The winner has the most
-    of every MIRROR_STRIDE-th sample whose reflection lands within one sample spacing of a
-    sample (a tight test: a long box's diagonal planes pass a loose one), except that among
-    planes within 0.05 of the best the one whose normal is the longest extent (1.5 times
-    another's) is dropped: a vehicle is longer than wide, so a front/back-symmetric body keeps
-    its width axis. Quality (returned): the share within 2.5 sample spacings."""
+    (KD tree of every 2 x ``budget.mirror_stride``-th sample); the best six
+    (``budget.mirror_refined``) get two refinement steps (``_refine_planes``, on the same
+    samples; neighbouring candidates can fall into different basins), and the two best
+    distinct results (``budget.mirror_final``) are refined in full. The winner has the most
+    of every ``budget.mirror_stride``-th sample whose reflection lands within one sample
+    spacing of a sample (a tight test: a long box's diagonal planes pass a loose one), except
+    that among planes within 0.05 of the best the one whose normal is the longest extent (1.5
+    times another's) is dropped: a vehicle is longer than wide, so a front/back-symmetric body
+    keeps its width axis. Quality (returned): the share within 2.5 sample spacings."""
     from scipy.spatial import cKDTree
 
     cands = [pca[:, 0], pca[:, 1], pca[:, 2], *np.eye(3)]
@@ -574,7 +677,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
         cands = [n for n in distinct if abs(float(n @ pca[:, 0])) < math.cos(math.radians(30))]
     else:
         cands = distinct
-    sub, sub_n = p[::MIRROR_STRIDE], nrm[::MIRROR_STRIDE]
+    sub, sub_n = p[::budget.mirror_stride], nrm[::budget.mirror_stride]
     tree = cKDTree(sub)
     spacing, _ = tree.query(sub[::8], k=2)
     step = float(_quantile(spacing[:, 1], 0.5)) + 1e-12    # typical sample spacing
@@ -588,7 +691,7 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     order = sorted(range(len(cands)), key=lambda i: (-scores[i], i))   # tie: candidate order
     # two refinement steps for the six best (in lockstep), then the two best distinct
     # results in full
-    top6 = N[order[:6]]
+    top6 = N[order[:budget.mirror_refined]]
     n6, d6 = _refine_planes(ctree, coarse, coarse_n, top6, top6 @ mu, 1.4 * step, iters=2)
     half = coarse[::2]
     hit = _near(ctree, _reflect_many(half, n6, d6).reshape(-1, 3), 1.5 * step)[0] < 1.5 * step
@@ -597,8 +700,8 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
                    key=lambda r: (-r[0], r[1]))                    # tie: the earlier rank
     picked: list = []
     for _, _, n, d in rough:
-        if len(picked) < 2 and all(abs(float(n @ k[0])) < math.cos(math.radians(3.0))
-                                   for k in picked):
+        if len(picked) < budget.mirror_final and all(
+                abs(float(n @ k[0])) < math.cos(math.radians(3.0)) for k in picked):
             picked.append((n, d))
     nk, dk = _refine_planes(ctree, coarse, coarse_n, np.array([k[0] for k in picked]),
                             np.array([k[1] for k in picked]), 1.4 * step)
@@ -834,14 +937,15 @@ def _cross2(o, a, b) -> float:
     return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
 
 
-def _find_wheels(ctx: _Context) -> _Wheels | None:
+def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
     """Road wheels in the side view, or None. Tyre treads: samples (area and face samples)
     away from the mirror plane whose normals are perpendicular to the width axis vote, for
-    each of 8 radii from 2.5 % to 13 % of the length, for the circle centre p - r n (a Hough
-    transform with normals; cells of 0.15 r summed over 3 x 3). The 5 highest peaks per radius
-    that are not at mid-height are checked (``_check_circle``: a whole, round tyre pair); of
-    concentric circles (tyre, rim, hub) the outermost is kept; the wheels are the best group
-    standing on the ground (``_wheel_group``), on a line within 30 degrees of the length axis."""
+    each of 8 radii (``budget.radii``) from 2.5 % to 13 % of the length, for the circle
+    centre p - r n (a Hough transform with normals; cells of 0.15 r summed over 3 x 3). The 5
+    (``budget.peaks``) highest peaks per radius that are not at mid-height are checked
+    (``_check_circle``: a whole, round tyre pair); of concentric circles (tyre, rim, hub) the
+    outermost is kept; the wheels are the best group standing on the ground (``_wheel_group``),
+    on a line within 30 degrees of the length axis."""
     L, H = ctx.half_len, ctx.half_h
     S = ctx.S
     pts = np.r_[S.points, S.detail_points]                 # area samples and face samples
@@ -856,7 +960,7 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
     m /= np.maximum(np.hypot(m[:, 0], m[:, 1]), 1e-12)[:, None]
     left, aq = q[sel] > 0, np.abs(q[sel])
     found, tried = [], []
-    for r in 2 * L * np.geomspace(0.025, 0.13, 8):
+    for r in 2 * L * np.geomspace(0.025, 0.13, budget.radii):
         h = 0.15 * r
         cx, cy = x - r * m[:, 0], y - r * m[:, 1]
         ix = np.floor((cx + L) / h).astype(np.intp)
@@ -865,10 +969,10 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
         ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
         cnt = np.bincount(ix[ok] * ny + iy[ok], minlength=nx * ny).reshape(nx, ny)
         box = _box3(cnt)
-        peak = np.flatnonzero(((box >= WHEEL_MIN_VOTES) & (box == _max3(box))).ravel())
+        peak = np.flatnonzero(((box >= budget.wheel_votes) & (box == _max3(box))).ravel())
         if peak.size == 0:
             continue
-        peak = peak[np.argsort(-box.ravel()[peak], kind="stable")[:5]]
+        peak = peak[np.argsort(-box.ravel()[peak], kind="stable")[:budget.peaks]]
         for i, j in zip(*np.unravel_index(peak, box.shape)):
             centre = np.array([(i + 1.0) * h - L, (j + 1.0) * h - H - r])    # 3 x 3 middle
             if abs(centre[1]) < 0.25 * H or r > 0.32 * L:
@@ -880,7 +984,8 @@ def _find_wheels(ctx: _Context) -> _Wheels | None:
             mem = np.flatnonzero(ok & (np.abs(ix - i) <= 1) & (np.abs(iy - j) <= 1))
             c0 = np.array([cx[mem].mean(), cy[mem].mean()])
             box_ = np.flatnonzero((np.abs(x - c0[0]) < 1.5 * r) & (np.abs(y - c0[1]) < 1.5 * r))
-            wheel = _check_circle(x[box_], y[box_], m[box_], left[box_], aq[box_], c0, r, L, H)
+            wheel = _check_circle(x[box_], y[box_], m[box_], left[box_], aq[box_], c0, r, L, H,
+                                  budget.wheel_votes)
             if wheel is not None:
                 found.append(wheel)
     if not found:
@@ -954,7 +1059,7 @@ def _stands(group: list, side: np.ndarray, half_len: float) -> bool:
     return False
 
 
-def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
+def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN_VOTES):
     """(score, radius, centre) of the wheel pair around a Hough peak (centre ``c``, radius
     ``r``), or None. Its support: the voters within 15 % of r from the circle whose normal
     points along the radius (either sign); centre and radius are refitted to it (algebraic
@@ -970,7 +1075,7 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h):
         d = np.hypot(dx, dy)
         near = (np.abs(d - r) < 0.15 * r) & (np.abs(dx * m[:, 0] + dy * m[:, 1])
                                               > 0.9 * np.maximum(d, 1e-12))
-        if near.sum() < WHEEL_MIN_VOTES:
+        if near.sum() < min_votes:
             return None
         X, Y = x[near], y[near]
         c, r = _fit_circle(X, Y)
