@@ -320,8 +320,9 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     # column contiguous: an (F, k) block would be copied to row order first, 5x slower)
     from scipy.sparse import csr_matrix
     order = np.argsort(fm, kind="stable")          # faces by material, then face index
-    indptr = np.zeros(M + 1, np.int64)
-    np.cumsum(np.bincount(fm, minlength=M), out=indptr[1:])
+    nf = np.bincount(fm, minlength=M)              # faces per material
+    indptr = np.zeros(M + 1, np.int64)             # material m's faces: order[indptr[m]:indptr[m+1]]
+    np.cumsum(nf, out=indptr[1:])
     # built as CSR directly (what the COO (fm, face) form converts to, without the conversion)
     S = csr_matrix(((area / safe[fm])[order], order, indptr), shape=(M, F))
 
@@ -333,8 +334,8 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     def mean(x):
         return S @ np.ascontiguousarray(x, np.float64) if F else np.zeros(M)
 
-    starts = np.searchsorted(fm[order], np.arange(M))
-    present = np.bincount(fm, minlength=M) > 0
+    starts = indptr[:-1]
+    present = nf > 0
 
     def reduce(ufunc, rows):
         """(k, M) per-material ``ufunc`` reduction of k per-face rows (0 for no faces)."""
@@ -369,7 +370,6 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     put("ext_u", umax - umin)
     put("ext_w", wmax - wmin)
     put("log_area", np.log10(np.maximum(tot / max(tot.sum(), 1e-30), 1e-7)))
-    nf = np.bincount(fm, minlength=M)
     put("log_faces", np.log10(np.maximum(nf / max(F, 1), 1e-7)))
     # per-material mean of u u^T (area-weighted), its largest eigenvalue: 1 for a plane
     uT = unit.T
