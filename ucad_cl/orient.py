@@ -77,9 +77,7 @@ import os
 import re
 from dataclasses import replace
 from pathlib import Path
-from typing import Sequence
-
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -632,10 +630,6 @@ def _snap(up: np.ndarray, front: np.ndarray, snap_up_deg: float) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- mirror plane
 
-def _reflect(p: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
-    return p - 2.0 * (p @ n - d)[:, None] * n
-
-
 def _reflect_many(p: np.ndarray, n: np.ndarray, d: np.ndarray) -> np.ndarray:
     """(K, N, 3): the points ``p`` (N, 3) reflected in each plane ``x . n[k] = d[k]``."""
     return p[None] - 2.0 * (n @ p.T - d[:, None])[:, :, None] * n[:, None, :]
@@ -734,7 +728,7 @@ def _cross3(a, b) -> np.ndarray:
 
 
 def _refine_planes(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: np.ndarray,
-                   step: float, iters: int = 8, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                   step: float, iters: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """Symmetric ICP, point to plane, for K planes in lockstep (normals ``n`` (K, 3), offsets
     ``d`` (K,); each moves as if refined alone, one KD query per step for all of them): each
     sample x is reflected, paired with the nearest sample y (kept when closer than tau and
@@ -744,13 +738,12 @@ def _refine_planes(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: np.nd
     offset). tau halves from 6 to 1.5 sample spacings (``step``); a plane stops when its
     normal moves less than 0.02 degree at tau = 1.5 spacings, or when fewer than 16 pairs
     are kept. Converges from about 10 degrees off to a few hundredths of a degree on a
-    mirror-symmetric surface. ``start``: go on from step ``start`` of an earlier call (tau
-    and the sample stride as they would be there)."""
+    mirror-symmetric surface."""
     n, d = np.array(n, np.float64), np.array(d, np.float64)
     live = np.ones(len(n), bool)
     tau_min = 1.5 * step
-    tau = max(6.0 * step * 0.5 ** start, tau_min)
-    for it in range(start, iters):
+    tau = 6.0 * step
+    for it in range(iters):
         k_live = np.flatnonzero(live)
         if k_live.size == 0:
             break
