@@ -21,7 +21,8 @@ pipeline does with a file nobody labelled) or by the manifest's ``up``/``front``
 (``labeller_train.load_real_models``).
 
 ``--fast``: the same leave-one-model-out from feature rows cached per model in ``--cache``
-(names kept and hidden, truth, pixels; ``real_tables``), scored per material by the argmax of
+(names kept and hidden, truth, pixels; ``real_tables``; the cache keys hash the feature, name
+and orientation code), scored per material by the argmax of
 the labeller's probabilities (``fast_verdicts``: what ``classify_parts`` decides on the
 labeller's own masks, less its mirror-pair unification), minutes instead of the full path; it
 reproduced the full path's totals within a material (names kept 126 vs 125 of 162, hidden 116
@@ -187,11 +188,12 @@ def load_synth_rows(args):
     import hashlib
 
     import ucad_cl.labeller
+    import ucad_cl.names
     import ucad_cl.synth
 
     key = hashlib.sha256(json.dumps([T.REALISM_PROB, T.HIDE_NAMES, T.RINGS]).encode()
-                         + Path(ucad_cl.labeller.__file__).read_bytes()
-                         + Path(ucad_cl.synth.__file__).read_bytes()).hexdigest()[:12]
+                         + b"".join(Path(m.__file__).read_bytes() for m in (
+                             ucad_cl.labeller, ucad_cl.names, ucad_cl.synth))).hexdigest()[:12]
     cache = Path(args.cache) / f"synth_{args.vehicles}_{args.seed}_{key}.npz"
     if cache.exists():
         z = np.load(cache, allow_pickle=True)
@@ -207,16 +209,18 @@ def real_tables(models, args) -> dict[str, dict]:
     ring, also the real training rows' ring, ``REAL_RINGS``) with names kept (``Xn``) and hidden
     (``Xh``), truth ``y`` (part index, -1 for a material the manifest does not name), ``alt``
     (M, P) accepted parts (truth and ``ambiguous_alternatives``), first-layer ``pixels`` and
-    ``behind`` pixels. Cached in ``--cache`` keyed by the feature and orientation code, the
+    ``behind`` pixels. Cached in ``--cache`` keyed by the feature, name and orientation code, the
     frame, the file's sha256 and its manifest entry."""
     import hashlib
 
     from ucad_cl import labeller_train as T
 
     import ucad_cl.labeller
+    import ucad_cl.names
     import ucad_cl.orient
 
-    src = b"".join(Path(m.__file__).read_bytes() for m in (ucad_cl.labeller, ucad_cl.orient))
+    src = b"".join(Path(m.__file__).read_bytes()
+                   for m in (ucad_cl.labeller, ucad_cl.names, ucad_cl.orient))
     out = {}
     for rm in models:
         key = hashlib.sha256(src + json.dumps([args.frame, rm.file, rm.mesh.sha256, rm.truth,

@@ -240,7 +240,10 @@ def test_onnx_bad_config_and_output(tmp_path):
     ("siège", "interior"), ("asiento", "interior"), ("Leather_red", "interior"),
     ("Body_Color", "body"), ("Karosserie", "body"), ("carrosserie", "body"), ("carrocería", "body"),
     ("ボディ", "body"), ("车身", "body"), ("кузов", "body"), ("paint_window_sill_L", "body"),
-    ("BodyPaint", "body"), ("Material.001", None), ("Blackboard", None)])
+    ("BodyPaint", "body"), ("Material.001", None), ("Blackboard", None),
+    ("Miroir", "chrome"), ("Außenspiegel", "chrome"), ("specchio_dx", "chrome"),
+    ("doorknob.001", "chrome"), ("Door_Handle_L", "chrome"), ("ミラー", "chrome"),
+    ("зеркало", "chrome"), ("paint_mirror_L", "body")])
 def test_name_prior_languages(name, part):
     assert name_prior(name) == part
 

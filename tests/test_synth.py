@@ -450,5 +450,60 @@ def test_lamp_variety_and_ground_base_traits():
     vc = m.vertices[np.asarray(m.faces)[fm != mats[base[0]]].ravel()]
     assert vb[:, 1].max() <= vc[:, 1].min() + 1e-6            # under the vehicle
     assert np.ptp(vb[:, 0]) > 1.1 * np.ptp(vc[:, 0])          # larger than it
+    for seed in range(6):                                      # planes and cloths: one sheet up
+        w = make_vehicle(seed, "sedan", realism=["ground_base"])
+        mw = w.mesh()
+        name = next(n for n in w.truth["materials"] if n in ("ground", "base", "fabric"))
+        k = [x.name for x in mw.materials].index(name)
+        Fb = np.asarray(mw.faces)[np.asarray(mw.face_material) == k]
+        up = np.cross(mw.vertices[Fb[:, 1]] - mw.vertices[Fb[:, 0]],
+                      mw.vertices[Fb[:, 2]] - mw.vertices[Fb[:, 0]])[:, 1] > 0
+        assert up.all() if name != "base" else 0.2 < up.mean() < 0.8
     again = make_vehicle(8, "sedan", realism=["ground_base", "lamp_variety"])
     assert again.glb_bytes() == v.glb_bytes()
+
+
+def test_axles_light_bar_and_plate_looks_traits():
+    """axles: one rod of part other per axle between the two tyres' inner faces, seen from
+    below (under the floor); light_bar: part light on the roof, across the car; plate_looks:
+    the plates share one material. Adding them changes no other trait's draws."""
+    v = make_vehicle(8, "truck", realism=["axles", "light_bar", "plate_looks"])
+    t, m = v.truth["materials"], v.mesh()
+    mats = {x.name: i for i, x in enumerate(m.materials)}
+    fm, F, V = np.asarray(m.face_material), np.asarray(m.faces), m.vertices
+
+    def verts(name):
+        return V[F[fm == mats[name]].ravel()]
+
+    rod = next(n for n in t if n in ("axle", "chassis_frame"))
+    assert t[rod] == "other"
+    tyre_z = [verts(n)[:, 2] for n in t if n.startswith("tyre_")]
+    inner = min(z.min() for z in tyre_z if z.mean() > 0)        # right tyres: inner face
+    va = verts(rod)
+    assert va[:, 2].max() == pytest.approx(inner, abs=1e-6)              # tyre to tyre
+    assert va[:, 1].max() <= verts("underbody")[:, 1].min() + 1e-6       # under the floor
+    bars = [n for n in t if n.startswith("light_bar_") and n != "light_bar_base"]
+    assert bars and all(t[n] == "light" for n in bars)
+    vb = np.concatenate([verts(n) for n in bars])
+    assert vb[:, 1].min() >= verts("paint_roof")[:, 1].max() - 1e-6      # on the roof
+    assert np.ptp(vb[:, 2]) > 0.5 * np.ptp(verts("paint_roof")[:, 2])   # across it
+    assert t["plate"] == "plate" and not any(n.startswith("plate_") for n in t)
+    base = {x.name: x for x in make_vehicle(8, "truck", realism=["lamp_variety"]).mesh().materials}
+    more = make_vehicle(8, "truck", realism=["lamp_variety", "axles", "plate_looks"])
+    kept = {x.name: x for x in more.mesh().materials if x.name in base}
+    assert kept == {n: x for n, x in base.items() if not n.startswith("plate_")}
+    assert more.glb_bytes() == make_vehicle(8, "truck", realism=["plate_looks", "axles",
+                                                                "lamp_variety"]).glb_bytes()
+    bare = make_vehicle(8, "truck", realism=["no_glass"]).truth["materials"]
+    assert "window" not in bare.values() and "interior" in bare.values()
+
+
+def test_trait_streams_leave_the_shared_stream_alone():
+    from ucad_cl.synth import _trait_rng
+
+    a, b = np.random.default_rng([8, 3]), np.random.default_rng([8, 3])
+    ra, rb = _trait_rng(b, "axles"), _trait_rng(b, "plate_looks")
+    assert a.random() == b.random()                       # b's own draws did not move
+    assert ra.random() != rb.random()                     # one stream per trait
+    assert _trait_rng(np.random.default_rng([8, 3]), "axles").random() == \
+        _trait_rng(np.random.default_rng([8, 3]), "axles").random()

@@ -48,8 +48,12 @@ REALISM_PROB: dict[str, float] = {
     "opaque_glass": 0.15, "dark_glass": 0.12, "two_tone": 0.25,
     "one_glass": 0.6, "glass_looks": 0.5, "grey_trim": 0.3,
     "plain_lights": 0.35, "lamp_variety": 0.4, "ground_base": 0.15,
+    "axles": 0.3, "light_bar": 0.12, "plate_looks": 0.5, "no_glass": 0.1,
     "meaningless_names": 0.2, "misleading_names": 0.1,
 }
+#: traits added after the recipe's first version, each drawn from a stream of its own (so the
+#: kind, names, ring and earlier traits of every vehicle stay as they were)
+LATER_TRAITS: tuple[str, ...] = ("axles", "light_bar", "plate_looks", "no_glass")
 REAL_RINGS = (0,)          # rings whose renders of each real model give training rows
 DEFAULT_VEHICLES = 500     # generated training vehicles of the shipped model
 DEFAULT_SEED = 2026
@@ -88,7 +92,9 @@ def synth_recipe(seed: int, i: int) -> dict:
 
     vs = vehicle_seed(seed, i)
     r = np.random.default_rng([vs, 11])
-    traits = [t for t in REALISM_TRAITS if r.random() < REALISM_PROB[t]]
+    traits = [t for t in REALISM_TRAITS if t not in LATER_TRAITS and r.random() < REALISM_PROB[t]]
+    traits += [t for k, t in enumerate(LATER_TRAITS)
+               if np.random.default_rng([vs, 12, k]).random() < REALISM_PROB[t]]
     return {"seed": vs, "kind": KINDS[int(r.integers(len(KINDS)))], "realism": traits,
             "hide_names": bool(r.random() < HIDE_NAMES),
             "ring": int(r.integers(len(RINGS)))}

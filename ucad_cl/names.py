@@ -14,7 +14,8 @@ from .artifacts import Mesh
 # equal positions go to the earlier group). Matching is case-insensitive on the
 # name with separators (_ - . space digits) turned into word breaks; Latin keywords must start a
 # word, except those marked "~" (German compounds: Windschutzscheibe) and non-Latin ones, which
-# match anywhere.
+# match anywhere. Mirrors and door handles are trim (part chrome), the labelling policy of the
+# real test models (docs/CONVENTIONS.md).
 NAME_KEYWORDS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("interior", ("interior", "seat", "~sitz", "siège", "siege", "asiento", "sedile", "dashboard",
                   "dash", "leather", "leder", "cuir", "cuero", "pelle", "carpet", "teppich",
@@ -28,7 +29,9 @@ NAME_KEYWORDS: tuple[tuple[str, tuple[str, ...]], ...] = (
                "phare", "feu", "faro", "luz", "luce", "fanale", "projector", "signal", "indicator",
                "blinker", "led", "lens", "ライト", "ランプ", "灯", "фар", "фонар")),
     ("chrome", ("chrome", "chrom", "cromo", "trim", "grill", "grille", "kühlergrill", "calandre",
-                "parrilla", "griglia", "bumper", "stoßstange", "クローム", "镀铬", "хром")),
+                "parrilla", "griglia", "bumper", "stoßstange", "mirror", "miroir", "~spiegel",
+                "espejo", "specchio", "retrovisor", "rétroviseur", "handle", "~knob", "poignée",
+                "クローム", "ミラー", "镀铬", "后视镜", "хром", "зеркал")),
     ("rim", ("rim", "~felge", "jante", "llanta", "cerchio", "hub", "ホイール", "轮毂", "диск")),
     ("wheel", ("tyre", "tire", "wheel", "~reifen", "pneu", "neumático", "neumatico",
                "gomma", "pneumatico", "rubber", "gummi", "タイヤ", "车轮", "轮胎", "шин", "колес")),

@@ -73,7 +73,8 @@ REALISM_TRAITS: tuple[str, ...] = (
     "brake_discs", "lens_lamps", "rich_interior", "no_rims", "chassis_only", "one_paint",
     "paint_rims", "shared_black", "dark_trim", "textured_body", "varied_looks", "mtl_like",
     "opaque_glass", "dark_glass", "two_tone", "one_glass", "glass_looks", "grey_trim",
-    "plain_lights", "lamp_variety", "ground_base", "meaningless_names", "misleading_names")
+    "plain_lights", "lamp_variety", "ground_base", "axles", "light_bar", "plate_looks",
+    "no_glass", "meaningless_names", "misleading_names")
 
 
 def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
@@ -1082,7 +1083,8 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
     ``paint_rims`` (the rims share the body paint), ``shared_black`` (tyres, grille, underbody
     and plastic bumpers share one black), ``dark_trim`` (grille, bumpers, mirror housings and
     side trim in one dark plastic: part chrome, the trim policy), ``textured_body`` (body, lamps,
-    plates, trim and grille are one textured material; glass, wheels, interior stay separate),
+    plates, trim and grille are one textured material, 40 % of the time the tyres and rims too,
+    as texture-atlas models do; glass and interior stay separate),
     ``varied_looks`` (every material's colour pulled up to 60 % toward a random colour, metallic
     and roughness moved by up to 0.35), ``mtl_like`` (OBJ/MTL materials: metallic 0, roughness 1,
     no emission, no transmission),
@@ -1099,7 +1101,16 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
     tail lamps behind a tinted red see-through lens with a grey reflector inside, headlamps as a
     clear lens over a chrome-like reflector; all part light), ``ground_base`` (the vehicle stands
     on a ground plane, plinth or cloth up to 3 times its size: part other, and the file's
-    bounding box is the base's).
+    bounding box is the base's), ``axles`` (a rod joins the two wheels of every axle and, on
+    half of the vehicles, two frame rails run between the first and last axle: part other,
+    dark metal or plastic, as simulator and game models build their undercarriage),
+    ``light_bar`` (an emergency light bar across the roof, in one or two of blue, red and
+    amber, sometimes see-through or glowing: part light), ``plate_looks`` (plates as real
+    libraries paint them: white, yellow, black or dark grey, plain or textured, any gloss, US
+    or EU proportions, sometimes no front plate), ``no_glass`` (no window at all, as many game
+    models are built: the interior is seen directly).
+    Traits from ``axles`` on draw from their own random streams (``_trait_rng``), so adding one
+    changes no earlier trait's draws.
     Name traits: ``meaningless_names`` (materials become ``Material.001``..., nodes
     ``Object_1``...), ``misleading_names`` (some materials named after another part).
     The truth of a shared material is its majority part (``majority_part``)."""
@@ -1162,8 +1173,10 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
         elif t == "textured_body":
             tex = Material("body_tex", (1.0, 1.0, 1.0, 1.0), "OPAQUE", 0.0, 0.5,
                            has_texture=True)
+            atlas = ("body", "light", "plate", "chrome") + (("wheel", "rim") if r.random() < 0.4
+                                                           else ())
             for q in parts:
-                if q.part in ("body", "light", "plate", "chrome") or is_(q, "grille"):
+                if q.part in atlas or is_(q, "grille"):
                     q.material = shared("body_tex", tex)
         elif t == "varied_looks":
             for q in parts:
@@ -1231,6 +1244,14 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
             parts = _lamp_variety(parts, r, shared)
         elif t == "ground_base":
             parts = _ground_base(parts, r)
+        elif t == "axles":
+            parts = _axles(parts, _trait_rng(r, t))
+        elif t == "light_bar":
+            parts = _light_bar(parts, _trait_rng(r, t))
+        elif t == "plate_looks":
+            parts = _plate_looks(parts, _trait_rng(r, t))
+        elif t == "no_glass":
+            parts = [q for q in parts if q.part != "window"]
         elif t == "meaningless_names":
             renamed: dict[str, str] = {}
             for k, q in enumerate(parts):
@@ -1250,6 +1271,109 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
                     k = int(np.random.default_rng(list(nm.encode())).integers(len(wrong)))
                     q.material = shared(f"{words[wrong[k]]}_{nm}", q.material)
     return parts
+
+
+def _trait_rng(r: np.random.Generator, trait: str) -> np.random.Generator:
+    """A generator of its own for one realism trait: seeded from the seed of ``r`` (not its
+    state) and the trait's name, so the draws of one trait do not move another's."""
+    entropy = np.atleast_1d(r.bit_generator.seed_seq.entropy).tolist()   # type: ignore[attr-defined]
+    return np.random.default_rng([*entropy, int.from_bytes(trait.encode()[:8], "little")])
+
+
+def _axles(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
+    """A rod (a thin box) between the two wheels of every axle, from one tyre's inner face to
+    the other's, at the wheel centre or just under the floor when the floor is lower (so it can
+    be seen between the wheels, as in game and simulator models), and on half of the vehicles
+    two frame rails under the floor between the first and the last axle: one material, dark
+    grey or black metal or plastic, part ``other``."""
+    tyres = {q.node: _bbox(q) for q in parts if q.node.startswith("tyre_")}
+    pairs = [(tyres[n], tyres[n[:-1] + "L"]) for n in sorted(tyres)
+             if n.endswith("R") and n[:-1] + "L" in tyres]
+    if not pairs:
+        return parts
+    floor = min((_bbox(q)[0][1] for q in parts if q.node == "underbody"), default=np.inf)
+    g = float(r.uniform(0.02, 0.35))
+    mat = Material("axle" if r.random() < 0.5 else "chassis_frame",
+                   (g, g, g * float(r.uniform(0.95, 1.1)), 1.0), "OPAQUE",
+                   float(r.choice([0.0, 1.0, r.uniform(0, 1)])), float(r.uniform(0.3, 1.0)))
+    out = list(parts)
+    xs = []
+    for k, ((lo_r, hi_r), (_lo_l, hi_l)) in enumerate(pairs):
+        cx = 0.5 * (lo_r[0] + hi_r[0])
+        t = float(r.uniform(0.06, 0.16)) * (hi_r[1] - lo_r[1]) / 2
+        cy = min(0.5 * (lo_r[1] + hi_r[1]), floor - 1.2 * t)
+        v, f = _box([cx - t, cy - t, hi_l[2]], [cx + t, cy + t, lo_r[2]], 0.2)
+        out.append(_Part(f"axle_{k}", "other", mat, v, f))
+        xs.append(cx)
+    if len(xs) >= 2 and np.isfinite(floor) and r.random() < 0.5:
+        half = 0.5 * (min(p[0][0][2] for p in pairs) - max(p[1][1][2] for p in pairs))
+        zr = float(r.uniform(0.25, 0.6)) * half
+        h = float(r.uniform(0.06, 0.15))
+        for side, tag in ((1.0, "R"), (-1.0, "L")):
+            v, f = _box([min(xs) - 0.3, floor - h, side * zr - 0.04],
+                        [max(xs) + 0.3, floor - 0.002, side * zr + 0.04], 0.3)
+            out.append(_Part(f"frame_rail_{tag}", "other", mat, v, f))
+    return out
+
+
+def _light_bar(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
+    """An emergency light bar across the front of the roof: 60-95 % of the roof's width, in one
+    colour or two halves (blue, red, amber), opaque or see-through, glowing or not; part
+    ``light``, on a black base (part ``chrome``, the trim policy) half of the time."""
+    roof = next((q for q in parts if q.node == "paint_roof"), None)
+    if roof is None:
+        return parts
+    lo, hi = _bbox(roof)
+    width = (hi[2] - lo[2]) * float(r.uniform(0.6, 0.95))
+    depth, height = float(r.uniform(0.18, 0.32)), float(r.uniform(0.07, 0.16))
+    x1 = hi[0] - float(r.uniform(0.05, 0.4)) * (hi[0] - lo[0])
+    palette = {"blue": (0.1, 0.2, 0.95), "red": (0.95, 0.05, 0.05), "amber": (1.0, 0.55, 0.0)}
+    picks = list(r.choice(list(palette), size=2, replace=False))
+    colours = picks[:1] if r.random() < 0.4 else picks
+    alpha = float(r.uniform(0.4, 0.9)) if r.random() < 0.4 else 1.0
+    glow = r.random() < 0.5
+    out = list(parts)
+    y0 = hi[1]
+    if r.random() < 0.5:
+        v, f = _box([x1 - depth - 0.02, y0, -width / 2 - 0.02], [x1 + 0.02, y0 + 0.03,
+                                                                width / 2 + 0.02], 0.1)
+        out.append(_Part("light_bar_base", "chrome",
+                         Material("light_bar_base", (0.03, 0.03, 0.03, 1.0), "OPAQUE", 0.0, 0.6),
+                         v, f))
+        y0 += 0.03
+    for k, c in enumerate(colours):
+        z0 = -width / 2 + k * width / len(colours)
+        rgb = palette[c]
+        mat = Material(f"light_bar_{c}", (*rgb, alpha), "BLEND" if alpha < 1 else "OPAQUE",
+                       0.0, 0.1, tuple(0.9 * x for x in rgb) if glow else (0.0, 0.0, 0.0))
+        v, f = _box([x1 - depth, y0, z0], [x1, y0 + height, z0 + width / len(colours)], 0.1)
+        out.append(_Part(f"light_bar_{k}", "light", mat, v, f))
+    return out
+
+
+def _plate_looks(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
+    """Number plates as real libraries make them: one material for both, white, yellow, black
+    or dark grey (an untextured export), textured a third of the time, any gloss; US (about
+    2:1) or EU (about 4.7:1) proportions; no front plate a quarter of the time."""
+    look = int(r.integers(4))
+    rgb = [(0.92, 0.92, 0.88), (0.95, 0.8, 0.1), (0.03, 0.03, 0.03),
+           tuple(float(x) for x in np.full(3, r.uniform(0.1, 0.35)))][look]
+    mat = Material("plate", (*rgb, 1.0), "OPAQUE", float(r.choice([0.0, r.uniform(0, 1)])),
+                   float(r.uniform(0.1, 1.0)), has_texture=bool(r.random() < 0.33))
+    us = r.random() < 0.5
+    drop_front = r.random() < 0.25
+    out = []
+    for q in parts:
+        if not q.node.startswith("plate_"):
+            out.append(q)
+            continue
+        if drop_front and q.node == "plate_front":
+            continue
+        lo, hi = _bbox(q)
+        c = 0.5 * (lo + hi)
+        scale = np.array([1.0, 1.4, 0.6]) if us else np.array([1.0, 1.0, 1.0])
+        out.append(_Part(q.node, "plate", mat, (q.vertices - c) * scale + c, q.faces))
+    return out
 
 
 def _bbox(q: _Part) -> tuple[np.ndarray, np.ndarray]:
@@ -1364,8 +1488,9 @@ def _two_tone(parts: list[_Part], r: np.random.Generator, shared) -> list[_Part]
 
 
 def _ground_base(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
-    """A base under the vehicle (``apply_realism``): a thin ground plane, a low plinth or a
-    sagging cloth, 1.2-3 times the vehicle's length and width, top just below the tyres."""
+    """A base under the vehicle (``apply_realism``): a ground plane or a sagging cloth (one
+    upward-facing sheet, coarse or finely tessellated) or a low plinth (a box), 1.2-3 times the
+    vehicle's length and width, top just below the tyres; textured half of the time."""
     lo = np.min([_bbox(q)[0] for q in parts], axis=0)
     hi = np.max([_bbox(q)[1] for q in parts], axis=0)
     size = hi - lo
@@ -1375,8 +1500,13 @@ def _ground_base(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
     style = int(r.integers(3))                      # 0 plane, 1 plinth, 2 cloth
     thick = (0.01, float(r.uniform(0.05, 0.3)) * size[1], 0.02)[style]
     top = lo[1] - 0.002
-    v, f = _box([cen[0] - half[0], top - thick, cen[2] - half[2]],
-                [cen[0] + half[0], top, cen[2] + half[2]], max(float(half.max()) / 6, 0.1))
+    if style == 1:
+        v, f = _box([cen[0] - half[0], top - thick, cen[2] - half[2]],
+                    [cen[0] + half[0], top, cen[2] + half[2]], max(float(half.max()) / 6, 0.1))
+    else:                                           # one-sided sheet facing up, any tessellation
+        x0, x1, z0, z1 = cen[0] - half[0], cen[0] + half[0], cen[2] - half[2], cen[2] + half[2]
+        v, f = _patch([x0, top, z0], [x0, top, z1], [x1, top, z0], [x1, top, z1], [0, 1], [0, 1],
+                      float(half.max()) / float(r.uniform(6.0, 40.0)))["panel"]
     if style == 2:                                  # cloth: edges hang down to 1.2 x the height
         d = np.maximum(np.abs(v[:, 0] - cen[0]) / half[0], np.abs(v[:, 2] - cen[2]) / half[2])
         v = v.copy()
@@ -1385,7 +1515,7 @@ def _ground_base(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
     tint = np.clip(g + r.uniform(-0.1, 0.1, 3), 0, 1)
     mat = Material("ground" if style == 0 else ("base" if style == 1 else "fabric"),
                    (*(float(x) for x in tint), 1.0), "OPAQUE", 0.0, float(r.uniform(0.5, 1.0)),
-                   has_texture=bool(r.random() < 0.3))
+                   has_texture=bool(r.random() < 0.5))
     return list(parts) + [_Part("ground_base", "other", mat, v, f)]
 
 
