@@ -167,7 +167,8 @@ def estimate_orientation(mesh: Mesh, *, disabled: Sequence[str] = (),
 
 def takes_fast_path(mesh: Mesh, *, disabled: Sequence[str] = ()) -> bool:
     """True when the cascade's cheap pass decides ``mesh`` (the full estimate is not run)."""
-    return _estimate_pass(mesh, disabled, FAST, _face_geometry(mesh), give_up=True) is not None
+    return _estimate_pass(mesh, disabled, FAST, _face_geometry(mesh), _Names(mesh),
+                          give_up=True) is not None
 
 
 def in_frame(mesh: Mesh, file_to_norm: np.ndarray) -> Mesh:
@@ -437,11 +438,12 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = (),
     """(orientation, mirror plane (normal, offset, a point on it) or None), by a cascade:
     a cheap pass (budget FAST) is kept when it is clearly decided; otherwise the full
     estimate (budget FULL) decides. The cheap pass gives up as soon as it cannot be kept."""
-    geometry = _face_geometry(mesh)
-    fast = _estimate_pass(mesh, disabled, FAST, geometry, give_up=True) if cascade else None
+    geometry, names = _face_geometry(mesh), _Names(mesh)       # shared by both passes
+    fast = (_estimate_pass(mesh, disabled, FAST, geometry, names, give_up=True) if cascade
+            else None)
     if fast is not None:
         return fast
-    return _estimate_pass(mesh, disabled, FULL, geometry)
+    return _estimate_pass(mesh, disabled, FULL, geometry, names)
 
 
 def _clearly_decided(o: Orientation) -> bool:
@@ -452,8 +454,8 @@ def _clearly_decided(o: Orientation) -> bool:
 
 
 def _estimate_pass(mesh: Mesh, disabled: Sequence[str], budget: Budget,
-                   geometry: tuple[np.ndarray, np.ndarray], give_up: bool = False
-                   ) -> tuple[Orientation, tuple | None] | None:
+                   geometry: tuple[np.ndarray, np.ndarray], mesh_names: _Names,
+                   give_up: bool = False) -> tuple[Orientation, tuple | None] | None:
     """One pass of the estimate with the given budget (see ``_estimate``). ``give_up``:
     None as soon as the result cannot be clearly decided (``_clearly_decided``): a flag
     is raised or a confidence or the symmetry falls under its margin; the steps are ordered
@@ -498,7 +500,7 @@ def _estimate_pass(mesh: Mesh, disabled: Sequence[str], budget: Budget,
     else:
         flags.append("no_wheels")
         ctx.level_from_hull()
-    names = _NameTable(mesh, S)
+    names = _NameTable(mesh_names, S)
     up_cues = _up_cues(ctx, wheels, names)
     if base is not None:
         up_cues["ground_plane"] = float(np.clip(3.0 * (base_up @ ctx.b), -1, 1))
@@ -1202,15 +1204,14 @@ _IS_WHEEL = _keyword_matcher(
     ("steering", "lenkrad", "volant", "spare", "wheelhouse", "wheelwell"))
 
 
-class _NameTable:
-    """Materials and nodes as named groups of faces (``groupings``: per-face labels and the
-    names) and of samples (the material of each sample); each distinct name is split into
-    words once and tested against a keyword set once."""
+class _Names:
+    """The names of a mesh's materials and nodes, pass-independent (made once per mesh and
+    shared by the cascade's passes): ``groupings`` (per-face labels (F,) and the names), each
+    distinct name split into words once and tested against a keyword set once, the kind of
+    every material (``kinds``) and the node groups ``_overlapping_vehicles`` weighs."""
 
-    def __init__(self, mesh: Mesh, S: _Samples):
+    def __init__(self, mesh: Mesh):
         self.mesh = mesh
-        self.material_of_sample = np.asarray(mesh.face_material)[S.face].astype(np.intp)
-        self.area = S.face_area
         fm = np.asarray(mesh.face_material).astype(np.intp)
         self.groupings = [(fm, [m.name for m in mesh.materials])]
         if mesh.face_node is not None and len(mesh.node_names):
@@ -1219,36 +1220,94 @@ class _NameTable:
                 # without trimesh's random '_xxxxxx' suffix (its hex letters would be
                 # words such as 'f' or 'bb': a names cue that changed from run to run)
                 self.groupings.append((fn, [node_stem(n) for n in mesh.node_names]))
-        self.total_area = total = max(float(self.area.sum()), 1e-300)
-        self.share = [np.bincount(lab, weights=self.area, minlength=len(names)) / total
-                      for lab, names in self.groupings]      # surface share of each group
+        # same[g]: the first grouping with the same labels and as many groups (one node per
+        # material is common): its per-group sums are grouping g's, computed once
+        self.same = [next(h for h in range(g + 1) if h == g or (
+            len(self.groupings[h][1]) == len(names) and np.array_equal(self.groupings[h][0], lab)))
+            for g, (lab, names) in enumerate(self.groupings)]
         self._words: dict[str, tuple[str, ...]] = {}
         self._tests: dict = {}
-        self._means: dict = {}          # (grouping, id(value)) -> (value kept alive, means)
-        self.glass, self.lamp, self.colour = _material_kinds(self)
+        self._kinds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._node_groups: tuple | None = None
 
     def words(self, name: str) -> tuple[str, ...]:
         if name not in self._words:
             self._words[name] = _words(name)
         return self._words[name]
 
-    def matches(self, match, g: int) -> np.ndarray:
-        """(K,) bool: the names of grouping ``g`` (with surface) that ``match``."""
+    def matching(self, match, g: int) -> np.ndarray:
+        """(K,) bool: the names of grouping ``g`` that ``match`` (remembered)."""
         key = (match, g)
         if key not in self._tests:
-            names, share = self.groupings[g][1], self.share[g]
-            out = np.zeros(len(names), bool)
-            for i in np.flatnonzero(share > 0):
-                name = names[i]
+            out = np.zeros(len(self.groupings[g][1]), bool)
+            for i, name in enumerate(self.groupings[g][1]):
                 if (match, name) not in self._tests:
                     self._tests[match, name] = match(self.words(name))
                 out[i] = self._tests[match, name]
             self._tests[key] = out
         return self._tests[key]
 
+    def kinds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(glass (M,) bool, lamp (M,) bool, lamp colour (M,) int8) of every material."""
+        if self._kinds is None:
+            self._kinds = _material_kinds(self.mesh.materials, self.words)
+        return self._kinds
+
+    def node_groups(self) -> tuple[np.ndarray, int, np.ndarray] | None:
+        """Node groups by stem (trimesh's suffix dropped): (group of each face (F,), K, (K,)
+        bool: at least 4 faces and 2 materials), or None with under 2 groups or no nodes."""
+        if self._node_groups is None:
+            self._node_groups = (None,)
+            if len(self.groupings) >= 2:
+                node_of_face, stems = self.groupings[1]           # already node_stem
+                stem_ids = {st: k for k, st in enumerate(dict.fromkeys(stems))}
+                if len(stem_ids) == len(stems) and self.same[1] == 0:
+                    pass                         # one node per material: one material each
+                elif len(stem_ids) >= 2:
+                    K = len(stem_ids)
+                    group = np.array([stem_ids[st] for st in stems])[node_of_face]
+                    fm = self.groupings[0][0]                     # material of each face
+                    # counts per group in one pass each: faces, distinct materials
+                    M = max(len(self.mesh.materials), 1)
+                    if K * M <= 4_000_000:
+                        n_mat = (np.bincount(group * M + fm, minlength=K * M) > 0).reshape(
+                            K, M).sum(axis=1)
+                    else:
+                        n_mat = np.bincount(np.unique(group * M + fm) // M, minlength=K)
+                    self._node_groups = (group, K, (np.bincount(group, minlength=K) >= 4)
+                                         & (n_mat >= 2))
+        return None if self._node_groups[0] is None else self._node_groups
+
+
+class _NameTable:
+    """Materials and nodes as named groups of faces (``groupings`` of ``_Names``) with their
+    surface share in this pass, and of samples (the material of each sample)."""
+
+    def __init__(self, names: _Names, S: _Samples):
+        mesh = names.mesh
+        self.names, self.mesh, self.groupings = names, mesh, names.groupings
+        self.material_of_sample = np.asarray(mesh.face_material)[S.face].astype(np.intp)
+        self.area = S.face_area
+        self.total_area = total = max(float(self.area.sum()), 1e-300)
+        share: list[np.ndarray] = []                              # surface share of each group
+        for g, (lab, group_names) in enumerate(self.groupings):
+            share.append(share[names.same[g]] if names.same[g] < g else
+                         np.bincount(lab, weights=self.area, minlength=len(group_names)) / total)
+        self.share = share
+        self._means: dict = {}          # (grouping, id(value)) -> (value kept alive, means)
+        glass, lamp, colour = names.kinds()
+        with_surface = share[0] > 0                               # the rest: not any kind
+        self.glass, self.lamp = glass & with_surface, lamp & with_surface
+        self.colour = np.where(with_surface, colour, 0).astype(np.int8)
+
+    def matches(self, match, g: int) -> np.ndarray:
+        """(K,) bool: the names of grouping ``g`` (with surface) that ``match``."""
+        return self.names.matching(match, g) & (self.share[g] > 0)
+
     def means(self, g: int, value: np.ndarray) -> np.ndarray:
         """(K,) area-weighted mean of a per-face ``value`` over each group of grouping g
         (the last few are remembered: the cues ask for the same value several times)."""
+        g = self.names.same[g]
         key = (g, id(value))
         if key not in self._means:
             lab = self.groupings[g][0]
@@ -1303,16 +1362,16 @@ def _lamp_colour(mat, ws: tuple[str, ...]) -> int:
     return 0
 
 
-def _material_kinds(names: "_NameTable") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(glass (M,) bool, lamp (M,) bool, lamp colour (M,) int) of the materials with samples."""
-    mats = names.mesh.materials
+def _material_kinds(mats: Sequence, words) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(glass (M,) bool, lamp (M,) bool, lamp colour (M,) int8) of materials ``mats``
+    (``words``: a name -> its words)."""
     M = len(mats)
     glass, lamp, colour = np.zeros(M, bool), np.zeros(M, bool), np.zeros(M, np.int8)
-    for i in np.flatnonzero(names.share[0]):
-        ws = names.words(mats[i].name)
-        glass[i] = _is_glass(mats[i], ws)
-        lamp[i] = _IS_LAMP(ws) or max(mats[i].emissive) > 0.1
-        colour[i] = _lamp_colour(mats[i], ws)
+    for i, mat in enumerate(mats):
+        ws = words(mat.name)
+        glass[i] = _is_glass(mat, ws)
+        lamp[i] = _IS_LAMP(ws) or max(mat.emissive) > 0.1
+        colour[i] = _lamp_colour(mat, ws)
     return glass, lamp, colour
 
 
@@ -1471,31 +1530,21 @@ def _profile(ctx: _Context) -> float:
 
 # ----------------------------------------------------------------------------- many vehicles
 
-def _overlapping_vehicles(ctx: _Context, names: "_NameTable") -> bool:
+def _overlapping_vehicles(ctx: _Context, names: _NameTable) -> bool:
     """Vehicles on top of each other (a game's vehicle pack at the origin): two or more node
     groups (node names without trimesh's '_xxxxxx' suffix) that each look like a whole
     vehicle: two or more materials, glazing or lamps among them, and at least half of the
     length and 40 % of the height of the model."""
-    mesh = ctx.mesh
-    if len(names.groupings) < 2:
+    groups = names.names.node_groups()
+    if groups is None:
         return False
-    node_of_face, node_names = names.groupings[1]
-    stems = list(node_names)                                 # already node_stem
-    stem_ids = {st: k for k, st in enumerate(dict.fromkeys(stems))}
-    if len(stem_ids) < 2:
+    group, K, whole_like = groups                 # at least 4 faces and 2 materials
+    if np.count_nonzero(whole_like) < 2:
         return False
-    K = len(stem_ids)
-    group = np.array([stem_ids[st] for st in stems])[node_of_face]
-    fm = names.groupings[0][0]                               # material of each face
-    special = (names.glass | names.lamp)[fm]
-    # counts per group in one pass each: faces, glazing or lamp faces, distinct materials
-    M = max(len(mesh.materials), 1)
-    if K * M <= 4_000_000:
-        n_mat = (np.bincount(group * M + fm, minlength=K * M) > 0).reshape(K, M).sum(axis=1)
-    else:
-        n_mat = np.bincount(np.unique(group * M + fm) // M, minlength=K)
-    cand = np.flatnonzero((np.bincount(group, minlength=K) >= 4) & (n_mat >= 2)
-                          & (np.bincount(group, weights=special.astype(float), minlength=K) > 0))
+    special = (names.glass | names.lamp)[names.groupings[0][0]]
+    # glazing or lamp faces per group
+    cand = np.flatnonzero(whole_like & (np.bincount(group, weights=special.astype(float),
+                                                    minlength=K) > 0))
     if cand.size < 2:
         return False
     fc = ctx.S.face_centroid
