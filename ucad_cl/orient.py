@@ -1146,25 +1146,45 @@ def _max3(a: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- names
 
-def _keyword_matcher(words: Sequence[str], tokens: Sequence[str] = (),
-                     exclude: Sequence[str] = ()):
+class _Keywords:
     """A test on a name's words (``_words``): an ASCII keyword starts one of its words, a
     non-ASCII one appears anywhere in it (CJK has no spaces), or one of its words is one of
     ``tokens``. Words starting with one of ``exclude`` are dropped first (``headrest`` is
-    not a head lamp)."""
-    rx = re.compile(r"(?<![a-z])(?:" + "|".join(re.escape(w) for w in words if w.isascii())
-                    + ")")
-    other = [w for w in words if not w.isascii()]
-    tok = frozenset(tokens)
-    excl = tuple(exclude)
+    not a head lamp). ``many`` tests many names in one regular-expression scan."""
 
-    def match(ws: tuple[str, ...]) -> bool:
-        if excl:
-            ws = tuple(w for w in ws if not w.startswith(excl))
+    def __init__(self, words: Sequence[str], tokens: Sequence[str] = (),
+                 exclude: Sequence[str] = ()):
+        self.rx = re.compile(r"(?<![a-z])(?:" + "|".join(re.escape(w) for w in words
+                                                         if w.isascii()) + ")")
+        self.other = [w for w in words if not w.isascii()]
+        self.tok = frozenset(tokens)
+        self.excl = tuple(exclude)
+
+    def __call__(self, ws: tuple[str, ...]) -> bool:
+        if self.excl:
+            ws = tuple(w for w in ws if not w.startswith(self.excl))
         joined = " ".join(ws)
-        return (rx.search(joined) is not None or not tok.isdisjoint(ws)
-                or (not joined.isascii() and any(w in joined for w in other)))
-    return match
+        return (self.rx.search(joined) is not None or not self.tok.isdisjoint(ws)
+                or (not joined.isascii() and any(w in joined for w in self.other)))
+
+    def many(self, names: Sequence[tuple[str, ...]]) -> np.ndarray:
+        """(N,) bool: the test on each of ``names`` (their words): the names joined by line
+        breaks (a keyword has none, so a match lies in one name) and scanned once."""
+        if self.excl:
+            names = [tuple(w for w in ws if not w.startswith(self.excl)) for ws in names]
+        lines = [" ".join(ws) for ws in names]
+        out = np.zeros(len(lines), bool)
+        if not lines:
+            return out
+        starts = np.cumsum([0] + [len(line) + 1 for line in lines[:-1]])
+        text = "\n".join(lines)
+        hits = [m.start() for m in self.rx.finditer(text)]
+        out[np.searchsorted(starts, hits, side="right") - 1] = True
+        for i in np.flatnonzero(~out).tolist():
+            if (not self.tok.isdisjoint(names[i])
+                    or (not lines[i].isascii() and any(w in lines[i] for w in self.other))):
+                out[i] = True
+        return out
 
 
 def _words(name: str) -> tuple[str, ...]:
@@ -1175,30 +1195,30 @@ def _words(name: str) -> tuple[str, ...]:
 
 _NOT_DIRECTION = ("headrest", "headliner", "headlining", "backrest", "background", "rearview",
                   "backplate", "backface", "backside", "headphone")
-_IS_FRONT = _keyword_matcher(
+_IS_FRONT = _Keywords(
     ("front", "head", "hood", "bonnet", "windshield", "windscreen", "grill", "nose", "avant",
      "phare", "capot", "vorn", "vorder", "scheinwerfer", "motorhaube", "frontscheibe",
      "delanter", "faro", "capo", "parabris", "anterior", "cofano", "передн", "фара", "капот",
      "前", "フロント", "ヘッド", "ボンネット"), ("f", "fl", "fr", "av", "fwd"), _NOT_DIRECTION)
-_IS_REAR = _keyword_matcher(
+_IS_REAR = _Keywords(
     ("rear", "back", "tail", "brake", "trunk", "boot", "exhaust", "muffler", "reverse",
      "arriere", "arrière", "coffre", "hinten", "heck", "rück", "rueck", "kofferraum",
      "auspuff", "traser", "malet", "posterior", "bagagli", "задн", "багаж", "后", "後",
      "テール", "ブレーキ", "マフラー"), ("rl", "rr", "bl", "br", "ar", "bk"), _NOT_DIRECTION)
-_IS_LAMP = _keyword_matcher(
+_IS_LAMP = _Keywords(
     ("light", "lamp", "lens", "blinker", "indicator", "signal", "licht", "leuchte", "phare",
      "feu", "faro", "luz", "luce", "fanale", "projector", "led", "brakelight", "taillight",
      "headlight", "ライト", "ランプ", "灯", "燈", "фар", "фонар"))
-_IS_GLASS = _keyword_matcher(
+_IS_GLASS = _Keywords(
     ("glass", "window", "windshield", "windscreen", "glazing", "scheibe", "glas", "fenster",
      "vitre", "verre", "ventana", "vidrio", "cristal", "vetro", "finestrin", "стекл", "окн",
      "ガラス", "窓", "玻璃", "车窗"))
-_IS_ROOF = _keyword_matcher(("roof", "top", "dach", "toit", "techo", "tetto", "крыш", "ルーフ",
+_IS_ROOF = _Keywords(("roof", "top", "dach", "toit", "techo", "tetto", "крыш", "ルーフ",
                              "车顶"))
-_IS_FLOOR = _keyword_matcher(
+_IS_FLOOR = _Keywords(
     ("floor", "underbody", "under", "bottom", "chassis", "dessous", "boden", "unterboden",
      "piso", "suelo", "pavimento", "fondo", "днище", "床", "底"), ("sol",))
-_IS_WHEEL = _keyword_matcher(
+_IS_WHEEL = _Keywords(
     ("tyre", "tire", "wheel", "reifen", "pneu", "neumatic", "neumátic", "rueda", "ruota",
      "roue", "gomma", "колес", "шин", "タイヤ", "ホイール", "轮", "輪"), ("rad",),
     ("steering", "lenkrad", "volant", "spare", "wheelhouse", "wheelwell"))
@@ -1235,16 +1255,14 @@ class _Names:
             self._words[name] = _words(name)
         return self._words[name]
 
-    def matching(self, match, g: int) -> np.ndarray:
+    def matching(self, match: _Keywords, g: int) -> np.ndarray:
         """(K,) bool: the names of grouping ``g`` that ``match`` (remembered)."""
         key = (match, g)
         if key not in self._tests:
-            out = np.zeros(len(self.groupings[g][1]), bool)
-            for i, name in enumerate(self.groupings[g][1]):
-                if (match, name) not in self._tests:
-                    self._tests[match, name] = match(self.words(name))
-                out[i] = self._tests[match, name]
-            self._tests[key] = out
+            names = self.groupings[g][1]
+            h = next(h for h in range(g + 1) if h == g or self.groupings[h][1] == names)
+            self._tests[key] = (self.matching(match, h) if h < g
+                                else match.many([self.words(n) for n in names]))
         return self._tests[key]
 
     def kinds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1316,6 +1334,18 @@ class _NameTable:
                                                    minlength=tot.size) / tot)
         return self._means[key][1]
 
+    def means_on(self, g: int, groups: np.ndarray, value) -> np.ndarray:
+        """(len(groups),) ``means(g, v)[groups]`` for a per-face v that is ``value(faces)``
+        on the faces of those groups (ascending; value: a function of the face indices),
+        computed on those faces only (the same sums, in the same order)."""
+        lab = self.groupings[g][0]
+        on = np.zeros(len(self.share[g]), bool)
+        on[groups] = True
+        faces = np.flatnonzero(on[lab])
+        tot = np.maximum(self.share[g][groups] * self.total_area, 1e-300)
+        return np.bincount(lab[faces], weights=self.area[faces] * value(faces),
+                           minlength=on.size)[groups] / tot
+
     def votes(self, match, value: np.ndarray) -> list[tuple[float, float]]:
         """(weight, area-weighted mean of the per-face ``value``) of the groups whose name
         matches; weight = sqrt of the group's surface share x N_SAMPLES, at most 50 (a big
@@ -1339,20 +1369,22 @@ def _vote(votes: list[tuple[float, float]]) -> float:
     return float(np.clip(2.0 * (w * x).sum() / (w.sum() + 2.0), -1.0, 1.0))
 
 
-def _is_glass(mat, ws: tuple[str, ...]) -> bool:
-    """Window glass: clear (transmission, or blended and see-through) or named so (``ws``:
-    the name's words); lamp covers (a lamp word in the name) are not windows."""
-    if _IS_LAMP(ws):
+def _is_glass(mat, lamp_name: bool, glass_name: bool) -> bool:
+    """Window glass: clear (transmission, or blended and see-through) or named so
+    (``glass_name``: a glass word in its name); lamp covers (``lamp_name``: a lamp word in
+    the name) are not windows."""
+    if lamp_name:
         return False
     clear = mat.transmission > 0.05 or (mat.alpha_mode == "BLEND" and mat.base_color[3] < 0.9)
-    return bool(clear or _IS_GLASS(ws))
+    return bool(clear or glass_name)
 
 
-def _lamp_colour(mat, ws: tuple[str, ...]) -> int:
+def _lamp_colour(mat, lamp_name: bool) -> int:
     """-1 a red lamp, +1 a white / yellow / amber lamp, 0 not a lamp or unknown colour (a
-    lamp: a lamp word in the name or emission; its colour: emissive, else base colour)."""
+    lamp: a lamp word in the name (``lamp_name``) or emission; its colour: emissive, else
+    base colour)."""
     glowing = max(mat.emissive) > 0.1
-    if not (glowing or _IS_LAMP(ws)) or (mat.has_texture and not glowing):
+    if not (glowing or lamp_name) or (mat.has_texture and not glowing):
         return 0
     r, g, b = (float(c) for c in (mat.emissive if glowing else mat.base_color[:3]))
     if r > 0.25 and g < 0.45 * r and b < 0.45 * r:
@@ -1367,11 +1399,12 @@ def _material_kinds(mats: Sequence, words) -> tuple[np.ndarray, np.ndarray, np.n
     (``words``: a name -> its words)."""
     M = len(mats)
     glass, lamp, colour = np.zeros(M, bool), np.zeros(M, bool), np.zeros(M, np.int8)
+    ws = [words(mat.name) for mat in mats]
+    lamp_name, glass_name = _IS_LAMP.many(ws).tolist(), _IS_GLASS.many(ws).tolist()
     for i, mat in enumerate(mats):
-        ws = words(mat.name)
-        glass[i] = _is_glass(mat, ws)
-        lamp[i] = _IS_LAMP(ws) or max(mat.emissive) > 0.1
-        colour[i] = _lamp_colour(mat, ws)
+        glass[i] = _is_glass(mat, lamp_name[i], glass_name[i])
+        lamp[i] = lamp_name[i] or max(mat.emissive) > 0.1
+        colour[i] = _lamp_colour(mat, lamp_name[i])
     return glass, lamp, colour
 
 
@@ -1454,7 +1487,7 @@ def _front_cues(ctx: _Context, wheels: _Wheels | None, names: _NameTable) -> dic
     if lamp.size:
         # a lamp material's surface at the front end minus at the back end: one at both
         # ends (or in the middle) cancels
-        ends = names.means(0, (fs > 0.5).astype(float) - (fs < -0.5))[lamp]
+        ends = names.means_on(0, lamp, lambda f: (fs[f] > 0.5).astype(float) - (fs[f] < -0.5))
         w = np.sqrt(np.minimum(share[lamp] * N_SAMPLES, 50.0))
         cues["lamp_colours"] = _vote(list(zip(w.tolist(), (names.colour[lamp] * ends).tolist())))
     fm = names.material_of_sample
