@@ -382,11 +382,12 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1,
           if total > 0.0 else np.zeros(n, np.intp))
     flip = r1 + r2 > 1.0
     r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
-    p, nrm = _face_points(v, f, fi, r1, r2)
+    xyz = np.ascontiguousarray(v.T)
+    p, nrm = _face_points(xyz, f, fi, r1, r2)
     live = np.flatnonzero(a2 > 0.0)
     fd = (live[rng.integers(0, live.size, n if n_faces is None else n_faces)] if live.size
           else np.zeros(0, np.intp))
-    dp, dn = fc[fd], _face_points(v, f, fd, r1[:0], r2[:0])[1]
+    dp, dn = fc[fd], _face_points(xyz, f, fd, r1[:0], r2[:0])[1]
     return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
 
 
@@ -399,10 +400,10 @@ def _face_geometry(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     a2, fc = np.empty(F), np.empty((F, 3))                # twice the face areas, centroids
     for lo in range(0, F, FACE_BLOCK):                    # in blocks: the temporaries stay
         hi = min(lo + FACE_BLOCK, F)                      # in cache (same bits as one pass)
-        f0, f1, f2 = f[lo:hi].T.astype(np.intp)
-        x0, y0, z0 = x[f0], y[f0], z[f0]
-        ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
-        bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
+        f0, f1, f2 = f[lo:hi].T
+        x0, y0, z0 = x.take(f0), y.take(f0), z.take(f0)
+        ax, ay, az = x.take(f1) - x0, y.take(f1) - y0, z.take(f1) - z0
+        bx, by, bz = x.take(f2) - x0, y.take(f2) - y0, z.take(f2) - z0
         cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
         a2[lo:hi] = np.sqrt(cx * cx + cy * cy + cz * cz)
         fc[lo:hi, 0] = x0 + (ax + bx) / 3.0
@@ -411,17 +412,28 @@ def _face_geometry(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return a2, fc
 
 
-def _face_points(v: np.ndarray, f: np.ndarray, fi: np.ndarray, r1: np.ndarray,
+def _face_points(xyz: np.ndarray, f: np.ndarray, fi: np.ndarray, r1: np.ndarray,
                  r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points ``p0 + r1 (p1 - p0) + r2 (p2 - p0)`` of faces ``fi`` (none when r1 is empty)
-    and the faces' unit normals (zero for a degenerate face)."""
-    corner = v.take(f[fi].astype(np.intp).ravel(), axis=0).reshape(-1, 3, 3)
-    x, a, b = corner[:, 0], corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0]
-    c = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                  a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
-    c /= np.maximum(np.sqrt(c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1] + c[:, 2] * c[:, 2]),
-                    1e-300)[:, None]
-    p = x + r1[:, None] * a + r2[:, None] * b if r1.size else x[:0]
+    and the faces' unit normals (zero for a degenerate face); ``xyz``: the vertices' x, y
+    and z rows (3, V). Coordinate by coordinate on contiguous rows (the same operations on
+    each element as on (N, 3) columns, so the same bits)."""
+    corner = f[fi].T                                      # (3, N) vertex of each corner
+    x0, a, b = [], [], []
+    for row in xyz:
+        c0, c1, c2 = row.take(corner)
+        x0.append(c0)
+        a.append(c1 - c0)
+        b.append(c2 - c0)
+    cx, cy, cz = (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                  a[0] * b[1] - a[1] * b[0])
+    norm = np.maximum(np.sqrt(cx * cx + cy * cy + cz * cz), 1e-300)
+    c = np.empty((len(fi), 3))
+    c[:, 0], c[:, 1], c[:, 2] = cx / norm, cy / norm, cz / norm
+    p = np.empty((len(fi) if r1.size else 0, 3))
+    if r1.size:
+        for k in range(3):
+            p[:, k] = x0[k] + r1 * a[k] + r2 * b[k]
     return p, c
 
 
