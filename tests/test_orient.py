@@ -278,6 +278,15 @@ def test_name_means_on_a_few_groups_equal_the_means_over_all_faces():
                               table.means(0, value)[groups])
 
 
+def test_dilation_by_shifts_equals_scipys_binary_dilation():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(8)
+    for _ in range(200):
+        g = rng.random(tuple(rng.integers(1, 12, 3))) < rng.random()
+        assert np.array_equal(orient._dilate(g), ndimage.binary_dilation(g))
+
+
 # --------------------------------------------------------------------------- modes, overrides
 
 def test_modes_file_and_override():

@@ -1550,7 +1550,8 @@ def _mirrors(ctx: _Context) -> float:
     sb = np.clip(np.floor((s[band] + 1.0) / 0.05).astype(np.intp), 0, 39)
     W = np.zeros((12, 40))
     np.maximum.at(W, (np.minimum(lv, 11), sb), q[band])
-    P = np.pad(W, ((0, 0), (4, 4)))
+    P = np.zeros((12, 48))
+    P[:, 4:44] = W
     nb = np.max([P[:, 4 + d:44 + d] for d in (-4, -3, -2, 2, 3, 4)], axis=0)
     spike = (W - nb > 0.06) & (W > 0)
     pos = (np.nonzero(spike)[1] + 0.5) * 0.05 - 1.0
@@ -1564,9 +1565,11 @@ def _profile(ctx: _Context) -> float:
     of 40 columns along the length) averaged over the last 6 columns at each end."""
     col = np.minimum(((ctx.s + 1.0) * 20.0).astype(np.intp), 39)
     top = np.full(40, np.nan)
-    order = np.lexsort((ctx.t, col))
+    end = np.flatnonzero((col < 6) | (col >= 34))          # only the end columns count
+    col, t = col[end], ctx.t[end]
+    order = np.lexsort((t, col))
     last = np.r_[col[order][1:] != col[order][:-1], True]
-    top[col[order][last]] = ctx.t[order][last]
+    top[col[order][last]] = t[order][last]
     front, rear = top[-6:], top[:6]
     if np.isnan(front).all() or np.isnan(rear).all():
         return 0.0
@@ -1602,6 +1605,19 @@ def _overlapping_vehicles(ctx: _Context, names: _NameTable) -> bool:
             whole += 1
     return whole >= 2
 
+def _dilate(g: np.ndarray) -> np.ndarray:
+    """``scipy.ndimage.binary_dilation(g)`` of a 3-D bool array (one step, the six face
+    neighbours), by shifted ors."""
+    d = g.copy()
+    d[1:] |= g[:-1]
+    d[:-1] |= g[1:]
+    d[:, 1:] |= g[:, :-1]
+    d[:, :-1] |= g[:, 1:]
+    d[:, :, 1:] |= g[:, :, :-1]
+    d[:, :, :-1] |= g[:, :, 1:]
+    return d
+
+
 def _several_vehicles(ctx: _Context) -> bool:
     """Vehicles side by side: nothing crosses the mirror plane (under 0.3 % of the samples
     within 3 % of the half-width of it; a single vehicle's roof, bumpers and floor cross it).
@@ -1619,7 +1635,7 @@ def _several_vehicles(ctx: _Context) -> bool:
         return False
     g = np.zeros(dims, bool)
     g[i[:, 0], i[:, 1], i[:, 2]] = True
-    lab, k = ndimage.label(ndimage.binary_dilation(g), structure=np.ones((3, 3, 3)))
+    lab, k = ndimage.label(_dilate(g), structure=np.ones((3, 3, 3)))
     if k < 2:
         return False
     who = lab[i[:, 0], i[:, 1], i[:, 2]]
