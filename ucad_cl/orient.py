@@ -963,13 +963,14 @@ def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
     if sel.sum() < 12:
         return None
     x, y = pts[sel] @ ctx.a - ctx.s0, pts[sel] @ ctx.b - ctx.t0
-    m = np.stack([nrm[sel] @ ctx.a, nrm[sel] @ ctx.b], axis=1)
-    m /= np.maximum(np.hypot(m[:, 0], m[:, 1]), 1e-12)[:, None]
+    mx, my = nrm[sel] @ ctx.a, nrm[sel] @ ctx.b           # unit normals in the side view
+    norm = np.maximum(np.hypot(mx, my), 1e-12)
+    mx, my = mx / norm, my / norm
     left, aq = q[sel] > 0, np.abs(q[sel])
     found, tried = [], []
     for r in 2 * L * np.geomspace(0.025, 0.13, budget.radii):
         h = 0.15 * r
-        cx, cy = x - r * m[:, 0], y - r * m[:, 1]
+        cx, cy = x - r * mx, y - r * my
         ix = np.floor((cx + L) / h).astype(np.intp)
         iy = np.floor((cy + H + r) / h).astype(np.intp)
         nx, ny = int(2 * L / h) + 2, int((2 * H + 2 * r) / h) + 2
@@ -989,10 +990,10 @@ def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
                 continue                                  # the same circle, one step apart
             tried.append((r, centre))
             mem = np.flatnonzero(ok & (np.abs(ix - i) <= 1) & (np.abs(iy - j) <= 1))
-            c0 = np.array([cx[mem].mean(), cy[mem].mean()])
+            c0 = np.array([np.add.reduce(cx[mem]) / mem.size, np.add.reduce(cy[mem]) / mem.size])
             box_ = np.flatnonzero((np.abs(x - c0[0]) < 1.5 * r) & (np.abs(y - c0[1]) < 1.5 * r))
-            wheel = _check_circle(x[box_], y[box_], m[box_], left[box_], aq[box_], c0, r, L, H,
-                                  budget.wheel_votes)
+            wheel = _check_circle(x[box_], y[box_], mx[box_], my[box_], left[box_], aq[box_],
+                                  c0, r, L, H, budget.wheel_votes)
             if wheel is not None:
                 found.append(wheel)
     if not found:
@@ -1066,7 +1067,7 @@ def _stands(group: list, side: np.ndarray, half_len: float) -> bool:
     return False
 
 
-def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN_VOTES):
+def _check_circle(x, y, mx, my, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN_VOTES):
     """(score, radius, centre) of the wheel pair around a Hough peak (centre ``c``, radius
     ``r``), or None. Its support: the voters within 15 % of r from the circle whose normal
     points along the radius (either sign); centre and radius are refitted to it (algebraic
@@ -1080,9 +1081,9 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN
     for _ in range(2):
         dx, dy = x - c[0], y - c[1]
         d = np.hypot(dx, dy)
-        near = (np.abs(d - r) < 0.15 * r) & (np.abs(dx * m[:, 0] + dy * m[:, 1])
+        near = (np.abs(d - r) < 0.15 * r) & (np.abs(dx * mx + dy * my)
                                               > 0.9 * np.maximum(d, 1e-12))
-        if near.sum() < min_votes:
+        if np.count_nonzero(near) < min_votes:
             return None
         X, Y = x[near], y[near]
         c, r = _fit_circle(X, Y)
@@ -1103,8 +1104,9 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN
     even = float(-(share * np.log(share)).sum() / math.log(8))
     if even < 0.8:
         return None                                       # not supported around a circle
-    mn = m[near] * np.sign((X - c[0]) * m[near, 0] + (Y - c[1]) * m[near, 1])[:, None]
-    turns = np.floor((np.arctan2(mn[:, 1], mn[:, 0]) + math.pi) / (2 * math.pi) * 16) % 16
+    mxn, myn = mx[near], my[near]
+    sgn = np.sign((X - c[0]) * mxn + (Y - c[1]) * myn)     # the normal turned outward
+    turns = np.floor((np.arctan2(myn * sgn, mxn * sgn) + math.pi) / (2 * math.pi) * 16) % 16
     if np.unique(turns).size < 6:
         return None                                       # a few flat faces (a box), not round
     return float(near.sum()) * even, r, c
@@ -1113,7 +1115,7 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN
 def _fit_circle(X: np.ndarray, Y: np.ndarray):
     """Algebraic (Kasa) least-squares circle through points: (centre, radius), or (None,
     None) when they are collinear. Centred normal equations, 2 x 2."""
-    mx, my = X.mean(), Y.mean()
+    mx, my = np.add.reduce(X) / X.size, np.add.reduce(Y) / Y.size   # X.mean(), same bits
     u, v = X - mx, Y - my
     suu, svv, suv = u @ u, v @ v, u @ v
     det = suu * svv - suv * suv
