@@ -1091,12 +1091,13 @@ def _check_circle(x, y, mx, my, left, aq, c, r, half_len, half_h, min_votes=WHEE
             return None
     if r > 0.3 * half_len or abs(c[1]) < 0.35 * half_h:
         return None                                       # too big, or not low: a body arc
-    if left[near].all() or not left[near].any():
+    sides = np.count_nonzero(left[near])
+    if sides == 0 or sides == X.size:
         return None                                       # one side only: not a wheel pair
     if _band_share(aq[near], 0.25) < 0.6:
         return None                                       # spread across: a body arc
     a = np.sort(np.arctan2(Y - c[1], X - c[0]))
-    if np.max(np.diff(np.r_[a, a[0] + 2 * math.pi])) > math.radians(90):
+    if np.max(np.diff(np.concatenate((a, [a[0] + 2 * math.pi])))) > math.radians(90):
         return None                                       # an arc (a wheel arch), not a circle
     hist = np.bincount((np.floor((a + math.pi) / (2 * math.pi) * 8) % 8).astype(np.intp),
                        minlength=8)
@@ -1107,7 +1108,7 @@ def _check_circle(x, y, mx, my, left, aq, c, r, half_len, half_h, min_votes=WHEE
     mxn, myn = mx[near], my[near]
     sgn = np.sign((X - c[0]) * mxn + (Y - c[1]) * myn)     # the normal turned outward
     turns = np.floor((np.arctan2(myn * sgn, mxn * sgn) + math.pi) / (2 * math.pi) * 16) % 16
-    if np.unique(turns).size < 6:
+    if np.count_nonzero(np.bincount(turns.astype(np.intp), minlength=16)) < 6:   # distinct
         return None                                       # a few flat faces (a box), not round
     return float(near.sum()) * even, r, c
 
