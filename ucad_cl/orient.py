@@ -47,7 +47,7 @@ the same decisions; ties go to fixed rules written next to the code):
    ``up_ambiguous`` / ``front_ambiguous`` (confidence under UNCERTAIN_BELOW).
 
 **Cascade** (coarse to fine). The steps above run first on a small budget (``FAST``: 1,024
-area and 2,048 face samples, fewer mirror candidates refined, 6 Hough radii); that cheap pass
+area and 4,096 face samples, fewer mirror candidates refined, 6 Hough radii); that cheap pass
 is kept when it is clearly decided: no flag raised, symmetry at least FAST_ACCEPT_SYMMETRY and
 both confidences at least FAST_ACCEPT_UP / FAST_ACCEPT_FRONT (margins chosen on tuning data:
 generator seeds 800000-800499 and the real models; none of the cheap pass's kept decisions
