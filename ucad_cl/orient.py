@@ -677,16 +677,17 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
         for t in angles:
             r = math.radians(t)
             cands.append(math.cos(r) * pca[:, i] + math.sin(r) * pca[:, j])
-    distinct: list[np.ndarray] = []
-    for n in cands:                                        # drop repeats (within 10 degrees)
-        if all(abs(float(n @ k)) < math.cos(math.radians(10.0)) for k in distinct):
-            distinct.append(n)
+    C = np.array(cands)
+    cos = np.abs(C @ C.T).tolist()                         # |cosine| between candidates
+    distinct: list[int] = []
+    for i in range(len(C)):                                # drop repeats (within 10 degrees)
+        if all(cos[i][k] < math.cos(math.radians(10.0)) for k in distinct):
+            distinct.append(i)
+    C = C[distinct]
     if evals is not None and evals[0] >= 2.0 * evals[1]:
         # clearly elongated: the mirror plane contains the length axis, so its normal is
         # not within 30 degrees of it (a bus's front/back symmetry is not its mirror plane)
-        cands = [n for n in distinct if abs(float(n @ pca[:, 0])) < math.cos(math.radians(30))]
-    else:
-        cands = distinct
+        C = C[np.abs(C @ pca[:, 0]) < math.cos(math.radians(30))]
     sub, sub_n = p[::budget.mirror_stride], nrm[::budget.mirror_stride]
     tree = cKDTree(sub)
     spacing, _ = tree.query(sub[::8], k=2)
@@ -695,13 +696,12 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     ctree = cKDTree(coarse)
     few = coarse[::max(1, len(coarse) // budget.mirror_rank)]
     # every candidate's reflections in one KD query (the same per-point answers)
-    N = np.array(cands)
-    hit = _near(ctree, _reflect_many(few, N, N @ mu).reshape(-1, 3), 4.0 * step)[0] < 4.0 * step
-    scores = hit.reshape(len(cands), -1).mean(axis=1).tolist()
-    order = sorted(range(len(cands)), key=lambda i: (-scores[i], i))   # tie: candidate order
+    hit = _near(ctree, _reflect_many(few, C, C @ mu).reshape(-1, 3), 4.0 * step)[0] < 4.0 * step
+    scores = hit.reshape(len(C), -1).mean(axis=1).tolist()
+    order = sorted(range(len(C)), key=lambda i: (-scores[i], i))   # tie: candidate order
     # two refinement steps for the six best (all at once), then the two best distinct
     # results in full
-    top6 = N[order[:budget.mirror_refined]]
+    top6 = C[order[:budget.mirror_refined]]
     n6, d6 = _refine_planes(ctree, coarse, coarse_n, top6, top6 @ mu, 1.4 * step, iters=2)
     half = coarse[::2]
     hit = _near(ctree, _reflect_many(half, n6, d6).reshape(-1, 3), 1.5 * step)[0] < 1.5 * step
