@@ -766,45 +766,48 @@ def _refine_planes(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: np.nd
         stride = 2 if it < 2 else 1                       # the first steps on fewer samples
         half, half_n = p[::stride], nrm[::stride]
         nl, dl = n[k_live], d[k_live]
-        rx = _reflect_many(half, nl, dl)                  # (K, H, 3)
+        xn = nl @ half.T - dl[:, None]                    # (K, H) signed distances
+        rx = half[None] - 2.0 * xn[:, :, None] * nl[:, None, :]   # reflections (K, H, 3)
         dist, j = _near(tree, rx.reshape(-1, 3), tau)
         dist, j = dist.reshape(len(k_live), -1), j.reshape(len(k_live), -1)
         m = nrm[j]                                        # (K, H, 3) partners' normals
-        rn = half_n[None] - 2.0 * (nl @ half_n.T)[:, :, None] * nl[:, None, :]
-        ok = (dist < tau) & (np.abs(np.einsum("khi,khi->kh", rn, m)) > 0.7)
-        # Gauss-Newton for all live planes at once; unpaired samples weigh 0
+        E = _plane_frames(nl)                             # (K, 3, 3): columns n, u, v
+        me = m @ E                                        # partner normal on n, u, v
+        # the reflected normal of x against its partner's: x_n . m - 2 (n . x_n)(n . m)
+        agree = np.einsum("hi,khi->kh", half_n, m) - 2.0 * (nl @ half_n.T) * me[:, :, 0]
+        ok = (dist < tau) & (np.abs(agree) > 0.7)
         enough = np.count_nonzero(ok, axis=1) >= 16
-        live[k_live[~enough]] = False
-        if not enough.any():
-            break
-        k_on = k_live[enough]
-        nk, dk, okw = nl[enough], dl[enough], ok[enough].astype(np.float64)
-        rk, jk, mm = rx[enough], j[enough], m[enough]
-        # per plane: u = n x e_x (n x e_y when n is near e_x), v = n x u
-        near_x = np.abs(nk[:, 0]) >= 0.9
-        zero = np.zeros(len(nk))
-        u = np.stack([np.where(near_x, -nk[:, 2], zero), np.where(near_x, zero, nk[:, 2]),
-                      np.where(near_x, nk[:, 0], -nk[:, 1])], axis=1)
-        u /= np.sqrt((u * u).sum(axis=1))[:, None]
-        v = np.stack([nk[:, 1] * u[:, 2] - nk[:, 2] * u[:, 1],
-                      nk[:, 2] * u[:, 0] - nk[:, 0] * u[:, 2],
-                      nk[:, 0] * u[:, 1] - nk[:, 1] * u[:, 0]], axis=1)
-        E = np.stack([nk, u, v], axis=2)                  # (K, 3, 3): columns n, u, v
-        xe, me = half @ E, mm @ E                         # (K, H, 3): x and partner normal on n, u, v
-        e0 = ((rk - p[jk]) * mm).sum(axis=2)
-        xn, mn = xe[:, :, 0] - dk[:, None], me[:, :, 0]
-        J = np.stack([-2.0 * (xe[:, :, 1] * mn + xn * me[:, :, 1]),
-                      -2.0 * (xe[:, :, 2] * mn + xn * me[:, :, 2]), 2.0 * mn], axis=2)
-        Jw = (J * okw[:, :, None]).transpose(0, 2, 1)     # (K, 3, H), unpaired samples 0
+        # Gauss-Newton for all live planes at once (unpaired samples weigh 0), on the
+        # normal's two degrees of freedom (u, v) and the offset
+        xe, mn = half @ E[:, :, 1:], me[:, :, :1]
+        J = np.empty(me.shape)
+        J[:, :, :2] = -2.0 * (xe * mn + xn[:, :, None] * me[:, :, 1:])
+        J[:, :, 2] = 2.0 * mn[:, :, 0]
+        e0 = ((rx - p[j]) * m).sum(axis=2)
+        Jw = (J * ok[:, :, None]).transpose(0, 2, 1)      # (K, 3, H)
         delta = np.linalg.solve(Jw @ J + 1e-12 * np.eye(3), -(Jw @ e0[:, :, None]))[:, :, 0]
-        n2 = nk + delta[:, :1] * u + delta[:, 1:2] * v
+        n2 = nl + delta[:, :1] * E[:, :, 1] + delta[:, 1:2] * E[:, :, 2]
         n2 /= np.sqrt((n2 * n2).sum(axis=1))[:, None]
-        moved = (n2 * nk).sum(axis=1)
-        n[k_on], d[k_on] = n2, dk + delta[:, 2]
+        moved = (n2 * nl).sum(axis=1)
+        k_on = k_live[enough]                             # fewer than 16 pairs: stop
+        n[k_on], d[k_on] = n2[enough], dl[enough] + delta[enough, 2]
+        live[k_live[~enough]] = False
         if tau <= tau_min:
-            live[k_on[moved > math.cos(math.radians(0.02))]] = False
+            live[k_on[moved[enough] > math.cos(math.radians(0.02))]] = False
         tau = max(0.5 * tau, tau_min)
     return n, d
+
+
+def _plane_frames(n: np.ndarray) -> np.ndarray:
+    """(K, 3, 3): for each unit normal n[k] the columns n, u, v, with u = n x e_x (n x e_y
+    when n is within 26 degrees of e_x) made unit and v = n x u."""
+    out = []
+    for a, b, c in n.tolist():
+        u = (0.0, c, -b) if abs(a) < 0.9 else (-c, 0.0, a)
+        s = 1.0 / math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+        u0, u1, u2 = u[0] * s, u[1] * s, u[2] * s
+        out.append(((a, u0, b * u2 - c * u1), (b, u1, c * u0 - a * u2), (c, u2, a * u1 - b * u0)))
+    return np.array(out)
 
 
 # ----------------------------------------------------------------------------- side view
