@@ -1280,6 +1280,7 @@ class _Names:
         self._tests: dict = {}
         self._kinds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._node_groups: tuple | None = None
+        self._sorted: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def words(self, name: str) -> tuple[str, ...]:
         if name not in self._words:
@@ -1295,6 +1296,44 @@ class _Names:
             self._tests[key] = (self.matching(match, h) if h < g
                                 else match.many([self.words(n) for n in names]))
         return self._tests[key]
+
+    def _by_group(self, g: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(faces sorted by their group in grouping ``g`` (stable), where each non-empty
+        group starts in that order, those groups' labels); once per mesh."""
+        if g not in self._sorted:
+            lab = self.groupings[g][0]
+            order = np.argsort(lab, kind="stable")
+            starts = np.flatnonzero(np.r_[True, np.diff(lab[order]) != 0]) if lab.size else order
+            self._sorted[g] = (order, starts, lab[order[starts]])
+        return self._sorted[g]
+
+    def sums(self, g: int, weights: np.ndarray) -> np.ndarray:
+        """(K,) per-face ``weights`` summed over each group of grouping ``g``, group by group
+        in face order (``np.add.reduceat`` over the faces sorted by group: several times
+        faster than ``np.bincount`` with weights)."""
+        order, starts, present = self._by_group(g)
+        out = np.zeros(len(self.groupings[g][1]))
+        if starts.size:
+            out[present] = np.add.reduceat(weights[order], starts)
+        return out
+
+    def sums_on(self, g: int, groups: np.ndarray, weight) -> np.ndarray:
+        """(len(groups),) ``sums(g, w)[groups]`` for a per-face w that is ``weight(faces)``
+        on the faces of those groups (ascending; weight: a function of face indices),
+        computed on those faces only (the same values in the same order per group)."""
+        order, starts, present = self._by_group(g)
+        out = np.zeros(len(groups))
+        if present.size == 0:
+            return out
+        k = np.minimum(np.searchsorted(present, groups), present.size - 1)
+        has = present[k] == groups                        # groups with faces
+        s = starts[k[has]]
+        lens = np.r_[starts[1:], order.size][k[has]] - s
+        if lens.size:
+            first = np.cumsum(lens) - lens
+            faces = order[np.repeat(s - first, lens) + np.arange(int(lens.sum()))]
+            out[has] = np.add.reduceat(weight(faces), first)
+        return out
 
     def kinds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(glass (M,) bool, lamp (M,) bool, lamp colour (M,) int8) of every material."""
@@ -1339,9 +1378,9 @@ class _NameTable:
         self.area = S.face_area
         self.total_area = total = max(float(self.area.sum()), 1e-300)
         share: list[np.ndarray] = []                              # surface share of each group
-        for g, (lab, group_names) in enumerate(self.groupings):
+        for g in range(len(self.groupings)):
             share.append(share[names.same[g]] if names.same[g] < g else
-                         np.bincount(lab, weights=self.area, minlength=len(group_names)) / total)
+                         names.sums(g, self.area) / total)
         self.share = share
         self._means: dict = {}          # (grouping, id(value)) -> (value kept alive, means)
         glass, lamp, colour = names.kinds()
@@ -1359,23 +1398,16 @@ class _NameTable:
         g = self.names.same[g]
         key = (g, id(value))
         if key not in self._means:
-            lab = self.groupings[g][0]
             tot = np.maximum(self.share[g] * self.total_area, 1e-300)
-            self._means[key] = (value, np.bincount(lab, weights=self.area * value,
-                                                   minlength=tot.size) / tot)
+            self._means[key] = (value, self.names.sums(g, self.area * value) / tot)
         return self._means[key][1]
 
     def means_on(self, g: int, groups: np.ndarray, value) -> np.ndarray:
         """(len(groups),) ``means(g, v)[groups]`` for a per-face v that is ``value(faces)``
         on the faces of those groups (ascending; value: a function of the face indices),
         computed on those faces only (the same sums, in the same order)."""
-        lab = self.groupings[g][0]
-        on = np.zeros(len(self.share[g]), bool)
-        on[groups] = True
-        faces = np.flatnonzero(on[lab])
         tot = np.maximum(self.share[g][groups] * self.total_area, 1e-300)
-        return np.bincount(lab[faces], weights=self.area[faces] * value(faces),
-                           minlength=on.size)[groups] / tot
+        return self.names.sums_on(g, groups, lambda f: self.area[f] * value(f)) / tot
 
     def votes(self, match, value: np.ndarray) -> list[tuple[float, float]]:
         """(weight, area-weighted mean of the per-face ``value``) of the groups whose name
