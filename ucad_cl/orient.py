@@ -970,16 +970,17 @@ def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
     on a line within 30 degrees of the length axis."""
     L, H = ctx.half_len, ctx.half_h
     S = ctx.S
-    pts = np.r_[S.points, S.detail_points]                 # area samples and face samples
-    nrm = np.r_[S.normals, S.detail_normals]
-    q = (pts @ ctx.w - ctx.wd) / ctx.half_w
-    nq = nrm @ ctx.w
-    sel = (np.abs(nq) < 0.35) & (np.abs(q) > 0.3)
-    if sel.sum() < 12:
+    frame = np.stack([ctx.a, ctx.b, ctx.w])                # rows a, b, w
+    # area samples and face samples on a, b, w (rows)
+    pts = frame @ np.concatenate([S.points, S.detail_points]).T
+    nrm = frame @ np.concatenate([S.normals, S.detail_normals]).T
+    q = (pts[2] - ctx.wd) / ctx.half_w
+    sel = (np.abs(nrm[2]) < 0.35) & (np.abs(q) > 0.3)
+    if np.count_nonzero(sel) < 12:
         return None
-    x, y = pts[sel] @ ctx.a - ctx.s0, pts[sel] @ ctx.b - ctx.t0
-    mx, my = nrm[sel] @ ctx.a, nrm[sel] @ ctx.b           # unit normals in the side view
-    norm = np.maximum(np.hypot(mx, my), 1e-12)
+    x, y = pts[0, sel] - ctx.s0, pts[1, sel] - ctx.t0
+    mx, my = nrm[0, sel], nrm[1, sel]                     # unit normals in the side view
+    norm = np.maximum(np.sqrt(mx * mx + my * my), 1e-12)
     mx, my = mx / norm, my / norm
     left, aq = q[sel] > 0, np.abs(q[sel])
     found, tried = [], []
