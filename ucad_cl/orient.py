@@ -402,7 +402,7 @@ def _face_geometry(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     a2, fc = np.empty(F), np.empty((F, 3))                # twice the face areas, centroids
     for lo in range(0, F, FACE_BLOCK):                    # in blocks: the temporaries stay
         hi = min(lo + FACE_BLOCK, F)                      # in cache (same bits as one pass)
-        f0, f1, f2 = f[lo:hi].T
+        f0, f1, f2 = f[lo:hi].T.astype(np.intp)          # take casts other index types
         x0, y0, z0 = x.take(f0), y.take(f0), z.take(f0)
         ax, ay, az = x.take(f1) - x0, y.take(f1) - y0, z.take(f1) - z0
         bx, by, bz = x.take(f2) - x0, y.take(f2) - y0, z.take(f2) - z0
@@ -420,7 +420,7 @@ def _face_points(xyz: np.ndarray, f: np.ndarray, fi: np.ndarray, r1: np.ndarray,
     and the faces' unit normals (zero for a degenerate face); ``xyz``: the vertices' x, y
     and z rows (3, V). Coordinate by coordinate on contiguous rows (the same operations on
     each element as on (N, 3) columns, so the same bits)."""
-    corner = f[fi].T                                      # (3, N) vertex of each corner
+    corner = f[fi].T.astype(np.intp)                      # (3, N) vertex of each corner
     x0, a, b = [], [], []
     for row in xyz:
         c0, c1, c2 = row.take(corner)
