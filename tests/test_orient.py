@@ -242,6 +242,51 @@ def test_trimesh_node_name_suffixes_do_not_change_the_estimate():
     assert oa.as_dict() == orient.estimate_orientation(mesh).as_dict()
 
 
+def test_keyword_scan_of_many_names_equals_the_test_name_by_name():
+    """``_Keywords.many`` (one regular-expression scan over all names) gives what the test
+    gives name by name, on random compositions of keywords, tokens, exclusions, non-ASCII
+    keywords, separators and noise."""
+    import random
+
+    rng = random.Random(5)
+    pool = ["front", "Rear", "FL", "rr", "headrest", "HeadLight", "tail", "フロント", "前灯",
+            "wheel", "steering_wheel", "Rad", "sol", "glass", "Window", "x", "", "lamp", "LED",
+            "brake", "задний", "фара", "tyre", "wheelhouse", "roof", "underbody", "bk", "f",
+            "mat_12", "车窗", "spareWheel", "TopCoat", "backrest"]
+    names = ["_".join(rng.choice(pool) for _ in range(rng.randint(0, 4))) for _ in range(3000)]
+    words = [orient._words(n) for n in names]
+    sets = [v for v in vars(orient).values() if isinstance(v, orient._Keywords)]
+    assert len(sets) >= 7
+    for kw in sets:
+        expected = np.array([kw(w) for w in words])
+        assert expected.any() and not expected.all()
+        assert np.array_equal(kw.many(words), expected)
+        assert np.array_equal(kw.many(words[:1]), expected[:1])
+        assert kw.many([]).size == 0
+
+
+def test_name_means_on_a_few_groups_equal_the_means_over_all_faces():
+    """``_NameTable.means_on`` (sums over the faces of the groups asked about) is bit-identical
+    to ``means`` over every face."""
+    mesh = _synth(4, "sedan").mesh()
+    geometry = orient._face_geometry(mesh)
+    S = orient._surface_samples(mesh, 1024, geometry=geometry)
+    table = orient._NameTable(orient._Names(mesh), S)
+    value = np.sin(37.0 * geometry[1][:, 0]) + geometry[1][:, 1]
+    for groups in (np.array([0]), np.array([1, 4, 5]), np.arange(len(mesh.materials))):
+        assert np.array_equal(table.means_on(0, groups, lambda f: value[f]),
+                              table.means(0, value)[groups])
+
+
+def test_dilation_by_shifts_equals_scipys_binary_dilation():
+    from scipy import ndimage
+
+    rng = np.random.default_rng(8)
+    for _ in range(200):
+        g = rng.random(tuple(rng.integers(1, 12, 3))) < rng.random()
+        assert np.array_equal(orient._dilate(g), ndimage.binary_dilation(g))
+
+
 # --------------------------------------------------------------------------- modes, overrides
 
 def test_modes_file_and_override():

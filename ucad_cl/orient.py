@@ -47,7 +47,7 @@ the same decisions; ties go to fixed rules written next to the code):
    ``up_ambiguous`` / ``front_ambiguous`` (confidence under UNCERTAIN_BELOW).
 
 **Cascade** (coarse to fine). The steps above run first on a small budget (``FAST``: 1,024
-area and 2,048 face samples, fewer mirror candidates refined, 6 Hough radii); that cheap pass
+area and 4,096 face samples, fewer mirror candidates refined, 6 Hough radii); that cheap pass
 is kept when it is clearly decided: no flag raised, symmetry at least FAST_ACCEPT_SYMMETRY and
 both confidences at least FAST_ACCEPT_UP / FAST_ACCEPT_FRONT (margins chosen on tuning data:
 generator seeds 800000-800499 and the real models; none of the cheap pass's kept decisions
@@ -102,12 +102,13 @@ MIRROR_MIN_SHIFT = 0.002        # by more than this and at most that (bbox-diago
 class Budget(NamedTuple):
     """How much work one pass of the estimate does: area samples and face samples
     (``_surface_samples``); the mirror plane built on every ``mirror_stride``-th area
-    sample, with ``mirror_refined`` candidates refined two steps and ``mirror_final`` of
-    them in full (``_mirror_plane``); Hough radii and peaks per radius in the wheel search,
+    sample, candidates ranked on ``mirror_rank`` of them, ``mirror_refined`` candidates
+    refined two steps and ``mirror_final`` of them in full (``_mirror_plane``); Hough radii and peaks per radius in the wheel search,
     and the Hough votes a wheel needs (it scales with the samples; ``_find_wheels``)."""
     samples: int
     face_samples: int
     mirror_stride: int
+    mirror_rank: int
     mirror_refined: int
     mirror_final: int
     radii: int
@@ -117,8 +118,9 @@ class Budget(NamedTuple):
 
 #: today's estimate; FAST: the cheap first pass of the cascade (see ``_estimate``)
 FULL = Budget(samples=N_SAMPLES, face_samples=N_SAMPLES, mirror_stride=MIRROR_STRIDE,
-              mirror_refined=6, mirror_final=2, radii=8, peaks=5, wheel_votes=WHEEL_MIN_VOTES)
-FAST = Budget(samples=1024, face_samples=4096, mirror_stride=1, mirror_refined=3,
+              mirror_rank=128, mirror_refined=6, mirror_final=2, radii=8, peaks=5,
+              wheel_votes=WHEEL_MIN_VOTES)
+FAST = Budget(samples=1024, face_samples=4096, mirror_stride=1, mirror_rank=64, mirror_refined=3,
               mirror_final=1, radii=6, peaks=3, wheel_votes=6)
 #: the cheap pass is kept when it raises no flag and both confidences reach these
 #: (chosen on tuning data only: generator seeds 800000-800499 and the real models)
@@ -167,7 +169,8 @@ def estimate_orientation(mesh: Mesh, *, disabled: Sequence[str] = (),
 
 def takes_fast_path(mesh: Mesh, *, disabled: Sequence[str] = ()) -> bool:
     """True when the cascade's cheap pass decides ``mesh`` (the full estimate is not run)."""
-    return _estimate_pass(mesh, disabled, FAST, _face_geometry(mesh), give_up=True) is not None
+    return _estimate_pass(mesh, disabled, FAST, _face_geometry(mesh), _Names(mesh),
+                          give_up=True) is not None
 
 
 def in_frame(mesh: Mesh, file_to_norm: np.ndarray) -> Mesh:
@@ -381,11 +384,12 @@ def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1,
           if total > 0.0 else np.zeros(n, np.intp))
     flip = r1 + r2 > 1.0
     r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
-    p, nrm = _face_points(v, f, fi, r1, r2)
+    xyz = np.ascontiguousarray(v.T)
+    p, nrm = _face_points(xyz, f, fi, r1, r2)
     live = np.flatnonzero(a2 > 0.0)
     fd = (live[rng.integers(0, live.size, n if n_faces is None else n_faces)] if live.size
           else np.zeros(0, np.intp))
-    dp, dn = fc[fd], _face_points(v, f, fd, r1[:0], r2[:0])[1]
+    dp, dn = fc[fd], _face_points(xyz, f, fd, r1[:0], r2[:0])[1]
     return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
 
 
@@ -398,10 +402,10 @@ def _face_geometry(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     a2, fc = np.empty(F), np.empty((F, 3))                # twice the face areas, centroids
     for lo in range(0, F, FACE_BLOCK):                    # in blocks: the temporaries stay
         hi = min(lo + FACE_BLOCK, F)                      # in cache (same bits as one pass)
-        f0, f1, f2 = f[lo:hi].T.astype(np.intp)
-        x0, y0, z0 = x[f0], y[f0], z[f0]
-        ax, ay, az = x[f1] - x0, y[f1] - y0, z[f1] - z0
-        bx, by, bz = x[f2] - x0, y[f2] - y0, z[f2] - z0
+        f0, f1, f2 = f[lo:hi].T.astype(np.intp)          # take casts other index types
+        x0, y0, z0 = x.take(f0), y.take(f0), z.take(f0)
+        ax, ay, az = x.take(f1) - x0, y.take(f1) - y0, z.take(f1) - z0
+        bx, by, bz = x.take(f2) - x0, y.take(f2) - y0, z.take(f2) - z0
         cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
         a2[lo:hi] = np.sqrt(cx * cx + cy * cy + cz * cz)
         fc[lo:hi, 0] = x0 + (ax + bx) / 3.0
@@ -410,17 +414,28 @@ def _face_geometry(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     return a2, fc
 
 
-def _face_points(v: np.ndarray, f: np.ndarray, fi: np.ndarray, r1: np.ndarray,
+def _face_points(xyz: np.ndarray, f: np.ndarray, fi: np.ndarray, r1: np.ndarray,
                  r2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points ``p0 + r1 (p1 - p0) + r2 (p2 - p0)`` of faces ``fi`` (none when r1 is empty)
-    and the faces' unit normals (zero for a degenerate face)."""
-    corner = v.take(f[fi].astype(np.intp).ravel(), axis=0).reshape(-1, 3, 3)
-    x, a, b = corner[:, 0], corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0]
-    c = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                  a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
-    c /= np.maximum(np.sqrt(c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1] + c[:, 2] * c[:, 2]),
-                    1e-300)[:, None]
-    p = x + r1[:, None] * a + r2[:, None] * b if r1.size else x[:0]
+    and the faces' unit normals (zero for a degenerate face); ``xyz``: the vertices' x, y
+    and z rows (3, V). Coordinate by coordinate on contiguous rows (the same operations on
+    each element as on (N, 3) columns, so the same bits)."""
+    corner = f[fi].T.astype(np.intp)                      # (3, N) vertex of each corner
+    x0, a, b = [], [], []
+    for row in xyz:
+        c0, c1, c2 = row.take(corner)
+        x0.append(c0)
+        a.append(c1 - c0)
+        b.append(c2 - c0)
+    cx, cy, cz = (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                  a[0] * b[1] - a[1] * b[0])
+    norm = np.maximum(np.sqrt(cx * cx + cy * cy + cz * cz), 1e-300)
+    c = np.empty((len(fi), 3))
+    c[:, 0], c[:, 1], c[:, 2] = cx / norm, cy / norm, cz / norm
+    p = np.empty((len(fi) if r1.size else 0, 3))
+    if r1.size:
+        for k in range(3):
+            p[:, k] = x0[k] + r1 * a[k] + r2 * b[k]
     return p, c
 
 
@@ -437,11 +452,12 @@ def _estimate(mesh: Mesh, disabled: Sequence[str] = (),
     """(orientation, mirror plane (normal, offset, a point on it) or None), by a cascade:
     a cheap pass (budget FAST) is kept when it is clearly decided; otherwise the full
     estimate (budget FULL) decides. The cheap pass gives up as soon as it cannot be kept."""
-    geometry = _face_geometry(mesh)
-    fast = _estimate_pass(mesh, disabled, FAST, geometry, give_up=True) if cascade else None
+    geometry, names = _face_geometry(mesh), _Names(mesh)       # shared by both passes
+    fast = (_estimate_pass(mesh, disabled, FAST, geometry, names, give_up=True) if cascade
+            else None)
     if fast is not None:
         return fast
-    return _estimate_pass(mesh, disabled, FULL, geometry)
+    return _estimate_pass(mesh, disabled, FULL, geometry, names)
 
 
 def _clearly_decided(o: Orientation) -> bool:
@@ -452,8 +468,8 @@ def _clearly_decided(o: Orientation) -> bool:
 
 
 def _estimate_pass(mesh: Mesh, disabled: Sequence[str], budget: Budget,
-                   geometry: tuple[np.ndarray, np.ndarray], give_up: bool = False
-                   ) -> tuple[Orientation, tuple | None] | None:
+                   geometry: tuple[np.ndarray, np.ndarray], mesh_names: _Names,
+                   give_up: bool = False) -> tuple[Orientation, tuple | None] | None:
     """One pass of the estimate with the given budget (see ``_estimate``). ``give_up``:
     None as soon as the result cannot be clearly decided (``_clearly_decided``): a flag
     is raised or a confidence or the symmetry falls under its margin; the steps are ordered
@@ -498,7 +514,7 @@ def _estimate_pass(mesh: Mesh, disabled: Sequence[str], budget: Budget,
     else:
         flags.append("no_wheels")
         ctx.level_from_hull()
-    names = _NameTable(mesh, S)
+    names = _NameTable(mesh_names, S)
     up_cues = _up_cues(ctx, wheels, names)
     if base is not None:
         up_cues["ground_plane"] = float(np.clip(3.0 * (base_up @ ctx.b), -1, 1))
@@ -643,9 +659,9 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     between the two minor axes, whose order is arbitrary when width and height are alike;
     45 degrees between the major and each minor one), each through the centroid; for a clearly
     elongated body (``evals``: largest variance twice the next) none within 30 degrees of its
-    length axis. They are ranked by the share of 128 reflected samples landing near a sample
-    (KD tree of every 2 x ``budget.mirror_stride``-th sample); the best six
-    (``budget.mirror_refined``) get two refinement steps (``_refine_planes``, on the same
+    length axis. They are ranked by the share of 128 (``budget.mirror_rank``) reflected
+    samples landing near a sample (KD tree of every 2 x ``budget.mirror_stride``-th sample);
+    the best six (``budget.mirror_refined``) get two refinement steps (``_refine_planes``, on the same
     samples; neighbouring candidates can fall into different basins), and the two best
     distinct results (``budget.mirror_final``) are refined in full. The winner has the most
     of every ``budget.mirror_stride``-th sample whose reflection lands within one sample
@@ -661,31 +677,31 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
         for t in angles:
             r = math.radians(t)
             cands.append(math.cos(r) * pca[:, i] + math.sin(r) * pca[:, j])
-    distinct: list[np.ndarray] = []
-    for n in cands:                                        # drop repeats (within 10 degrees)
-        if all(abs(float(n @ k)) < math.cos(math.radians(10.0)) for k in distinct):
-            distinct.append(n)
+    C = np.array(cands)
+    cos = np.abs(C @ C.T).tolist()                         # |cosine| between candidates
+    distinct: list[int] = []
+    for i in range(len(C)):                                # drop repeats (within 10 degrees)
+        if all(cos[i][k] < math.cos(math.radians(10.0)) for k in distinct):
+            distinct.append(i)
+    C = C[distinct]
     if evals is not None and evals[0] >= 2.0 * evals[1]:
         # clearly elongated: the mirror plane contains the length axis, so its normal is
         # not within 30 degrees of it (a bus's front/back symmetry is not its mirror plane)
-        cands = [n for n in distinct if abs(float(n @ pca[:, 0])) < math.cos(math.radians(30))]
-    else:
-        cands = distinct
+        C = C[np.abs(C @ pca[:, 0]) < math.cos(math.radians(30))]
     sub, sub_n = p[::budget.mirror_stride], nrm[::budget.mirror_stride]
     tree = cKDTree(sub)
     spacing, _ = tree.query(sub[::8], k=2)
     step = float(_quantile(spacing[:, 1], 0.5)) + 1e-12    # typical sample spacing
     coarse, coarse_n = sub[::2], sub_n[::2]                # ranking and refining: half of them
     ctree = cKDTree(coarse)
-    few = coarse[::max(1, len(coarse) // 128)]
+    few = coarse[::max(1, len(coarse) // budget.mirror_rank)]
     # every candidate's reflections in one KD query (the same per-point answers)
-    N = np.array(cands)
-    hit = _near(ctree, _reflect_many(few, N, N @ mu).reshape(-1, 3), 4.0 * step)[0] < 4.0 * step
-    scores = hit.reshape(len(cands), -1).mean(axis=1).tolist()
-    order = sorted(range(len(cands)), key=lambda i: (-scores[i], i))   # tie: candidate order
-    # two refinement steps for the six best (in lockstep), then the two best distinct
+    hit = _near(ctree, _reflect_many(few, C, C @ mu).reshape(-1, 3), 4.0 * step)[0] < 4.0 * step
+    scores = hit.reshape(len(C), -1).mean(axis=1).tolist()
+    order = sorted(range(len(C)), key=lambda i: (-scores[i], i))   # tie: candidate order
+    # two refinement steps for the six best (all at once), then the two best distinct
     # results in full
-    top6 = N[order[:budget.mirror_refined]]
+    top6 = C[order[:budget.mirror_refined]]
     n6, d6 = _refine_planes(ctree, coarse, coarse_n, top6, top6 @ mu, 1.4 * step, iters=2)
     half = coarse[::2]
     hit = _near(ctree, _reflect_many(half, n6, d6).reshape(-1, 3), 1.5 * step)[0] < 1.5 * step
@@ -750,35 +766,48 @@ def _refine_planes(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: np.nd
         stride = 2 if it < 2 else 1                       # the first steps on fewer samples
         half, half_n = p[::stride], nrm[::stride]
         nl, dl = n[k_live], d[k_live]
-        rx = _reflect_many(half, nl, dl)                  # (K, H, 3)
+        xn = nl @ half.T - dl[:, None]                    # (K, H) signed distances
+        rx = half[None] - 2.0 * xn[:, :, None] * nl[:, None, :]   # reflections (K, H, 3)
         dist, j = _near(tree, rx.reshape(-1, 3), tau)
         dist, j = dist.reshape(len(k_live), -1), j.reshape(len(k_live), -1)
         m = nrm[j]                                        # (K, H, 3) partners' normals
-        rn = half_n[None] - 2.0 * (nl @ half_n.T)[:, :, None] * nl[:, None, :]
-        ok = (dist < tau) & (np.abs(np.einsum("khi,khi->kh", rn, m)) > 0.7)
-        for row, k in enumerate(k_live):
-            okk = ok[row]
-            if okk.sum() < 16:
-                live[k] = False
-                continue
-            nk, dk = n[k], float(d[k])
-            x, mm = half[okk], m[row, okk]
-            u = _cross3(nk, (1.0, 0.0, 0.0) if abs(nk[0]) < 0.9 else (0.0, 1.0, 0.0))
-            u /= math.sqrt(u @ u)
-            v = _cross3(nk, u)
-            e0 = np.einsum("ij,ij->i", rx[row, okk] - p[j[row, okk]], mm)
-            xn, mn = x @ nk - dk, mm @ nk
-            J = np.stack([-2.0 * (x @ u) * mn - 2.0 * xn * (mm @ u),
-                          -2.0 * (x @ v) * mn - 2.0 * xn * (mm @ v), 2.0 * mn], axis=1)
-            delta = np.linalg.solve(J.T @ J + 1e-12 * np.eye(3), -(J.T @ e0))
-            n2 = nk + delta[0] * u + delta[1] * v
-            n2 /= np.linalg.norm(n2)
-            moved = float(n2 @ nk)
-            n[k], d[k] = n2, dk + float(delta[2])
-            if tau <= tau_min and moved > math.cos(math.radians(0.02)):
-                live[k] = False
+        E = _plane_frames(nl)                             # (K, 3, 3): columns n, u, v
+        me = m @ E                                        # partner normal on n, u, v
+        # the reflected normal of x against its partner's: x_n . m - 2 (n . x_n)(n . m)
+        agree = np.einsum("hi,khi->kh", half_n, m) - 2.0 * (nl @ half_n.T) * me[:, :, 0]
+        ok = (dist < tau) & (np.abs(agree) > 0.7)
+        enough = np.count_nonzero(ok, axis=1) >= 16
+        # Gauss-Newton for all live planes at once (unpaired samples weigh 0), on the
+        # normal's two degrees of freedom (u, v) and the offset
+        xe, mn = half @ E[:, :, 1:], me[:, :, :1]
+        J = np.empty(me.shape)
+        J[:, :, :2] = -2.0 * (xe * mn + xn[:, :, None] * me[:, :, 1:])
+        J[:, :, 2] = 2.0 * mn[:, :, 0]
+        e0 = ((rx - p[j]) * m).sum(axis=2)
+        Jw = (J * ok[:, :, None]).transpose(0, 2, 1)      # (K, 3, H)
+        delta = np.linalg.solve(Jw @ J + 1e-12 * np.eye(3), -(Jw @ e0[:, :, None]))[:, :, 0]
+        n2 = nl + delta[:, :1] * E[:, :, 1] + delta[:, 1:2] * E[:, :, 2]
+        n2 /= np.sqrt((n2 * n2).sum(axis=1))[:, None]
+        moved = (n2 * nl).sum(axis=1)
+        k_on = k_live[enough]                             # fewer than 16 pairs: stop
+        n[k_on], d[k_on] = n2[enough], dl[enough] + delta[enough, 2]
+        live[k_live[~enough]] = False
+        if tau <= tau_min:
+            live[k_on[moved[enough] > math.cos(math.radians(0.02))]] = False
         tau = max(0.5 * tau, tau_min)
     return n, d
+
+
+def _plane_frames(n: np.ndarray) -> np.ndarray:
+    """(K, 3, 3): for each unit normal n[k] the columns n, u, v, with u = n x e_x (n x e_y
+    when n is within 26 degrees of e_x) made unit and v = n x u."""
+    out = []
+    for a, b, c in n.tolist():
+        u = (0.0, c, -b) if abs(a) < 0.9 else (-c, 0.0, a)
+        s = 1.0 / math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+        u0, u1, u2 = u[0] * s, u[1] * s, u[2] * s
+        out.append(((a, u0, b * u2 - c * u1), (b, u1, c * u0 - a * u2), (c, u2, a * u1 - b * u0)))
+    return np.array(out)
 
 
 # ----------------------------------------------------------------------------- side view
@@ -941,21 +970,23 @@ def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
     on a line within 30 degrees of the length axis."""
     L, H = ctx.half_len, ctx.half_h
     S = ctx.S
-    pts = np.r_[S.points, S.detail_points]                 # area samples and face samples
-    nrm = np.r_[S.normals, S.detail_normals]
-    q = (pts @ ctx.w - ctx.wd) / ctx.half_w
-    nq = nrm @ ctx.w
-    sel = (np.abs(nq) < 0.35) & (np.abs(q) > 0.3)
-    if sel.sum() < 12:
+    frame = np.stack([ctx.a, ctx.b, ctx.w])                # rows a, b, w
+    # area samples and face samples on a, b, w (rows)
+    pts = frame @ np.concatenate([S.points, S.detail_points]).T
+    nrm = frame @ np.concatenate([S.normals, S.detail_normals]).T
+    q = (pts[2] - ctx.wd) / ctx.half_w
+    sel = (np.abs(nrm[2]) < 0.35) & (np.abs(q) > 0.3)
+    if np.count_nonzero(sel) < 12:
         return None
-    x, y = pts[sel] @ ctx.a - ctx.s0, pts[sel] @ ctx.b - ctx.t0
-    m = np.stack([nrm[sel] @ ctx.a, nrm[sel] @ ctx.b], axis=1)
-    m /= np.maximum(np.hypot(m[:, 0], m[:, 1]), 1e-12)[:, None]
+    x, y = pts[0, sel] - ctx.s0, pts[1, sel] - ctx.t0
+    mx, my = nrm[0, sel], nrm[1, sel]                     # unit normals in the side view
+    norm = np.maximum(np.sqrt(mx * mx + my * my), 1e-12)
+    mx, my = mx / norm, my / norm
     left, aq = q[sel] > 0, np.abs(q[sel])
     found, tried = [], []
     for r in 2 * L * np.geomspace(0.025, 0.13, budget.radii):
         h = 0.15 * r
-        cx, cy = x - r * m[:, 0], y - r * m[:, 1]
+        cx, cy = x - r * mx, y - r * my
         ix = np.floor((cx + L) / h).astype(np.intp)
         iy = np.floor((cy + H + r) / h).astype(np.intp)
         nx, ny = int(2 * L / h) + 2, int((2 * H + 2 * r) / h) + 2
@@ -975,10 +1006,10 @@ def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
                 continue                                  # the same circle, one step apart
             tried.append((r, centre))
             mem = np.flatnonzero(ok & (np.abs(ix - i) <= 1) & (np.abs(iy - j) <= 1))
-            c0 = np.array([cx[mem].mean(), cy[mem].mean()])
+            c0 = np.array([np.add.reduce(cx[mem]) / mem.size, np.add.reduce(cy[mem]) / mem.size])
             box_ = np.flatnonzero((np.abs(x - c0[0]) < 1.5 * r) & (np.abs(y - c0[1]) < 1.5 * r))
-            wheel = _check_circle(x[box_], y[box_], m[box_], left[box_], aq[box_], c0, r, L, H,
-                                  budget.wheel_votes)
+            wheel = _check_circle(x[box_], y[box_], mx[box_], my[box_], left[box_], aq[box_],
+                                  c0, r, L, H, budget.wheel_votes)
             if wheel is not None:
                 found.append(wheel)
     if not found:
@@ -1052,7 +1083,7 @@ def _stands(group: list, side: np.ndarray, half_len: float) -> bool:
     return False
 
 
-def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN_VOTES):
+def _check_circle(x, y, mx, my, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN_VOTES):
     """(score, radius, centre) of the wheel pair around a Hough peak (centre ``c``, radius
     ``r``), or None. Its support: the voters within 15 % of r from the circle whose normal
     points along the radius (either sign); centre and radius are refitted to it (algebraic
@@ -1065,10 +1096,11 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN
     Score = support x evenness."""
     for _ in range(2):
         dx, dy = x - c[0], y - c[1]
-        d = np.hypot(dx, dy)
-        near = (np.abs(d - r) < 0.15 * r) & (np.abs(dx * m[:, 0] + dy * m[:, 1])
-                                              > 0.9 * np.maximum(d, 1e-12))
-        if near.sum() < min_votes:
+        d2 = dx * dx + dy * dy                            # squared: no square roots
+        along = dx * mx + dy * my
+        near = ((d2 > (0.85 * r) ** 2) & (d2 < (1.15 * r) ** 2)
+                & (along * along > 0.81 * d2))
+        if np.count_nonzero(near) < min_votes:
             return None
         X, Y = x[near], y[near]
         c, r = _fit_circle(X, Y)
@@ -1076,12 +1108,13 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN
             return None
     if r > 0.3 * half_len or abs(c[1]) < 0.35 * half_h:
         return None                                       # too big, or not low: a body arc
-    if left[near].all() or not left[near].any():
+    sides = np.count_nonzero(left[near])
+    if sides == 0 or sides == X.size:
         return None                                       # one side only: not a wheel pair
     if _band_share(aq[near], 0.25) < 0.6:
         return None                                       # spread across: a body arc
     a = np.sort(np.arctan2(Y - c[1], X - c[0]))
-    if np.max(np.diff(np.r_[a, a[0] + 2 * math.pi])) > math.radians(90):
+    if np.max(np.diff(np.concatenate((a, [a[0] + 2 * math.pi])))) > math.radians(90):
         return None                                       # an arc (a wheel arch), not a circle
     hist = np.bincount((np.floor((a + math.pi) / (2 * math.pi) * 8) % 8).astype(np.intp),
                        minlength=8)
@@ -1089,9 +1122,10 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN
     even = float(-(share * np.log(share)).sum() / math.log(8))
     if even < 0.8:
         return None                                       # not supported around a circle
-    mn = m[near] * np.sign((X - c[0]) * m[near, 0] + (Y - c[1]) * m[near, 1])[:, None]
-    turns = np.floor((np.arctan2(mn[:, 1], mn[:, 0]) + math.pi) / (2 * math.pi) * 16) % 16
-    if np.unique(turns).size < 6:
+    mxn, myn = mx[near], my[near]
+    sgn = np.sign((X - c[0]) * mxn + (Y - c[1]) * myn)     # the normal turned outward
+    turns = np.floor((np.arctan2(myn * sgn, mxn * sgn) + math.pi) / (2 * math.pi) * 16) % 16
+    if np.count_nonzero(np.bincount(turns.astype(np.intp), minlength=16)) < 6:   # distinct
         return None                                       # a few flat faces (a box), not round
     return float(near.sum()) * even, r, c
 
@@ -1099,7 +1133,7 @@ def _check_circle(x, y, m, left, aq, c, r, half_len, half_h, min_votes=WHEEL_MIN
 def _fit_circle(X: np.ndarray, Y: np.ndarray):
     """Algebraic (Kasa) least-squares circle through points: (centre, radius), or (None,
     None) when they are collinear. Centred normal equations, 2 x 2."""
-    mx, my = X.mean(), Y.mean()
+    mx, my = np.add.reduce(X) / X.size, np.add.reduce(Y) / Y.size   # X.mean(), same bits
     u, v = X - mx, Y - my
     suu, svv, suv = u @ u, v @ v, u @ v
     det = suu * svv - suv * suv
@@ -1144,25 +1178,45 @@ def _max3(a: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- names
 
-def _keyword_matcher(words: Sequence[str], tokens: Sequence[str] = (),
-                     exclude: Sequence[str] = ()):
+class _Keywords:
     """A test on a name's words (``_words``): an ASCII keyword starts one of its words, a
     non-ASCII one appears anywhere in it (CJK has no spaces), or one of its words is one of
     ``tokens``. Words starting with one of ``exclude`` are dropped first (``headrest`` is
-    not a head lamp)."""
-    rx = re.compile(r"(?<![a-z])(?:" + "|".join(re.escape(w) for w in words if w.isascii())
-                    + ")")
-    other = [w for w in words if not w.isascii()]
-    tok = frozenset(tokens)
-    excl = tuple(exclude)
+    not a head lamp). ``many`` tests many names in one regular-expression scan."""
 
-    def match(ws: tuple[str, ...]) -> bool:
-        if excl:
-            ws = tuple(w for w in ws if not w.startswith(excl))
+    def __init__(self, words: Sequence[str], tokens: Sequence[str] = (),
+                 exclude: Sequence[str] = ()):
+        self.rx = re.compile(r"(?<![a-z])(?:" + "|".join(re.escape(w) for w in words
+                                                         if w.isascii()) + ")")
+        self.other = [w for w in words if not w.isascii()]
+        self.tok = frozenset(tokens)
+        self.excl = tuple(exclude)
+
+    def __call__(self, ws: tuple[str, ...]) -> bool:
+        if self.excl:
+            ws = tuple(w for w in ws if not w.startswith(self.excl))
         joined = " ".join(ws)
-        return (rx.search(joined) is not None or not tok.isdisjoint(ws)
-                or (not joined.isascii() and any(w in joined for w in other)))
-    return match
+        return (self.rx.search(joined) is not None or not self.tok.isdisjoint(ws)
+                or (not joined.isascii() and any(w in joined for w in self.other)))
+
+    def many(self, names: Sequence[tuple[str, ...]]) -> np.ndarray:
+        """(N,) bool: the test on each of ``names`` (their words): the names joined by line
+        breaks (a keyword has none, so a match lies in one name) and scanned once."""
+        if self.excl:
+            names = [tuple(w for w in ws if not w.startswith(self.excl)) for ws in names]
+        lines = [" ".join(ws) for ws in names]
+        out = np.zeros(len(lines), bool)
+        if not lines:
+            return out
+        starts = np.cumsum([0] + [len(line) + 1 for line in lines[:-1]])
+        text = "\n".join(lines)
+        hits = [m.start() for m in self.rx.finditer(text)]
+        out[np.searchsorted(starts, hits, side="right") - 1] = True
+        for i in np.flatnonzero(~out).tolist():
+            if (not self.tok.isdisjoint(names[i])
+                    or (not lines[i].isascii() and any(w in lines[i] for w in self.other))):
+                out[i] = True
+        return out
 
 
 def _words(name: str) -> tuple[str, ...]:
@@ -1173,44 +1227,43 @@ def _words(name: str) -> tuple[str, ...]:
 
 _NOT_DIRECTION = ("headrest", "headliner", "headlining", "backrest", "background", "rearview",
                   "backplate", "backface", "backside", "headphone")
-_IS_FRONT = _keyword_matcher(
+_IS_FRONT = _Keywords(
     ("front", "head", "hood", "bonnet", "windshield", "windscreen", "grill", "nose", "avant",
      "phare", "capot", "vorn", "vorder", "scheinwerfer", "motorhaube", "frontscheibe",
      "delanter", "faro", "capo", "parabris", "anterior", "cofano", "передн", "фара", "капот",
      "前", "フロント", "ヘッド", "ボンネット"), ("f", "fl", "fr", "av", "fwd"), _NOT_DIRECTION)
-_IS_REAR = _keyword_matcher(
+_IS_REAR = _Keywords(
     ("rear", "back", "tail", "brake", "trunk", "boot", "exhaust", "muffler", "reverse",
      "arriere", "arrière", "coffre", "hinten", "heck", "rück", "rueck", "kofferraum",
      "auspuff", "traser", "malet", "posterior", "bagagli", "задн", "багаж", "后", "後",
      "テール", "ブレーキ", "マフラー"), ("rl", "rr", "bl", "br", "ar", "bk"), _NOT_DIRECTION)
-_IS_LAMP = _keyword_matcher(
+_IS_LAMP = _Keywords(
     ("light", "lamp", "lens", "blinker", "indicator", "signal", "licht", "leuchte", "phare",
      "feu", "faro", "luz", "luce", "fanale", "projector", "led", "brakelight", "taillight",
      "headlight", "ライト", "ランプ", "灯", "燈", "фар", "фонар"))
-_IS_GLASS = _keyword_matcher(
+_IS_GLASS = _Keywords(
     ("glass", "window", "windshield", "windscreen", "glazing", "scheibe", "glas", "fenster",
      "vitre", "verre", "ventana", "vidrio", "cristal", "vetro", "finestrin", "стекл", "окн",
      "ガラス", "窓", "玻璃", "车窗"))
-_IS_ROOF = _keyword_matcher(("roof", "top", "dach", "toit", "techo", "tetto", "крыш", "ルーフ",
+_IS_ROOF = _Keywords(("roof", "top", "dach", "toit", "techo", "tetto", "крыш", "ルーフ",
                              "车顶"))
-_IS_FLOOR = _keyword_matcher(
+_IS_FLOOR = _Keywords(
     ("floor", "underbody", "under", "bottom", "chassis", "dessous", "boden", "unterboden",
      "piso", "suelo", "pavimento", "fondo", "днище", "床", "底"), ("sol",))
-_IS_WHEEL = _keyword_matcher(
+_IS_WHEEL = _Keywords(
     ("tyre", "tire", "wheel", "reifen", "pneu", "neumatic", "neumátic", "rueda", "ruota",
      "roue", "gomma", "колес", "шин", "タイヤ", "ホイール", "轮", "輪"), ("rad",),
     ("steering", "lenkrad", "volant", "spare", "wheelhouse", "wheelwell"))
 
 
-class _NameTable:
-    """Materials and nodes as named groups of faces (``groupings``: per-face labels and the
-    names) and of samples (the material of each sample); each distinct name is split into
-    words once and tested against a keyword set once."""
+class _Names:
+    """The names of a mesh's materials and nodes, pass-independent (made once per mesh and
+    shared by the cascade's passes): ``groupings`` (per-face labels (F,) and the names), each
+    distinct name split into words once and tested against a keyword set once, the kind of
+    every material (``kinds``) and the node groups ``_overlapping_vehicles`` weighs."""
 
-    def __init__(self, mesh: Mesh, S: _Samples):
+    def __init__(self, mesh: Mesh):
         self.mesh = mesh
-        self.material_of_sample = np.asarray(mesh.face_material)[S.face].astype(np.intp)
-        self.area = S.face_area
         fm = np.asarray(mesh.face_material).astype(np.intp)
         self.groupings = [(fm, [m.name for m in mesh.materials])]
         if mesh.face_node is not None and len(mesh.node_names):
@@ -1219,43 +1272,143 @@ class _NameTable:
                 # without trimesh's random '_xxxxxx' suffix (its hex letters would be
                 # words such as 'f' or 'bb': a names cue that changed from run to run)
                 self.groupings.append((fn, [node_stem(n) for n in mesh.node_names]))
-        self.total_area = total = max(float(self.area.sum()), 1e-300)
-        self.share = [np.bincount(lab, weights=self.area, minlength=len(names)) / total
-                      for lab, names in self.groupings]      # surface share of each group
+        # same[g]: the first grouping with the same labels and as many groups (one node per
+        # material is common): its per-group sums are grouping g's, computed once
+        self.same = [next(h for h in range(g + 1) if h == g or (
+            len(self.groupings[h][1]) == len(names) and np.array_equal(self.groupings[h][0], lab)))
+            for g, (lab, names) in enumerate(self.groupings)]
         self._words: dict[str, tuple[str, ...]] = {}
         self._tests: dict = {}
-        self._means: dict = {}          # (grouping, id(value)) -> (value kept alive, means)
-        self.glass, self.lamp, self.colour = _material_kinds(self)
+        self._kinds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._node_groups: tuple | None = None
+        self._sorted: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def words(self, name: str) -> tuple[str, ...]:
         if name not in self._words:
             self._words[name] = _words(name)
         return self._words[name]
 
-    def matches(self, match, g: int) -> np.ndarray:
-        """(K,) bool: the names of grouping ``g`` (with surface) that ``match``."""
+    def matching(self, match: _Keywords, g: int) -> np.ndarray:
+        """(K,) bool: the names of grouping ``g`` that ``match`` (remembered)."""
         key = (match, g)
         if key not in self._tests:
-            names, share = self.groupings[g][1], self.share[g]
-            out = np.zeros(len(names), bool)
-            for i in np.flatnonzero(share > 0):
-                name = names[i]
-                if (match, name) not in self._tests:
-                    self._tests[match, name] = match(self.words(name))
-                out[i] = self._tests[match, name]
-            self._tests[key] = out
+            names = self.groupings[g][1]
+            h = next(h for h in range(g + 1) if h == g or self.groupings[h][1] == names)
+            self._tests[key] = (self.matching(match, h) if h < g
+                                else match.many([self.words(n) for n in names]))
         return self._tests[key]
+
+    def _by_group(self, g: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(faces sorted by their group in grouping ``g`` (stable), where each non-empty
+        group starts in that order, those groups' labels); once per mesh."""
+        if g not in self._sorted:
+            lab = self.groupings[g][0]
+            order = np.argsort(lab, kind="stable")
+            starts = np.flatnonzero(np.r_[True, np.diff(lab[order]) != 0]) if lab.size else order
+            self._sorted[g] = (order, starts, lab[order[starts]])
+        return self._sorted[g]
+
+    def sums(self, g: int, weights: np.ndarray) -> np.ndarray:
+        """(K,) per-face ``weights`` summed over each group of grouping ``g``, group by group
+        in face order (``np.add.reduceat`` over the faces sorted by group: several times
+        faster than ``np.bincount`` with weights)."""
+        order, starts, present = self._by_group(g)
+        out = np.zeros(len(self.groupings[g][1]))
+        if starts.size:
+            out[present] = np.add.reduceat(weights[order], starts)
+        return out
+
+    def sums_on(self, g: int, groups: np.ndarray, weight) -> np.ndarray:
+        """(len(groups),) ``sums(g, w)[groups]`` for a per-face w that is ``weight(faces)``
+        on the faces of those groups (ascending; weight: a function of face indices),
+        computed on those faces only (the same values in the same order per group)."""
+        order, starts, present = self._by_group(g)
+        out = np.zeros(len(groups))
+        if present.size == 0:
+            return out
+        k = np.minimum(np.searchsorted(present, groups), present.size - 1)
+        has = present[k] == groups                        # groups with faces
+        s = starts[k[has]]
+        lens = np.r_[starts[1:], order.size][k[has]] - s
+        if lens.size:
+            first = np.cumsum(lens) - lens
+            faces = order[np.repeat(s - first, lens) + np.arange(int(lens.sum()))]
+            out[has] = np.add.reduceat(weight(faces), first)
+        return out
+
+    def kinds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(glass (M,) bool, lamp (M,) bool, lamp colour (M,) int8) of every material."""
+        if self._kinds is None:
+            self._kinds = _material_kinds(self.mesh.materials, self.words)
+        return self._kinds
+
+    def node_groups(self) -> tuple[np.ndarray, int, np.ndarray] | None:
+        """Node groups by stem (trimesh's suffix dropped): (group of each face (F,), K, (K,)
+        bool: at least 4 faces and 2 materials), or None with under 2 groups or no nodes."""
+        if self._node_groups is None:
+            self._node_groups = (None,)
+            if len(self.groupings) >= 2:
+                node_of_face, stems = self.groupings[1]           # already node_stem
+                stem_ids = {st: k for k, st in enumerate(dict.fromkeys(stems))}
+                if len(stem_ids) == len(stems) and self.same[1] == 0:
+                    pass                         # one node per material: one material each
+                elif len(stem_ids) >= 2:
+                    K = len(stem_ids)
+                    group = np.array([stem_ids[st] for st in stems])[node_of_face]
+                    fm = self.groupings[0][0]                     # material of each face
+                    # counts per group in one pass each: faces, distinct materials
+                    M = max(len(self.mesh.materials), 1)
+                    if K * M <= 4_000_000:
+                        n_mat = (np.bincount(group * M + fm, minlength=K * M) > 0).reshape(
+                            K, M).sum(axis=1)
+                    else:
+                        n_mat = np.bincount(np.unique(group * M + fm) // M, minlength=K)
+                    self._node_groups = (group, K, (np.bincount(group, minlength=K) >= 4)
+                                         & (n_mat >= 2))
+        return None if self._node_groups[0] is None else self._node_groups
+
+
+class _NameTable:
+    """Materials and nodes as named groups of faces (``groupings`` of ``_Names``) with their
+    surface share in this pass, and of samples (the material of each sample)."""
+
+    def __init__(self, names: _Names, S: _Samples):
+        mesh = names.mesh
+        self.names, self.mesh, self.groupings = names, mesh, names.groupings
+        self.material_of_sample = np.asarray(mesh.face_material)[S.face].astype(np.intp)
+        self.area = S.face_area
+        self.total_area = total = max(float(self.area.sum()), 1e-300)
+        share: list[np.ndarray] = []                              # surface share of each group
+        for g in range(len(self.groupings)):
+            share.append(share[names.same[g]] if names.same[g] < g else
+                         names.sums(g, self.area) / total)
+        self.share = share
+        self._means: dict = {}          # (grouping, id(value)) -> (value kept alive, means)
+        glass, lamp, colour = names.kinds()
+        with_surface = share[0] > 0                               # the rest: not any kind
+        self.glass, self.lamp = glass & with_surface, lamp & with_surface
+        self.colour = np.where(with_surface, colour, 0).astype(np.int8)
+
+    def matches(self, match, g: int) -> np.ndarray:
+        """(K,) bool: the names of grouping ``g`` (with surface) that ``match``."""
+        return self.names.matching(match, g) & (self.share[g] > 0)
 
     def means(self, g: int, value: np.ndarray) -> np.ndarray:
         """(K,) area-weighted mean of a per-face ``value`` over each group of grouping g
         (the last few are remembered: the cues ask for the same value several times)."""
+        g = self.names.same[g]
         key = (g, id(value))
         if key not in self._means:
-            lab = self.groupings[g][0]
             tot = np.maximum(self.share[g] * self.total_area, 1e-300)
-            self._means[key] = (value, np.bincount(lab, weights=self.area * value,
-                                                   minlength=tot.size) / tot)
+            self._means[key] = (value, self.names.sums(g, self.area * value) / tot)
         return self._means[key][1]
+
+    def means_on(self, g: int, groups: np.ndarray, value) -> np.ndarray:
+        """(len(groups),) ``means(g, v)[groups]`` for a per-face v that is ``value(faces)``
+        on the faces of those groups (ascending; value: a function of the face indices),
+        computed on those faces only (the same sums, in the same order)."""
+        tot = np.maximum(self.share[g][groups] * self.total_area, 1e-300)
+        return self.names.sums_on(g, groups, lambda f: self.area[f] * value(f)) / tot
 
     def votes(self, match, value: np.ndarray) -> list[tuple[float, float]]:
         """(weight, area-weighted mean of the per-face ``value``) of the groups whose name
@@ -1280,20 +1433,22 @@ def _vote(votes: list[tuple[float, float]]) -> float:
     return float(np.clip(2.0 * (w * x).sum() / (w.sum() + 2.0), -1.0, 1.0))
 
 
-def _is_glass(mat, ws: tuple[str, ...]) -> bool:
-    """Window glass: clear (transmission, or blended and see-through) or named so (``ws``:
-    the name's words); lamp covers (a lamp word in the name) are not windows."""
-    if _IS_LAMP(ws):
+def _is_glass(mat, lamp_name: bool, glass_name: bool) -> bool:
+    """Window glass: clear (transmission, or blended and see-through) or named so
+    (``glass_name``: a glass word in its name); lamp covers (``lamp_name``: a lamp word in
+    the name) are not windows."""
+    if lamp_name:
         return False
     clear = mat.transmission > 0.05 or (mat.alpha_mode == "BLEND" and mat.base_color[3] < 0.9)
-    return bool(clear or _IS_GLASS(ws))
+    return bool(clear or glass_name)
 
 
-def _lamp_colour(mat, ws: tuple[str, ...]) -> int:
+def _lamp_colour(mat, lamp_name: bool) -> int:
     """-1 a red lamp, +1 a white / yellow / amber lamp, 0 not a lamp or unknown colour (a
-    lamp: a lamp word in the name or emission; its colour: emissive, else base colour)."""
+    lamp: a lamp word in the name (``lamp_name``) or emission; its colour: emissive, else
+    base colour)."""
     glowing = max(mat.emissive) > 0.1
-    if not (glowing or _IS_LAMP(ws)) or (mat.has_texture and not glowing):
+    if not (glowing or lamp_name) or (mat.has_texture and not glowing):
         return 0
     r, g, b = (float(c) for c in (mat.emissive if glowing else mat.base_color[:3]))
     if r > 0.25 and g < 0.45 * r and b < 0.45 * r:
@@ -1303,16 +1458,17 @@ def _lamp_colour(mat, ws: tuple[str, ...]) -> int:
     return 0
 
 
-def _material_kinds(names: "_NameTable") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(glass (M,) bool, lamp (M,) bool, lamp colour (M,) int) of the materials with samples."""
-    mats = names.mesh.materials
+def _material_kinds(mats: Sequence, words) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(glass (M,) bool, lamp (M,) bool, lamp colour (M,) int8) of materials ``mats``
+    (``words``: a name -> its words)."""
     M = len(mats)
     glass, lamp, colour = np.zeros(M, bool), np.zeros(M, bool), np.zeros(M, np.int8)
-    for i in np.flatnonzero(names.share[0]):
-        ws = names.words(mats[i].name)
-        glass[i] = _is_glass(mats[i], ws)
-        lamp[i] = _IS_LAMP(ws) or max(mats[i].emissive) > 0.1
-        colour[i] = _lamp_colour(mats[i], ws)
+    ws = [words(mat.name) for mat in mats]
+    lamp_name, glass_name = _IS_LAMP.many(ws).tolist(), _IS_GLASS.many(ws).tolist()
+    for i, mat in enumerate(mats):
+        glass[i] = _is_glass(mat, lamp_name[i], glass_name[i])
+        lamp[i] = lamp_name[i] or max(mat.emissive) > 0.1
+        colour[i] = _lamp_colour(mat, lamp_name[i])
     return glass, lamp, colour
 
 
@@ -1395,7 +1551,7 @@ def _front_cues(ctx: _Context, wheels: _Wheels | None, names: _NameTable) -> dic
     if lamp.size:
         # a lamp material's surface at the front end minus at the back end: one at both
         # ends (or in the middle) cancels
-        ends = names.means(0, (fs > 0.5).astype(float) - (fs < -0.5))[lamp]
+        ends = names.means_on(0, lamp, lambda f: (fs[f] > 0.5).astype(float) - (fs[f] < -0.5))
         w = np.sqrt(np.minimum(share[lamp] * N_SAMPLES, 50.0))
         cues["lamp_colours"] = _vote(list(zip(w.tolist(), (names.colour[lamp] * ends).tolist())))
     fm = names.material_of_sample
@@ -1446,7 +1602,8 @@ def _mirrors(ctx: _Context) -> float:
     sb = np.clip(np.floor((s[band] + 1.0) / 0.05).astype(np.intp), 0, 39)
     W = np.zeros((12, 40))
     np.maximum.at(W, (np.minimum(lv, 11), sb), q[band])
-    P = np.pad(W, ((0, 0), (4, 4)))
+    P = np.zeros((12, 48))
+    P[:, 4:44] = W
     nb = np.max([P[:, 4 + d:44 + d] for d in (-4, -3, -2, 2, 3, 4)], axis=0)
     spike = (W - nb > 0.06) & (W > 0)
     pos = (np.nonzero(spike)[1] + 0.5) * 0.05 - 1.0
@@ -1460,9 +1617,11 @@ def _profile(ctx: _Context) -> float:
     of 40 columns along the length) averaged over the last 6 columns at each end."""
     col = np.minimum(((ctx.s + 1.0) * 20.0).astype(np.intp), 39)
     top = np.full(40, np.nan)
-    order = np.lexsort((ctx.t, col))
+    end = np.flatnonzero((col < 6) | (col >= 34))          # only the end columns count
+    col, t = col[end], ctx.t[end]
+    order = np.lexsort((t, col))
     last = np.r_[col[order][1:] != col[order][:-1], True]
-    top[col[order][last]] = ctx.t[order][last]
+    top[col[order][last]] = t[order][last]
     front, rear = top[-6:], top[:6]
     if np.isnan(front).all() or np.isnan(rear).all():
         return 0.0
@@ -1471,31 +1630,21 @@ def _profile(ctx: _Context) -> float:
 
 # ----------------------------------------------------------------------------- many vehicles
 
-def _overlapping_vehicles(ctx: _Context, names: "_NameTable") -> bool:
+def _overlapping_vehicles(ctx: _Context, names: _NameTable) -> bool:
     """Vehicles on top of each other (a game's vehicle pack at the origin): two or more node
     groups (node names without trimesh's '_xxxxxx' suffix) that each look like a whole
     vehicle: two or more materials, glazing or lamps among them, and at least half of the
     length and 40 % of the height of the model."""
-    mesh = ctx.mesh
-    if len(names.groupings) < 2:
+    groups = names.names.node_groups()
+    if groups is None:
         return False
-    node_of_face, node_names = names.groupings[1]
-    stems = list(node_names)                                 # already node_stem
-    stem_ids = {st: k for k, st in enumerate(dict.fromkeys(stems))}
-    if len(stem_ids) < 2:
+    group, K, whole_like = groups                 # at least 4 faces and 2 materials
+    if np.count_nonzero(whole_like) < 2:
         return False
-    K = len(stem_ids)
-    group = np.array([stem_ids[st] for st in stems])[node_of_face]
-    fm = names.groupings[0][0]                               # material of each face
-    special = (names.glass | names.lamp)[fm]
-    # counts per group in one pass each: faces, glazing or lamp faces, distinct materials
-    M = max(len(mesh.materials), 1)
-    if K * M <= 4_000_000:
-        n_mat = (np.bincount(group * M + fm, minlength=K * M) > 0).reshape(K, M).sum(axis=1)
-    else:
-        n_mat = np.bincount(np.unique(group * M + fm) // M, minlength=K)
-    cand = np.flatnonzero((np.bincount(group, minlength=K) >= 4) & (n_mat >= 2)
-                          & (np.bincount(group, weights=special.astype(float), minlength=K) > 0))
+    special = (names.glass | names.lamp)[names.groupings[0][0]]
+    # glazing or lamp faces per group
+    cand = np.flatnonzero(whole_like & (np.bincount(group, weights=special.astype(float),
+                                                    minlength=K) > 0))
     if cand.size < 2:
         return False
     fc = ctx.S.face_centroid
@@ -1507,6 +1656,19 @@ def _overlapping_vehicles(ctx: _Context, names: "_NameTable") -> bool:
         if np.ptp(fs[sel]) >= 0.5 * span_s and np.ptp(ft[sel]) >= 0.4 * span_t:
             whole += 1
     return whole >= 2
+
+def _dilate(g: np.ndarray) -> np.ndarray:
+    """``scipy.ndimage.binary_dilation(g)`` of a 3-D bool array (one step, the six face
+    neighbours), by shifted ors."""
+    d = g.copy()
+    d[1:] |= g[:-1]
+    d[:-1] |= g[1:]
+    d[:, 1:] |= g[:, :-1]
+    d[:, :-1] |= g[:, 1:]
+    d[:, :, 1:] |= g[:, :, :-1]
+    d[:, :, :-1] |= g[:, :, 1:]
+    return d
+
 
 def _several_vehicles(ctx: _Context) -> bool:
     """Vehicles side by side: nothing crosses the mirror plane (under 0.3 % of the samples
@@ -1525,7 +1687,7 @@ def _several_vehicles(ctx: _Context) -> bool:
         return False
     g = np.zeros(dims, bool)
     g[i[:, 0], i[:, 1], i[:, 2]] = True
-    lab, k = ndimage.label(ndimage.binary_dilation(g), structure=np.ones((3, 3, 3)))
+    lab, k = ndimage.label(_dilate(g), structure=np.ones((3, 3, 3)))
     if k < 2:
         return False
     who = lab[i[:, 0], i[:, 1], i[:, 2]]
