@@ -1498,7 +1498,7 @@ def _ground_base(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
     kx, kz = r.uniform(1.2, 3.0, 2)
     half = np.array([0.5 * kx * size[0], 0.0, 0.5 * max(kz * size[2], 1.1 * size[0] * 0.5)])
     style = int(r.integers(3))                      # 0 plane, 1 plinth, 2 cloth
-    thick = (0.01, float(r.uniform(0.05, 0.3)) * size[1], 0.02)[style]
+    thick = float(r.uniform(0.05, 0.3)) * size[1]    # the plinth's height (drawn for every style)
     top = lo[1] - 0.002
     if style == 1:
         v, f = _box([cen[0] - half[0], top - thick, cen[2] - half[2]],
