@@ -6,6 +6,12 @@ count into a fresh catalogue, sampling the resident memory of the whole process 
 workers) every 0.5 s to show it stays flat. Defaults are the acceptance configuration:
 1,000 vehicles, 50k triangles, 72 views x 256 px, the default (learned labeller) segmenter.
 
+Orientation row (issue 10's "orientation per 50k-triangle mesh"): ``ucad_cl.orient.
+estimate_orientation`` alone, process CPU ms per mesh (median of 3 runs each) on the same
+--label-meshes meshes of the library, loaded with ``orientation=None``, in one process with one
+BLAS thread (as a build worker has); median, p90 and how many the cascade's cheap pass decides.
+The build's own orientation row (wall ms in the loader thread) is contended by the workers.
+
 Labelling row: the learned labeller's own cost per mesh (``LabellerSegmenter.segment``:
 features, the layer behind glass, ONNX trees, painting the masks) on --label-meshes meshes of
 the library, medians of 3 runs each, beside the hand-written prior segmenter's, in one process
@@ -66,7 +72,7 @@ def main() -> None:
     ap.add_argument("--azimuth-step", type=float, default=5.0)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--label-meshes", type=int, default=20,
-                    help="meshes for the labelling row (0: skip)")
+                    help="meshes for the orientation and labelling rows (0: skip)")
     ap.add_argument("--segmenter", default="labeller")
     args = ap.parse_args()
 
@@ -81,6 +87,7 @@ def main() -> None:
         (lib / ".complete").write_text("ok")
         print(f"generated {args.count} vehicles in {time.perf_counter() - t0:.0f} s -> {lib}")
     if args.label_meshes:
+        orient_row(lib, args)
         label_row(lib, args)
     opts = BuildOptions(azimuth_step=args.azimuth_step, size=args.size,
                         segmenter=args.segmenter)
@@ -120,11 +127,59 @@ def main() -> None:
         print(f"{w:>7} {s.processed:>6} {s.meshes_per_s:>9.2f} {peak:>12.0f} {r25:>8.0f} {r50:>8.0f} "
               f"{r95:>8.0f} {dpm / 2**20:>12.2f}")
     print()
-    print("orientation stage (ucad_cl.orient, in the loader thread; wall ms per mesh as the "
-          "catalogue's timings record them)")
+    print("in-build orientation stage (ucad_cl.orient in each worker's loader thread; wall ms per "
+          "mesh as the catalogue's timings record them, contended by the other workers and "
+          "stages: not the issue's row, see 'orientation per 50k-triangle mesh' above)")
     print(f"{'workers':>7} {'meshes':>6} {'median ms':>10} {'p90 ms':>8} {'triangles':>10}")
     for (w, *_), (med, p90, k) in zip(rows, orient_ms):
         print(f"{w:>7} {k:>6} {med:>10.1f} {p90:>8.1f} {args.triangles:>10}")
+
+
+def orient_row(lib: Path, args) -> None:
+    """The issue's orientation row: process CPU ms of ``estimate_orientation`` per mesh (median
+    of 3 runs each, after one warm-up run) on the first --label-meshes meshes of the library
+    that load and pass the filter (the labelling row's), loaded without orientation."""
+    from contextlib import nullcontext
+
+    import numpy as np
+
+    from ucad_cl.filter import filter_mesh
+    from ucad_cl.ingest import IngestError, load_mesh
+    from ucad_cl.orient import estimate_orientation, takes_fast_path
+
+    try:                                         # one BLAS thread, as in a build worker
+        from threadpoolctl import threadpool_limits
+        limit = threadpool_limits(1)
+    except ImportError:
+        limit = nullcontext()
+    ms, tris, fast = [], [], 0
+    with limit:
+        for path in sorted(lib.glob("*.glb")):
+            if len(ms) >= args.label_meshes:
+                break
+            try:
+                mesh = load_mesh(path, orientation=None)
+            except IngestError:
+                continue
+            if not filter_mesh(mesh).accepted:
+                continue
+            estimate_orientation(mesh)
+            runs = []
+            for _ in range(3):
+                t0 = time.process_time()
+                estimate_orientation(mesh)
+                runs.append(time.process_time() - t0)
+            ms.append(1000 * float(np.median(runs)))
+            tris.append(mesh.n_faces)
+            fast += takes_fast_path(mesh)
+    if not ms:
+        return
+    print(f"\norientation per 50k-triangle mesh (issue 10: estimate_orientation alone, process "
+          f"CPU ms, median of 3 runs per mesh; {len(ms)} meshes of the library, median "
+          f"{int(np.median(tris))} triangles, one process, one BLAS thread)")
+    print(f"{'meshes':>7} {'median ms':>10} {'p90 ms':>8} {'cheap path':>11}")
+    print(f"{len(ms):>7} {np.median(ms):>10.1f} {np.percentile(ms, 90):>8.1f} "
+          f"{fast:>7} / {len(ms)}")
 
 
 def label_row(lib: Path, args) -> None:

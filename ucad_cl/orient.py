@@ -356,62 +356,93 @@ class _Samples:
     def __init__(self, points: np.ndarray, normals: np.ndarray, face: np.ndarray,
                  detail_points: np.ndarray | None = None,
                  detail_normals: np.ndarray | None = None,
-                 face_centroid: np.ndarray | None = None, face_area: np.ndarray | None = None):
+                 face_centroid: np.ndarray | None = None, face_area2: np.ndarray | None = None):
         self.points, self.normals, self.face = points, normals, face
         self.detail_points = detail_points if detail_points is not None else points[:0]
         self.detail_normals = detail_normals if detail_normals is not None else normals[:0]
-        self.face_centroid, self.face_area = face_centroid, face_area   # all faces (F, 3), (F,)
+        # all faces: centroids (F, 3), twice the areas (F,)
+        self.face_centroid, self.face_area2 = face_centroid, face_area2
 
 
 def _surface_samples(mesh: Mesh, n: int = N_SAMPLES, skip_material: int = -1,
-                     geometry: tuple[np.ndarray, np.ndarray] | None = None,
-                     n_faces: int | None = None) -> _Samples:
+                     geometry: _Geometry | None = None, n_faces: int | None = None) -> _Samples:
     """``n`` points drawn uniformly over the surface (face by area, then a uniform point in
     it) and ``n_faces`` (default ``n``) faces drawn by count, from a fixed random stream.
     The stream does not depend on coordinates, so an axis-permuted copy of a mesh gets the
     same faces and the permuted points. Faces of material ``skip_material`` get none.
     ``geometry``: ``_face_geometry(mesh)`` when known."""
-    v = np.asarray(mesh.vertices, np.float64)
     f = np.asarray(mesh.faces)
-    a2, fc = _face_geometry(mesh) if geometry is None else geometry
+    a2, fc, xyz = _face_geometry(mesh) if geometry is None else geometry
     if skip_material >= 0:
         a2 = np.where(np.asarray(mesh.face_material) == skip_material, 0.0, a2)
     cum = np.cumsum(a2)
     rng = np.random.default_rng(SAMPLE_SEED)
     u, r1, r2 = rng.random(n), rng.random(n), rng.random(n)
     total = float(cum[-1]) if cum.size else 0.0
-    fi = (np.minimum(np.searchsorted(cum, u * total, side="right"), len(a2) - 1)
-          if total > 0.0 else np.zeros(n, np.intp))
+    fi = np.zeros(n, np.intp)
+    if total > 0.0:
+        key = u * total
+        up = np.argsort(key)                              # ascending keys search faster
+        fi[up] = np.minimum(np.searchsorted(cum, key[up], side="right"), len(a2) - 1)
     flip = r1 + r2 > 1.0
     r1, r2 = np.where(flip, 1.0 - r1, r1), np.where(flip, 1.0 - r2, r2)
-    xyz = np.ascontiguousarray(v.T)
     p, nrm = _face_points(xyz, f, fi, r1, r2)
-    live = np.flatnonzero(a2 > 0.0)
-    fd = (live[rng.integers(0, live.size, n if n_faces is None else n_faces)] if live.size
-          else np.zeros(0, np.intp))
+    n_live = np.count_nonzero(a2 > 0.0)                   # faces with an area
+    fd = np.zeros(0, np.intp)
+    if n_live:
+        fd = rng.integers(0, n_live, n if n_faces is None else n_faces)   # the k-th of them
+        if n_live < len(a2):
+            fd = np.flatnonzero(a2 > 0.0)[fd]
     dp, dn = fc[fd], _face_points(xyz, f, fd, r1[:0], r2[:0])[1]
-    return _Samples(p, nrm, fi, dp, dn, fc, 0.5 * a2)
+    return _Samples(p, nrm, fi, dp, dn, fc, a2)
 
 
-def _face_geometry(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """(twice the face areas (F,), face centroids (F, 3))."""
+class _Geometry(NamedTuple):
+    """Per-mesh face geometry, shared by the cascade's passes: twice the face areas (F,),
+    the face centroids (F, 3) and the vertices' x, y and z rows (3, V)."""
+    area2: np.ndarray
+    centroid: np.ndarray
+    xyz: np.ndarray
+
+
+def _face_geometry(mesh: Mesh) -> _Geometry:
+    """The faces' areas and centroids (see ``_Geometry``), a block of faces at a time with
+    preallocated temporaries (they stay in cache)."""
     v = np.asarray(mesh.vertices, np.float64)
     f = np.asarray(mesh.faces)
-    x, y, z = np.ascontiguousarray(v.T)
+    xyz = np.ascontiguousarray(v.T)
+    x, y, z = xyz
     F = len(f)
     a2, fc = np.empty(F), np.empty((F, 3))                # twice the face areas, centroids
-    for lo in range(0, F, FACE_BLOCK):                    # in blocks: the temporaries stay
-        hi = min(lo + FACE_BLOCK, F)                      # in cache (same bits as one pass)
-        f0, f1, f2 = f[lo:hi].T.astype(np.intp)          # take casts other index types
-        x0, y0, z0 = x.take(f0), y.take(f0), z.take(f0)
-        ax, ay, az = x.take(f1) - x0, y.take(f1) - y0, z.take(f1) - z0
-        bx, by, bz = x.take(f2) - x0, y.take(f2) - y0, z.take(f2) - z0
-        cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-        a2[lo:hi] = np.sqrt(cx * cx + cy * cy + cz * cz)
-        fc[lo:hi, 0] = x0 + (ax + bx) / 3.0
-        fc[lo:hi, 1] = y0 + (ay + by) / 3.0
-        fc[lo:hi, 2] = z0 + (az + bz) / 3.0
-    return a2, fc
+    tmp = [np.empty(min(FACE_BLOCK, F)) for _ in range(12)]
+    corner = [np.empty(min(FACE_BLOCK, F), np.intp) for _ in range(3)]   # corner vertices
+    for lo in range(0, F, FACE_BLOCK):
+        hi = min(lo + FACE_BLOCK, F)
+        x0, y0, z0, ax, ay, az, bx, by, bz, cx, cy, cz = (t[:hi - lo] for t in tmp)
+        i0, i1, i2 = (c[:hi - lo] for c in corner)
+        i0[:], i1[:], i2[:] = f[lo:hi].T                  # casts other index types once
+        for row, c0, c1, c2 in ((x, x0, ax, bx), (y, y0, ay, by), (z, z0, az, bz)):
+            row.take(i0, out=c0)
+            row.take(i1, out=c1)
+            row.take(i2, out=c2)
+            c1 -= c0                                      # edges a = p1 - p0, b = p2 - p0
+            c2 -= c0
+        t = a2[lo:hi]                                     # a temporary until the last step
+        np.multiply(ay, bz, out=cx)                       # a x b
+        cx -= np.multiply(az, by, out=t)
+        np.multiply(az, bx, out=cy)
+        cy -= np.multiply(ax, bz, out=t)
+        np.multiply(ax, by, out=cz)
+        cz -= np.multiply(ay, bx, out=t)
+        cx *= cx
+        cx += np.multiply(cy, cy, out=t)
+        cx += np.multiply(cz, cz, out=t)
+        np.sqrt(cx, out=t)
+        for k, (c0, c1, c2) in enumerate(((x0, ax, bx), (y0, ay, by), (z0, az, bz))):
+            c1 += c2                                      # centroid p0 + (a + b) / 3
+            c1 /= 3.0
+            np.add(c0, c1, out=fc[lo:hi, k])
+    return _Geometry(a2, fc, xyz)
 
 
 def _face_points(xyz: np.ndarray, f: np.ndarray, fi: np.ndarray, r1: np.ndarray,
@@ -468,7 +499,7 @@ def _clearly_decided(o: Orientation) -> bool:
 
 
 def _estimate_pass(mesh: Mesh, disabled: Sequence[str], budget: Budget,
-                   geometry: tuple[np.ndarray, np.ndarray], mesh_names: _Names,
+                   geometry: _Geometry, mesh_names: _Names,
                    give_up: bool = False) -> tuple[Orientation, tuple | None] | None:
     """One pass of the estimate with the given budget (see ``_estimate``). ``give_up``:
     None as soon as the result cannot be clearly decided (``_clearly_decided``): a flag
@@ -591,10 +622,11 @@ def _largest_vehicle(S: _Samples, major: np.ndarray) -> _Samples | None:
     don = np.zeros(len(j), bool)
     don[inside] = lab[j[inside, 0], j[inside, 1], j[inside, 2]] == keep
     return _Samples(p[on], S.normals[on], S.face[on], S.detail_points[don],
-                    S.detail_normals[don], S.face_centroid, S.face_area)
+                    S.detail_normals[don], S.face_centroid, S.face_area2)
 
 
-def _ground_sheet(mesh: Mesh, S: _Samples, budget: Budget = FULL, geometry=None):
+def _ground_sheet(mesh: Mesh, S: _Samples, budget: Budget = FULL,
+                  geometry: _Geometry | None = None):
     """A ground plane, cloth or display base under the vehicle: one material holding at
     least 25 % of the surface that is flat-ish (its smallest spread under 40 % of its
     largest: a draped cloth counts), at least 1.3 times as broad as the rest of the model in
@@ -639,8 +671,8 @@ def _snap(up: np.ndarray, front: np.ndarray, snap_up_deg: float) -> np.ndarray:
     j = int(np.argmax(np.abs(front)))
     if up_axis and j != k and abs(front[j]) >= math.cos(math.radians(SNAP_DEG)):
         R = np.stack([np.sign(front[j]) * np.eye(3)[j], up])
-        return np.vstack([R, np.cross(R[0], R[1])]) + 0.0  # exact signed permutation, no -0
-    right = np.cross(front, up)
+        return np.vstack([R, _cross3(R[0], R[1])]) + 0.0  # exact signed permutation, no -0
+    right = _cross3(front, up)
     return np.stack([front, up, right / np.linalg.norm(right)]) + 0.0
 
 
@@ -669,8 +701,6 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     that among planes within 0.05 of the best the one whose normal is the longest extent (1.5
     times another's) is dropped: a vehicle is longer than wide, so a front/back-symmetric body
     keeps its width axis. Quality (returned): the share within 2.5 sample spacings."""
-    from scipy.spatial import cKDTree
-
     cands = [pca[:, 0], pca[:, 1], pca[:, 2], *np.eye(3)]
     for i, j, angles in ((1, 2, (15, 30, 45, 60, 75, 105, 120, 135, 150, 165)),
                          (0, 1, (45, 135)), (0, 2, (45, 135))):
@@ -679,9 +709,10 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
             cands.append(math.cos(r) * pca[:, i] + math.sin(r) * pca[:, j])
     C = np.array(cands)
     cos = np.abs(C @ C.T).tolist()                         # |cosine| between candidates
+    cos10 = math.cos(math.radians(10.0))
     distinct: list[int] = []
     for i in range(len(C)):                                # drop repeats (within 10 degrees)
-        if all(cos[i][k] < math.cos(math.radians(10.0)) for k in distinct):
+        if all(cos[i][k] < cos10 for k in distinct):
             distinct.append(i)
     C = C[distinct]
     if evals is not None and evals[0] >= 2.0 * evals[1]:
@@ -689,11 +720,11 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
         # not within 30 degrees of it (a bus's front/back symmetry is not its mirror plane)
         C = C[np.abs(C @ pca[:, 0]) < math.cos(math.radians(30))]
     sub, sub_n = p[::budget.mirror_stride], nrm[::budget.mirror_stride]
-    tree = cKDTree(sub)
+    tree = _tree(sub)
     spacing, _ = tree.query(sub[::8], k=2)
     step = float(_quantile(spacing[:, 1], 0.5)) + 1e-12    # typical sample spacing
     coarse, coarse_n = sub[::2], sub_n[::2]                # ranking and refining: half of them
-    ctree = cKDTree(coarse)
+    ctree = _tree(coarse)
     few = coarse[::max(1, len(coarse) // budget.mirror_rank)]
     # every candidate's reflections in one KD query (the same per-point answers)
     hit = _near(ctree, _reflect_many(few, C, C @ mu).reshape(-1, 3), 4.0 * step)[0] < 4.0 * step
@@ -729,6 +760,16 @@ def _mirror_plane(p: np.ndarray, nrm: np.ndarray, mu: np.ndarray, pca: np.ndarra
     return best[2], best[3], best[4]
 
 
+def _tree(points: np.ndarray):
+    """A KD tree of ``points`` (N, 3) for exact nearest-neighbour queries, built by sliding
+    midpoint splits without shrinking the boxes to the data, 24 points a leaf (cheaper to
+    build and query than the defaults for the few hundred samples here; the same neighbours
+    and distances)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points, leafsize=24, balanced_tree=False, compact_nodes=False)
+
+
 def _near(tree, x: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
     """(distance, index) of each point's nearest neighbour in ``tree`` when closer than
     ``bound``; distance inf and index 0 beyond it (the search stops there: reflections
@@ -759,6 +800,7 @@ def _refine_planes(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: np.nd
     live = np.ones(len(n), bool)
     tau_min = 1.5 * step
     tau = 6.0 * step
+    ridge = 1e-12 * np.eye(3)                             # keeps the normal equations regular
     for it in range(iters):
         k_live = np.flatnonzero(live)
         if k_live.size == 0:
@@ -776,7 +818,7 @@ def _refine_planes(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: np.nd
         # the reflected normal of x against its partner's: x_n . m - 2 (n . x_n)(n . m)
         agree = np.einsum("hi,khi->kh", half_n, m) - 2.0 * (nl @ half_n.T) * me[:, :, 0]
         ok = (dist < tau) & (np.abs(agree) > 0.7)
-        enough = np.count_nonzero(ok, axis=1) >= 16
+        enough = ok.sum(axis=1) >= 16
         # Gauss-Newton for all live planes at once (unpaired samples weigh 0), on the
         # normal's two degrees of freedom (u, v) and the offset
         xe, mn = half @ E[:, :, 1:], me[:, :, :1]
@@ -785,7 +827,7 @@ def _refine_planes(tree, p: np.ndarray, nrm: np.ndarray, n: np.ndarray, d: np.nd
         J[:, :, 2] = 2.0 * mn[:, :, 0]
         e0 = ((rx - p[j]) * m).sum(axis=2)
         Jw = (J * ok[:, :, None]).transpose(0, 2, 1)      # (K, 3, H)
-        delta = np.linalg.solve(Jw @ J + 1e-12 * np.eye(3), -(Jw @ e0[:, :, None]))[:, :, 0]
+        delta = np.linalg.solve(Jw @ J + ridge, -(Jw @ e0[:, :, None]))[:, :, 0]
         n2 = nl + delta[:, :1] * E[:, :, 1] + delta[:, 1:2] * E[:, :, 2]
         n2 /= np.sqrt((n2 * n2).sum(axis=1))[:, None]
         moved = (n2 * nl).sum(axis=1)
@@ -853,7 +895,10 @@ class _Context:
 
     def face_s(self) -> np.ndarray:
         """(F,) every face centroid's position along the length axis, like ``s``."""
-        return (self.S.face_centroid @ self.a - self.s0) / self.half_len
+        fs = self.S.face_centroid @ self.a
+        fs -= self.s0
+        fs /= self.half_len
+        return fs
 
     def side_points(self) -> np.ndarray:
         """(N, 2) samples in the side view, mesh units, centred on the side view's box."""
@@ -932,7 +977,13 @@ class _Wheels:
         it (a spare wheel on the tailgate) are dropped."""
         c = self.side_view(ctx)
         v = np.asarray(ctx.mesh.vertices, np.float64)
-        vs, vt = v @ ctx.a - ctx.s0, v @ ctx.b - ctx.t0
+        vt = v @ ctx.b
+        vt -= ctx.t0
+        vs = v @ ctx.a
+        vs -= ctx.s0
+        # the vertices in the height band of any wheel's window (the windows test them)
+        band = np.flatnonzero((vt > np.min(c[:, 1] - 2.0 * self.radii)) & (vt < np.max(c[:, 1])))
+        vs, vt = vs[band], vt[band]
         bottom = np.empty(len(c))
         for k, ((cs, ct), r) in enumerate(zip(c, self.radii)):
             near = (np.abs(vs - cs) < 0.35 * r) & (vt < ct) & (vt > ct - 2.0 * r)
@@ -984,20 +1035,20 @@ def _find_wheels(ctx: _Context, budget: Budget = FULL) -> _Wheels | None:
     mx, my = mx / norm, my / norm
     left, aq = q[sel] > 0, np.abs(q[sel])
     found, tried = [], []
-    for r in 2 * L * np.geomspace(0.025, 0.13, budget.radii):
-        h = 0.15 * r
-        cx, cy = x - r * mx, y - r * my
-        ix = np.floor((cx + L) / h).astype(np.intp)
-        iy = np.floor((cy + H + r) / h).astype(np.intp)
+    radii = 2 * L * np.geomspace(0.025, 0.13, budget.radii)
+    cell = 0.15 * radii                                   # Hough cells of 0.15 r
+    # the centre votes p - r n and their cells for every radius at once (rows)
+    cxs, cys = x - radii[:, None] * mx, y - radii[:, None] * my
+    ixs = np.floor((cxs + L) / cell[:, None]).astype(np.intp)
+    iys = np.floor((cys + H + radii[:, None]) / cell[:, None]).astype(np.intp)
+    for r, h, cx, cy, ix, iy in zip(radii, cell, cxs, cys, ixs, iys):
         nx, ny = int(2 * L / h) + 2, int((2 * H + 2 * r) / h) + 2
-        ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
-        cnt = np.bincount(ix[ok] * ny + iy[ok], minlength=nx * ny).reshape(nx, ny)
-        box = _box3(cnt)
-        peak = np.flatnonzero(((box >= budget.wheel_votes) & (box == _max3(box))).ravel())
+        ok = (ix.view(np.uintp) < nx) & (iy.view(np.uintp) < ny)   # negative: huge
+        peak, votes = _hough_peaks(ix[ok] * ny + iy[ok], nx, ny, budget.wheel_votes)
         if peak.size == 0:
             continue
-        peak = peak[np.argsort(-box.ravel()[peak], kind="stable")[:budget.peaks]]
-        for i, j in zip(*np.unravel_index(peak, box.shape)):
+        peak = peak[np.argsort(-votes, kind="stable")[:budget.peaks]]
+        for i, j in zip(*np.divmod(peak, ny)):
             centre = np.array([(i + 1.0) * h - L, (j + 1.0) * h - H - r])    # 3 x 3 middle
             if abs(centre[1]) < 0.25 * H or r > 0.32 * L:
                 continue                                  # mid-height or too big: a body arc
@@ -1154,26 +1205,27 @@ def _band_share(v: np.ndarray, width: float) -> float:
                  / v.size)
 
 
-def _box3(a: np.ndarray) -> np.ndarray:
-    """Sum over each 3 x 3 neighbourhood (zero outside)."""
-    c = a.copy()
-    c[1:] += a[:-1]
-    c[:-1] += a[1:]
-    out = c.copy()
-    out[:, 1:] += c[:, :-1]
-    out[:, :-1] += c[:, 1:]
-    return out
-
-
-def _max3(a: np.ndarray) -> np.ndarray:
-    """Maximum over each 3 x 3 neighbourhood."""
-    c = a.copy()
-    np.maximum(c[1:], a[:-1], out=c[1:])
-    np.maximum(c[:-1], a[1:], out=c[:-1])
-    out = c.copy()
-    np.maximum(out[:, 1:], c[:, :-1], out=out[:, 1:])
-    np.maximum(out[:, :-1], c[:, 1:], out=out[:, :-1])
-    return out
+def _hough_peaks(cell: np.ndarray, nx: int, ny: int,
+                 min_votes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Peaks of a Hough grid of ``nx`` x ``ny`` cells (``cell``: the flat, C-order cell of
+    each vote): (flat cells where the votes summed over the 3 x 3 cells around reach
+    ``min_votes`` and no neighbour's sum is larger, ascending; their sums). Integer counts
+    with a zero border (int16 when the votes fit: a sum counts each vote at most once)."""
+    grid = np.zeros((nx + 2, ny + 2), np.int16 if len(cell) < 2**15 else np.int64)
+    grid[1:-1, 1:-1] = np.bincount(cell, minlength=nx * ny).reshape(nx, ny)
+    rows = grid[:-2] + grid[1:-1]
+    rows += grid[2:]
+    box = np.zeros_like(grid)                             # 3 x 3 sums, a zero border
+    inner = box[1:-1, 1:-1]
+    np.add(rows[:, :-2], rows[:, 1:-1], out=inner)
+    inner += rows[:, 2:]
+    rows = np.maximum(box[:-2], box[1:-1])                # sums >= 0: the border is no peak
+    np.maximum(rows, box[2:], out=rows)
+    top = np.maximum(rows[:, :-2], rows[:, 1:-1])
+    np.maximum(top, rows[:, 2:], out=top)                 # 3 x 3 maxima of the sums
+    peak = np.flatnonzero((inner >= min_votes) & (inner == top))
+    i, j = np.divmod(peak, ny)
+    return peak, inner[i, j]
 
 
 # ----------------------------------------------------------------------------- names
@@ -1182,7 +1234,7 @@ class _Keywords:
     """A test on a name's words (``_words``): an ASCII keyword starts one of its words, a
     non-ASCII one appears anywhere in it (CJK has no spaces), or one of its words is one of
     ``tokens``. Words starting with one of ``exclude`` are dropped first (``headrest`` is
-    not a head lamp). ``many`` tests many names in one regular-expression scan."""
+    not a head lamp). ``many`` tests many names, each distinct word once."""
 
     def __init__(self, words: Sequence[str], tokens: Sequence[str] = (),
                  exclude: Sequence[str] = ()):
@@ -1191,6 +1243,7 @@ class _Keywords:
         self.other = [w for w in words if not w.isascii()]
         self.tok = frozenset(tokens)
         self.excl = tuple(exclude)
+        self.prefixes = tuple(w for w in words if w.isascii())
 
     def __call__(self, ws: tuple[str, ...]) -> bool:
         if self.excl:
@@ -1200,29 +1253,39 @@ class _Keywords:
                 or (not joined.isascii() and any(w in joined for w in self.other)))
 
     def many(self, names: Sequence[tuple[str, ...]]) -> np.ndarray:
-        """(N,) bool: the test on each of ``names`` (their words): the names joined by line
-        breaks (a keyword has none, so a match lies in one name) and scanned once."""
-        if self.excl:
-            names = [tuple(w for w in ws if not w.startswith(self.excl)) for ws in names]
-        lines = [" ".join(ws) for ws in names]
-        out = np.zeros(len(lines), bool)
-        if not lines:
-            return out
-        starts = np.cumsum([0] + [len(line) + 1 for line in lines[:-1]])
-        text = "\n".join(lines)
-        hits = [m.start() for m in self.rx.finditer(text)]
-        out[np.searchsorted(starts, hits, side="right") - 1] = True
-        for i in np.flatnonzero(~out).tolist():
-            if (not self.tok.isdisjoint(names[i])
-                    or (not lines[i].isascii() and any(w in lines[i] for w in self.other))):
-                out[i] = True
+        """(N,) bool: the test on each of ``names`` (their words, as ``_words`` gives them),
+        word by word (a keyword or token has no space, so a match lies in one word), each
+        distinct word tested once."""
+        out = np.zeros(len(names), bool)
+        hit: dict[str, bool] = {}
+        for i, ws in enumerate(names):
+            for w in ws:
+                h = hit.get(w)
+                if h is None:
+                    h = hit[w] = self._word(w)
+                if h:
+                    out[i] = True
+                    break
         return out
+
+    def _word(self, w: str) -> bool:
+        """The test on one word (letters only): an ASCII word can only match a keyword at its
+        start (``rx`` needs no letter a-z before it)."""
+        if w.startswith(self.excl):
+            return False
+        if w.isascii():
+            return w.startswith(self.prefixes) or w in self.tok
+        return (self.rx.search(w) is not None or w in self.tok
+                or any(k in w for k in self.other))
+
+
+_CAMEL = re.compile(r"([a-z])([A-Z])")
+_WORD = re.compile(r"[^\W\d_]+")
 
 
 def _words(name: str) -> tuple[str, ...]:
     """Lower-case words of a name: camelCase split; digits and punctuation separate words."""
-    spaced = re.sub(r"([a-z])([A-Z])", r"\1 \2", str(name))
-    return tuple(w.lower() for w in re.findall(r"[^\W\d_]+", spaced))
+    return tuple(w.lower() for w in _WORD.findall(_CAMEL.sub(r"\1 \2", str(name))))
 
 
 _NOT_DIRECTION = ("headrest", "headliner", "headlining", "backrest", "background", "rearview",
@@ -1264,10 +1327,10 @@ class _Names:
 
     def __init__(self, mesh: Mesh):
         self.mesh = mesh
-        fm = np.asarray(mesh.face_material).astype(np.intp)
+        fm = np.asarray(mesh.face_material)                 # labels as stored (no copy)
         self.groupings = [(fm, [m.name for m in mesh.materials])]
         if mesh.face_node is not None and len(mesh.node_names):
-            fn = np.asarray(mesh.face_node).astype(np.intp)
+            fn = np.asarray(mesh.face_node)
             if fn.size and fn.min() >= 0 and fn.max() < len(mesh.node_names):
                 # without trimesh's random '_xxxxxx' suffix (its hex letters would be
                 # words such as 'f' or 'bb': a names cue that changed from run to run)
@@ -1281,7 +1344,7 @@ class _Names:
         self._tests: dict = {}
         self._kinds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._node_groups: tuple | None = None
-        self._sorted: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._sorted: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def words(self, name: str) -> tuple[str, ...]:
         if name not in self._words:
@@ -1298,21 +1361,23 @@ class _Names:
                                 else match.many([self.words(n) for n in names]))
         return self._tests[key]
 
-    def _by_group(self, g: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _by_group(self, g: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(faces sorted by their group in grouping ``g`` (stable), where each non-empty
-        group starts in that order, those groups' labels); once per mesh."""
+        group starts in that order, its number of faces, those groups' labels); once per
+        mesh."""
         if g not in self._sorted:
             lab = self.groupings[g][0]
             order = np.argsort(lab, kind="stable")
             starts = np.flatnonzero(np.r_[True, np.diff(lab[order]) != 0]) if lab.size else order
-            self._sorted[g] = (order, starts, lab[order[starts]])
+            self._sorted[g] = (order, starts, np.diff(np.append(starts, order.size)),
+                               lab[order[starts]])
         return self._sorted[g]
 
     def sums(self, g: int, weights: np.ndarray) -> np.ndarray:
         """(K,) per-face ``weights`` summed over each group of grouping ``g``, group by group
         in face order (``np.add.reduceat`` over the faces sorted by group: several times
         faster than ``np.bincount`` with weights)."""
-        order, starts, present = self._by_group(g)
+        order, starts, _, present = self._by_group(g)
         out = np.zeros(len(self.groupings[g][1]))
         if starts.size:
             out[present] = np.add.reduceat(weights[order], starts)
@@ -1322,14 +1387,13 @@ class _Names:
         """(len(groups),) ``sums(g, w)[groups]`` for a per-face w that is ``weight(faces)``
         on the faces of those groups (ascending; weight: a function of face indices),
         computed on those faces only (the same values in the same order per group)."""
-        order, starts, present = self._by_group(g)
+        order, starts, size, present = self._by_group(g)
         out = np.zeros(len(groups))
         if present.size == 0:
             return out
         k = np.minimum(np.searchsorted(present, groups), present.size - 1)
         has = present[k] == groups                        # groups with faces
-        s = starts[k[has]]
-        lens = np.r_[starts[1:], order.size][k[has]] - s
+        s, lens = starts[k[has]], size[k[has]]
         if lens.size:
             first = np.cumsum(lens) - lens
             faces = order[np.repeat(s - first, lens) + np.arange(int(lens.sum()))]
@@ -1370,20 +1434,22 @@ class _Names:
 
 class _NameTable:
     """Materials and nodes as named groups of faces (``groupings`` of ``_Names``) with their
-    surface share in this pass, and of samples (the material of each sample)."""
+    surface share in this pass, and of samples (the material of each sample). Faces weigh
+    twice their area (``area``, ``total_area``): shares and means are ratios, the factor
+    cancels exactly."""
 
     def __init__(self, names: _Names, S: _Samples):
         mesh = names.mesh
         self.names, self.mesh, self.groupings = names, mesh, names.groupings
         self.material_of_sample = np.asarray(mesh.face_material)[S.face].astype(np.intp)
-        self.area = S.face_area
+        self.area = S.face_area2
         self.total_area = total = max(float(self.area.sum()), 1e-300)
         share: list[np.ndarray] = []                              # surface share of each group
         for g in range(len(self.groupings)):
             share.append(share[names.same[g]] if names.same[g] < g else
                          names.sums(g, self.area) / total)
         self.share = share
-        self._means: dict = {}          # (grouping, id(value)) -> (value kept alive, means)
+        self._means: dict = {}   # (grouping, groups, id(value)) -> (value kept alive, means)
         glass, lamp, colour = names.kinds()
         with_surface = share[0] > 0                               # the rest: not any kind
         self.glass, self.lamp = glass & with_surface, lamp & with_surface
@@ -1393,33 +1459,29 @@ class _NameTable:
         """(K,) bool: the names of grouping ``g`` (with surface) that ``match``."""
         return self.names.matching(match, g) & (self.share[g] > 0)
 
-    def means(self, g: int, value: np.ndarray) -> np.ndarray:
-        """(K,) area-weighted mean of a per-face ``value`` over each group of grouping g
-        (the last few are remembered: the cues ask for the same value several times)."""
-        g = self.names.same[g]
-        key = (g, id(value))
-        if key not in self._means:
-            tot = np.maximum(self.share[g] * self.total_area, 1e-300)
-            self._means[key] = (value, self.names.sums(g, self.area * value) / tot)
-        return self._means[key][1]
-
     def means_on(self, g: int, groups: np.ndarray, value) -> np.ndarray:
-        """(len(groups),) ``means(g, v)[groups]`` for a per-face v that is ``value(faces)``
-        on the faces of those groups (ascending; value: a function of the face indices),
-        computed on those faces only (the same sums, in the same order)."""
+        """(len(groups),) area-weighted mean over each of the groups ``groups`` (ascending) of
+        grouping g of a per-face v that is ``value(faces)`` on their faces (value: a function
+        of the face indices), computed on those faces only (group by group in face order,
+        the same sums as ``_Names.sums`` over all faces)."""
         tot = np.maximum(self.share[g][groups] * self.total_area, 1e-300)
         return self.names.sums_on(g, groups, lambda f: self.area[f] * value(f)) / tot
 
     def votes(self, match, value: np.ndarray) -> list[tuple[float, float]]:
         """(weight, area-weighted mean of the per-face ``value``) of the groups whose name
         matches; weight = sqrt of the group's surface share x N_SAMPLES, at most 50 (a big
-        panel is one vote, not many)."""
+        panel is one vote, not many). The means are remembered (a grouping with another's
+        labels asks for the same ones)."""
         out = []
         for g in range(len(self.groupings)):
             hit = np.flatnonzero(self.matches(match, g))
             if hit.size:
                 w = np.sqrt(np.minimum(self.share[g][hit] * N_SAMPLES, 50.0))
-                out.extend(zip(w.tolist(), self.means(g, value)[hit].tolist()))
+                h = self.names.same[g]
+                key = (h, hit.tobytes(), id(value))
+                if key not in self._means:
+                    self._means[key] = (value, self.means_on(h, hit, lambda f: value[f]))
+                out.extend(zip(w.tolist(), self._means[key][1].tolist()))
         return out
 
 
@@ -1486,7 +1548,9 @@ def _up_cues(ctx: _Context, wheels: _Wheels | None, names: _NameTable) -> dict[s
     lamps = names.lamp[fm]
     if lamps.sum() >= 3 and lamps.mean() < 0.2:
         cues["lamps_low"] = float(np.clip(-1.5 * ctx.t[lamps].mean(), -1, 1))
-    ft = (ctx.S.face_centroid @ ctx.b - ctx.t0) / ctx.half_h
+    ft = ctx.S.face_centroid @ ctx.b                       # every face centroid's height, like t
+    ft -= ctx.t0
+    ft /= ctx.half_h
     votes = names.votes(_IS_ROOF, ft) + [(w, -v) for w, v in names.votes(_IS_FLOOR, ft)]
     if votes:
         cues["names_up"] = _vote(votes)
