@@ -507,3 +507,31 @@ def test_trait_streams_leave_the_shared_stream_alone():
     assert ra.random() != rb.random()                     # one stream per trait
     assert _trait_rng(np.random.default_rng([8, 3]), "axles").random() == \
         _trait_rng(np.random.default_rng([8, 3]), "axles").random()
+
+
+def test_opaque_glass_colours_vary_and_pairs_match():
+    """opaque_glass: every window opaque without transmission; the colour is the first
+    recipe's light blue or a blue/blue-grey/grey (blue >= green >= red), one for all windows or
+    one per window material with a left/right pair alike; drawn from its own stream."""
+    colours, several = set(), False
+    for seed in range(12):
+        v = make_vehicle(seed, "sedan", realism=["opaque_glass"])
+        windows = {m.name: m for m in v.mesh().materials if v.truth["materials"][m.name] == "window"}
+        assert windows
+        for m in windows.values():
+            assert m.alpha_mode == "OPAQUE" and m.transmission == 0.0 and m.base_color[3] == 1.0
+            r, g, b = m.base_color[:3]
+            assert b + 1e-9 >= g >= r - 1e-9
+            colours.add(tuple(m.base_color))
+        for name, m in windows.items():
+            if name.endswith("_L"):
+                assert windows[name[:-2] + "_R"].base_color == m.base_color
+        several |= len({m.base_color for m in windows.values()}) > 1
+    assert any(np.allclose(c, (0.55, 0.7, 0.85, 1.0), atol=1 / 255) for c in colours)
+    assert len(colours) >= 6 and several
+    # only the windows change: every other material is as without the trait
+    a = {m.name: m for m in make_vehicle(3, "sedan").mesh().materials}
+    b = {m.name: m for m in make_vehicle(3, "sedan", realism=["opaque_glass"]).mesh().materials}
+    assert a.keys() == b.keys()
+    changed = {n for n in a if a[n] != b[n]}
+    assert changed and all(n.startswith("glass") for n in changed)

@@ -55,7 +55,7 @@ REALISM_PROB: dict[str, float] = {
 #: kind, names, ring and earlier traits of every vehicle stay as they were)
 LATER_TRAITS: tuple[str, ...] = ("axles", "light_bar", "plate_looks", "no_glass")
 REAL_RINGS = (0,)          # rings whose renders of each real model give training rows
-DEFAULT_VEHICLES = 500     # generated training vehicles of the shipped model
+DEFAULT_VEHICLES = 1000    # generated training vehicles of the shipped model
 DEFAULT_SEED = 2026
 HIDE_NAMES = 0.5           # share of generated vehicles with names hidden
 REAL_WEIGHT = 24.0         # weight of a real model's material row (a generated one weighs 1)

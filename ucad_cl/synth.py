@@ -1088,10 +1088,11 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
     ``varied_looks`` (every material's colour pulled up to 60 % toward a random colour, metallic
     and roughness moved by up to 0.35), ``mtl_like`` (OBJ/MTL materials: metallic 0, roughness 1,
     no emission, no transmission),
-    ``opaque_glass`` (glass is opaque light blue), ``dark_glass`` (glass is opaque and dark:
-    black, grey or a dark tint, one random colour), ``two_tone`` (a group of body panels, the
-    roof and pillars, the lower panels or every other panel, in a second paint far from the
-    first: part body), ``one_glass`` (every window shares one glass material: the whole
+    ``opaque_glass`` (glass is opaque: light blue, or a blue, blue-grey or grey of any
+    lightness, one colour for all windows or one each; ``_opaque_glass``),
+    ``dark_glass`` (glass is opaque and dark: black, grey or a dark tint, one random colour),
+    ``two_tone`` (a group of body panels, the roof and pillars, the lower panels or every other
+    panel, in a second paint far from the first: part body), ``one_glass`` (every window shares one glass material: the whole
     glasshouse, as most real libraries build it), ``glass_looks`` (the glass looks as real
     libraries make it: see-through by alpha only (0.1-0.7, alpha mode BLEND or OPAQUE, no
     transmission) or opaque, light or dark grey or tinted, any metallic and roughness),
@@ -1109,8 +1110,8 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
     libraries paint them: white, yellow, black or dark grey, plain or textured, any gloss, US
     or EU proportions, sometimes no front plate), ``no_glass`` (no window at all, as many game
     models are built: the interior is seen directly).
-    Traits from ``axles`` on draw from their own random streams (``_trait_rng``), so adding one
-    changes no earlier trait's draws.
+    ``opaque_glass`` and the traits from ``axles`` on draw from their own random streams
+    (``_trait_rng``), so adding or changing one changes no other trait's draws.
     Name traits: ``meaningless_names`` (materials become ``Material.001``..., nodes
     ``Object_1``...), ``misleading_names`` (some materials named after another part).
     The truth of a shared material is its majority part (``majority_part``)."""
@@ -1195,11 +1196,7 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
                 q.material = shared(m.name, m, metallic=0.0, roughness=1.0,
                                     emissive=(0.0, 0.0, 0.0), transmission=0.0)
         elif t == "opaque_glass":
-            for q in parts:
-                if q.part == "window":
-                    q.material = shared(q.material.name, q.material,
-                                        base_color=(0.55, 0.7, 0.85, 1.0), alpha_mode="OPAQUE",
-                                        transmission=0.0)
+            parts = _opaque_glass(parts, _trait_rng(r, t), shared)
         elif t == "dark_glass":
             rgb = r.uniform(0.0, 0.12) + r.uniform(0.0, 0.1, 3)
             for q in parts:
@@ -1278,6 +1275,32 @@ def _trait_rng(r: np.random.Generator, trait: str) -> np.random.Generator:
     state) and the trait's name, so the draws of one trait do not move another's."""
     entropy = np.atleast_1d(r.bit_generator.seed_seq.entropy).tolist()   # type: ignore[attr-defined]
     return np.random.default_rng([*entropy, int.from_bytes(trait.encode()[:8], "little")])
+
+
+def _opaque_glass(parts: list[_Part], r: np.random.Generator, shared) -> list[_Part]:
+    """Opaque windows as simulator and game models paint them: one colour for all windows, or
+    (half of the vehicles) one per window material with a left/right pair alike; each colour is
+    the light blue of the first recipe half of the time, else a blue, blue-grey or grey of
+    lightness 0.2-0.9. The windows keep their materials and their gloss."""
+    each = r.random() < 0.5
+
+    def look() -> dict:
+        if r.random() < 0.5:
+            return dict(base_color=(0.55, 0.7, 0.85, 1.0))
+        light, blue = float(r.uniform(0.2, 0.9)), float(r.uniform(0.0, 0.25))
+        rgb = np.clip([light - blue, light - 0.4 * blue, light + 0.3 * blue], 0.0, 1.0)
+        return dict(base_color=(*(float(x) for x in rgb), 1.0))
+
+    common = look()
+    looks: dict[str, dict] = {}
+    for q in parts:
+        if q.part == "window":
+            pair = q.material.name.removesuffix("_L").removesuffix("_R")   # a pair alike
+            if pair not in looks:
+                looks[pair] = look() if each else common
+            q.material = shared(q.material.name, q.material, alpha_mode="OPAQUE",
+                                transmission=0.0, **looks[pair])
+    return parts
 
 
 def _axles(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
