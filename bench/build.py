@@ -135,6 +135,38 @@ def main() -> None:
         print(f"{w:>7} {k:>6} {med:>10.1f} {p90:>8.1f} {args.triangles:>10}")
 
 
+def library_meshes(lib: Path, count: int, **load_kw):
+    """The first ``count`` meshes of the library (file-name order) that load and pass the
+    build's filter (``load_kw``: ``load_mesh`` options): the orientation and labelling rows'
+    meshes."""
+    from ucad_cl.filter import filter_mesh
+    from ucad_cl.ingest import IngestError, load_mesh
+
+    n = 0
+    for path in sorted(lib.glob("*.glb")):
+        if n >= count:
+            return
+        try:
+            mesh = load_mesh(path, **load_kw)
+        except IngestError:
+            continue
+        if filter_mesh(mesh).accepted:
+            n += 1
+            yield mesh
+
+
+def median_seconds(fn, *args, clock=time.perf_counter, runs: int = 3, **kw) -> float:
+    """Median over ``runs`` calls of ``fn(*args, **kw)`` of the seconds ``clock`` counts."""
+    import numpy as np
+
+    times = []
+    for _ in range(runs):
+        t0 = clock()
+        fn(*args, **kw)
+        times.append(clock() - t0)
+    return float(np.median(times))
+
+
 def orient_row(lib: Path, args) -> None:
     """The issue's orientation row: process CPU ms of ``estimate_orientation`` per mesh (median
     of 3 runs each, after one warm-up run) on the first --label-meshes meshes of the library
@@ -143,8 +175,6 @@ def orient_row(lib: Path, args) -> None:
 
     import numpy as np
 
-    from ucad_cl.filter import filter_mesh
-    from ucad_cl.ingest import IngestError, load_mesh
     from ucad_cl.orient import estimate_orientation, takes_fast_path
 
     try:                                         # one BLAS thread, as in a build worker
@@ -154,22 +184,9 @@ def orient_row(lib: Path, args) -> None:
         limit = nullcontext()
     ms, tris, fast = [], [], 0
     with limit:
-        for path in sorted(lib.glob("*.glb")):
-            if len(ms) >= args.label_meshes:
-                break
-            try:
-                mesh = load_mesh(path, orientation=None)
-            except IngestError:
-                continue
-            if not filter_mesh(mesh).accepted:
-                continue
+        for mesh in library_meshes(lib, args.label_meshes, orientation=None):
             estimate_orientation(mesh)
-            runs = []
-            for _ in range(3):
-                t0 = time.process_time()
-                estimate_orientation(mesh)
-                runs.append(time.process_time() - t0)
-            ms.append(1000 * float(np.median(runs)))
+            ms.append(1000 * median_seconds(estimate_orientation, mesh, clock=time.process_time))
             tris.append(mesh.n_faces)
             fast += takes_fast_path(mesh)
     if not ms:
@@ -190,8 +207,6 @@ def label_row(lib: Path, args) -> None:
     # in this process (the build's workers set their own)
     os.environ["POCL_MAX_PTHREAD_COUNT"] = os.environ["POCL_CPU_MAX_CU_NUM"] = "1"
     from ucad_cl.cameras import make_ring
-    from ucad_cl.filter import filter_mesh
-    from ucad_cl.ingest import IngestError, load_mesh
     from ucad_cl.render import render_views
     from ucad_cl.labeller import label_materials
     from ucad_cl.segment import LabellerSegmenter, PriorSegmenter
@@ -201,31 +216,14 @@ def label_row(lib: Path, args) -> None:
     t = {k: [] for k in segs}
     t["label only"] = []          # label_materials: features, layer behind glass, ONNX trees
     tris = []
-    for path in sorted(lib.glob("*.glb")):
-        if len(tris) >= args.label_meshes:
-            break
-        try:
-            mesh = load_mesh(path)
-        except IngestError:
-            continue
-        if not filter_mesh(mesh).accepted:
-            continue
+    for mesh in library_meshes(lib, args.label_meshes):
         views = render_views(mesh, ring)
         views.material_counts()                  # cached by the build's filter before segment
         tris.append(mesh.n_faces)
         for k, seg in segs.items():
-            runs = []
-            for _ in range(3):
-                t0 = time.perf_counter()
-                seg.segment(mesh, views)
-                runs.append(time.perf_counter() - t0)
-            t[k].append(float(np.median(runs)))
-        runs = []
-        for _ in range(3):
-            t0 = time.perf_counter()
-            label_materials(mesh, views, model=segs["labeller"].model)
-            runs.append(time.perf_counter() - t0)
-        t["label only"].append(float(np.median(runs)))
+            t[k].append(median_seconds(seg.segment, mesh, views))
+        t["label only"].append(median_seconds(label_materials, mesh, views,
+                                               model=segs["labeller"].model))
     if not tris:
         return
     print(f"\nlabelling per mesh ({len(tris)} meshes, median {int(np.median(tris))} triangles, "
