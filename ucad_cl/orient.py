@@ -1234,7 +1234,7 @@ class _Keywords:
     """A test on a name's words (``_words``): an ASCII keyword starts one of its words, a
     non-ASCII one appears anywhere in it (CJK has no spaces), or one of its words is one of
     ``tokens``. Words starting with one of ``exclude`` are dropped first (``headrest`` is
-    not a head lamp). ``many`` tests many names, each distinct word once."""
+    not a head lamp). ``many`` applies it to many names, each distinct word tested once."""
 
     def __init__(self, words: Sequence[str], tokens: Sequence[str] = (),
                  exclude: Sequence[str] = ()):
@@ -1244,13 +1244,6 @@ class _Keywords:
         self.tok = frozenset(tokens)
         self.excl = tuple(exclude)
         self.prefixes = tuple(w for w in words if w.isascii())
-
-    def __call__(self, ws: tuple[str, ...]) -> bool:
-        if self.excl:
-            ws = tuple(w for w in ws if not w.startswith(self.excl))
-        joined = " ".join(ws)
-        return (self.rx.search(joined) is not None or not self.tok.isdisjoint(ws)
-                or (not joined.isascii() and any(w in joined for w in self.other)))
 
     def many(self, names: Sequence[tuple[str, ...]]) -> np.ndarray:
         """(N,) bool: the test on each of ``names`` (their words, as ``_words`` gives them),
