@@ -360,9 +360,20 @@ def test_verify_gc_and_export_leftovers(corpus, tmp_path, runtime, capsys):
 
 @pytest.fixture(scope="module")
 def small_library(tmp_path_factory):
+    return _library(tmp_path_factory.mktemp("small"), 5)
+
+
+@pytest.fixture(scope="module")
+def kill_library(tmp_path_factory):
+    """Enough meshes that several worker kills land before the build ends (with 5, a fast idle
+    machine finished the build after one kill, 8 tries of 8)."""
+    return _library(tmp_path_factory.mktemp("kill"), 16)
+
+
+def _library(out: Path, count: int) -> Path:
+    """``count`` generated vehicles (seed 11, none messy) and one broken GLB in ``out``."""
     from ucad_cl.synth import write_library
-    out = tmp_path_factory.mktemp("small")
-    write_library(out, 5, seed=11, messy_fraction=0.0, progress=False)
+    write_library(out, count, seed=11, messy_fraction=0.0, progress=False)
     (out / "broken.glb").write_bytes(b"glTF\x02\x00\x00\x00garbage")
     return out
 
@@ -378,8 +389,18 @@ def _export(cat, out: Path) -> bytes:
 @pytest.fixture(scope="module")
 def small_expected(small_library, tmp_path_factory, runtime):
     """(catalogue content, export bytes) of an undisturbed build of ``small_library``."""
-    ref = tmp_path_factory.mktemp("small_ref") / "cat"
-    build(small_library, ref, OPTS, **QUIET)
+    return _undisturbed(small_library, tmp_path_factory.mktemp("small_ref") / "cat")
+
+
+@pytest.fixture(scope="module")
+def kill_expected(kill_library, tmp_path_factory, runtime):
+    """``small_expected`` of ``kill_library``."""
+    return _undisturbed(kill_library, tmp_path_factory.mktemp("kill_ref") / "cat")
+
+
+def _undisturbed(library: Path, ref: Path) -> tuple:
+    """(catalogue content, export bytes) of an undisturbed build of ``library`` into ``ref``."""
+    build(library, ref, OPTS, **QUIET)
     return catalogue_content(ref), _export(ref, ref.parent / "ref.jsonl")
 
 
@@ -441,7 +462,7 @@ def _workers_of(pid, min_age: float = 0.0):
         return []
 
 
-def test_sigkill_of_single_workers_leaves_an_identical_catalogue(small_library, small_expected,
+def test_sigkill_of_single_workers_leaves_an_identical_catalogue(kill_library, kill_expected,
                                                                   tmp_path):
     """Workers SIGKILL-ed from outside at random moments (up to 6 kills): their meshes are
     retried, nothing is recorded against them, and the catalogue equals an undisturbed build's.
@@ -455,7 +476,7 @@ def test_sigkill_of_single_workers_leaves_an_identical_catalogue(small_library, 
         kills = rounds = 0
         while True:
             rounds += 1
-            proc = subprocess.Popen(_cli(small_library, cat, "--workers", "2"), env=env,
+            proc = subprocess.Popen(_cli(kill_library, cat, "--workers", "2"), env=env,
                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
             deadline = time.monotonic() + 240
             while proc.poll() is None and kills < 6 and time.monotonic() < deadline:
@@ -480,8 +501,8 @@ def test_sigkill_of_single_workers_leaves_an_identical_catalogue(small_library, 
         if kills >= 3:                                # the build outlived most of the kills
             break
     assert kills >= 3, kills
-    assert catalogue_content(cat) == small_expected[0]
-    assert _export(cat, tmp_path / "x.jsonl") == small_expected[1]
+    assert catalogue_content(cat) == kill_expected[0]
+    assert _export(cat, tmp_path / "x.jsonl") == kill_expected[1]
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
         assert c.verify() == []
