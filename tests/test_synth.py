@@ -535,3 +535,50 @@ def test_opaque_glass_colours_vary_and_pairs_match():
     assert a.keys() == b.keys()
     changed = {n for n in a if a[n] != b[n]}
     assert changed and all(n.startswith("glass") for n in changed)
+
+
+def test_inner_shell_and_mirror_glass_traits():
+    """inner_shell: inside-out copies of the cabin's body panels, part interior, inside the
+    body's box, facing its centre, from near the floor to near the roof; mirror_glass:
+    part chrome, on the back face of each mirror housing. Neither changes another material,
+    and a vehicle without an interior gets no liner."""
+    own, lengths = 0, []
+    for seed in range(10):
+        v = make_vehicle(seed, "sedan", realism=["inner_shell", "mirror_glass"])
+        t, m = v.truth["materials"], v.mesh()
+        assert any(n.startswith("interior_liner_") and p == "interior"
+                   for n, p in v.truth["nodes"].items())
+        F, V, fm = np.asarray(m.faces), m.vertices, np.asarray(m.face_material)
+        mats = {x.name: i for i, x in enumerate(m.materials)}
+
+        def faces(*names, F=F, fm=fm, mats=mats):
+            return F[np.isin(fm, [mats[n] for n in names])]
+
+        body = V[faces(*[n for n, p in t.items() if p == "body"]).ravel()]
+        lo, hi = body.min(axis=0), body.max(axis=0)
+        for side in "LR":
+            glass = V[faces("mirror_glass")].reshape(-1, 3)
+            glass = glass[np.sign(glass[:, 2]) == (1 if side == "R" else -1)]
+            housing = V[faces(f"paint_mirror_{side}").ravel()]
+            assert t["mirror_glass"] == "chrome" and len(glass)
+            assert glass[:, 0].max() < housing[:, 0].min()             # behind the housing
+            assert (glass[:, 1:] > housing[:, 1:].min(axis=0)).all()
+            assert (glass[:, 1:] < housing[:, 1:].max(axis=0)).all()
+        if "interior_liner" not in t:
+            continue
+        own += 1
+        assert t["interior_liner"] == "interior"
+        Fl = faces("interior_liner")
+        lined = V[Fl.ravel()]
+        assert (lined > lo).all() and (lined < hi).all()               # inside the body
+        n = np.cross(V[Fl[:, 1]] - V[Fl[:, 0]], V[Fl[:, 2]] - V[Fl[:, 0]])
+        out = np.einsum("ij,ij->i", n, V[Fl].mean(axis=1) - (lo + hi) / 2)
+        assert (out < 0).mean() > 0.8                                  # inside out
+        lengths.append(np.ptp(lined[:, 0]) / np.ptp(body[:, 0]))
+        assert np.ptp(lined[:, 1]) > 0.85 * np.ptp(body[:, 1])        # sides up to the roof
+    assert own >= 2 and max(lengths) < 0.8                            # the cabin, not the nose
+    bare = make_vehicle(3, "sedan", realism=["chassis_only", "inner_shell"]).truth["nodes"]
+    assert not any(n.startswith("interior_liner_") for n in bare)
+    a = {x.name: x for x in make_vehicle(3, "sedan").mesh().materials}
+    b = {x.name: x for x in make_vehicle(3, "sedan", realism=["mirror_glass"]).mesh().materials}
+    assert b.keys() - a.keys() == {"mirror_glass"} and all(a[n] == b[n] for n in a)

@@ -74,7 +74,7 @@ REALISM_TRAITS: tuple[str, ...] = (
     "paint_rims", "shared_black", "dark_trim", "textured_body", "varied_looks", "mtl_like",
     "opaque_glass", "dark_glass", "two_tone", "one_glass", "glass_looks", "grey_trim",
     "plain_lights", "lamp_variety", "ground_base", "axles", "light_bar", "plate_looks",
-    "no_glass", "meaningless_names", "misleading_names")
+    "no_glass", "inner_shell", "mirror_glass", "meaningless_names", "misleading_names")
 
 
 def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
@@ -1109,7 +1109,10 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
     amber, sometimes see-through or glowing: part light), ``plate_looks`` (plates as real
     libraries paint them: white, yellow, black or dark grey, plain or textured, any gloss, US
     or EU proportions, sometimes no front plate), ``no_glass`` (no window at all, as many game
-    models are built: the interior is seen directly).
+    models are built: the interior is seen directly), ``inner_shell`` (the cabin's roof,
+    pillars and doors lined inside in an interior material: ``_inner_shell``),
+    ``mirror_glass`` (a reflective glass on the back of each door mirror: part chrome,
+    ``_mirror_glass``).
     ``opaque_glass`` and the traits from ``axles`` on draw from their own random streams
     (``_trait_rng``), so adding or changing one changes no other trait's draws.
     Name traits: ``meaningless_names`` (materials become ``Material.001``..., nodes
@@ -1249,6 +1252,10 @@ def apply_realism(parts: list[_Part], traits: Sequence[str],  # noqa: C901  one 
             parts = _plate_looks(parts, _trait_rng(r, t))
         elif t == "no_glass":
             parts = [q for q in parts if q.part != "window"]
+        elif t == "inner_shell":
+            parts = _inner_shell(parts, _trait_rng(r, t))
+        elif t == "mirror_glass":
+            parts = _mirror_glass(parts, _trait_rng(r, t))
         elif t == "meaningless_names":
             renamed: dict[str, str] = {}
             for k, q in enumerate(parts):
@@ -1396,6 +1403,56 @@ def _plate_looks(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
         c = 0.5 * (lo + hi)
         scale = np.array([1.0, 1.4, 0.6]) if us else np.array([1.0, 1.0, 1.0])
         out.append(_Part(q.node, "plate", mat, (q.vertices - c) * scale + c, q.faces))
+    return out
+
+
+def _inner_shell(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
+    """The cabin lined inside as real models line it (head liner, pillar trims, door cards):
+    the roof, pillar, door, sill and side panels shrunk toward the body's centre by 2-6 cm on
+    each axis and turned inside out, in an interior material, the interior's own half of the
+    time, else a liner of its own (black, grey or beige). Part ``interior``, so the interior
+    reaches the roof and the body's sides and is seen through every window. Nothing is added
+    to a vehicle without an interior."""
+    cabin = ("paint_roof", "paint_pillar", "paint_door", "paint_window_sill", "paint_side",
+             "paint_rear_frame", "paint_roof_rail")
+    inner = next((q.material for q in parts if q.part == "interior"), None)
+    panels = [q for q in parts if q.part == "body" and q.node.startswith(cabin)]
+    if inner is None or not panels:
+        return parts
+    if r.random() >= 0.5:
+        tone = [(0.03, 0.03, 0.03), (0.15, 0.15, 0.16), (0.45, 0.45, 0.45), (0.6, 0.52, 0.4)]
+        rgb = np.clip(np.asarray(tone[int(r.integers(len(tone)))]) * r.uniform(0.8, 1.2, 3),
+                      0.0, 1.0)
+        inner = Material("interior_liner", (*(float(x) for x in rgb), 1.0), "OPAQUE",
+                         float(r.uniform(0.0, 0.2)), float(r.uniform(0.5, 1.0)))
+    body = np.concatenate([q.vertices for q in parts if q.part == "body"])
+    lo, hi = body.min(axis=0), body.max(axis=0)
+    c, half = 0.5 * (lo + hi), np.maximum(0.5 * (hi - lo), 0.2)
+    scale = 1.0 - float(r.uniform(0.02, 0.06)) / half
+    out = list(parts)
+    for q in panels:
+        out.append(_Part(f"interior_liner_{q.node[len('paint_'):]}", "interior", inner,
+                         c + (q.vertices - c) * scale, q.faces[:, ::-1].copy()))
+    return out
+
+
+def _mirror_glass(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
+    """A reflective glass on the rear face of each door mirror housing, 1 cm proud of it and
+    inset 1-2 cm: metallic, glossy, light grey or faintly blue; part ``chrome`` (the trim
+    policy for mirror glass)."""
+    grey = float(r.uniform(0.55, 0.95))
+    mat = Material("mirror_glass", (grey - float(r.uniform(0.0, 0.1)), grey, grey, 1.0),
+                   "OPAQUE", float(r.choice([1.0, r.uniform(0.5, 1.0)])),
+                   float(r.uniform(0.0, 0.25)))
+    inset = float(r.uniform(0.01, 0.02))
+    out = list(parts)
+    for q in parts:
+        if not q.node.startswith("paint_mirror_"):
+            continue
+        lo, hi = _bbox(q)
+        v, f = _box([lo[0] - 0.01, lo[1] + inset, lo[2] + inset],
+                    [lo[0] - 0.002, hi[1] - inset, hi[2] - inset], 0.1)
+        out.append(_Part(f"mirror_glass_{q.node[-1]}", "chrome", mat, v, f))
     return out
 
 
