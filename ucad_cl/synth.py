@@ -1437,9 +1437,9 @@ def _inner_shell(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
 
 
 def _mirror_glass(parts: list[_Part], r: np.random.Generator) -> list[_Part]:
-    """A reflective glass on the rear face of each door mirror housing, 1 cm proud of it and
-    inset 1-2 cm: metallic, glossy, light grey or faintly blue; part ``chrome`` (the trim
-    policy for mirror glass)."""
+    """A reflective glass behind the rear face of each door mirror housing (a plate 8 mm thick,
+    2 mm off the housing, inset 1-2 cm from its edges): metallic, glossy, light grey or
+    faintly cyan; part ``chrome`` (the label policy for mirror glass, docs/CONVENTIONS.md)."""
     grey = float(r.uniform(0.55, 0.95))
     mat = Material("mirror_glass", (grey - float(r.uniform(0.0, 0.1)), grey, grey, 1.0),
                    "OPAQUE", float(r.choice([1.0, r.uniform(0.5, 1.0)])),
