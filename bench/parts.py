@@ -4,6 +4,7 @@ vehicles, and the IoU-pass speed.
     .venv/bin/python bench/parts.py                       # everything (about 15-25 min on 2 cores)
     .venv/bin/python bench/parts.py --skip-speed --folds kenney_sedan/sedan.glb,o3dv_car.glb
     .venv/bin/python bench/parts.py --skip-speed --fast   # LOMO from cached feature rows (minutes)
+    .venv/bin/python bench/parts.py --skip-speed --fast --seeds 3   # the same at 3 training seeds
 
 Accuracy (needs the ``[train]`` extra). The learned labeller (``ucad_cl.labeller``) is retrained
 for every fold without the scored real model (generated vehicles of the training recipe + the
@@ -19,6 +20,10 @@ into the vehicle frame by the orientation stage (``--frame auto``, the default: 
 pipeline does with a file nobody labelled) or by the manifest's ``up``/``front``
 (``--frame manifest``), for scoring and for the other folds' training rows alike
 (``labeller_train.load_real_models``).
+
+``--fast --seeds N``: the fast loop at N training seeds, each seed's totals with their mean and
+range: a change of training seed alone moves the totals by 3-5 materials, so compare recipes by
+these means (or seed by seed), not by one run.
 
 ``--fast``: the same leave-one-model-out from feature rows cached per model in ``--cache``
 (names kept and hidden, truth, pixels; ``real_tables``; the cache keys hash the feature, name
@@ -309,7 +314,11 @@ def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
 
 
 def fast_table(args):
-    """``--fast``: the leave-one-model-out table from cached feature rows (minutes)."""
+    """``--fast``: the leave-one-model-out table from cached feature rows (minutes); with
+    ``--seeds N`` > 1, the totals at training seeds ``--seed`` .. ``--seed + N - 1`` and their
+    mean and range (the training seed alone moves the totals by a few materials)."""
+    if args.seeds > 1:
+        return seeds_table(args)
     print(f"\n## Labeller, fast leave-one-model-out over cached feature rows (frame "
           f"{args.frame}; {args.vehicles} generated vehicles seed {args.seed} + the other real "
           "models; per-material argmax, no masks)")
@@ -321,6 +330,34 @@ def fast_table(args):
               f"pixel-weighted {sc.pix:6.1%}   unseen {sc.unseen}")
     print_confusion("Confusion, labeller, names hidden, fast leave-one-model-out",
                     res["hidden"].conf)
+
+
+def seeds_table(args):
+    """``--fast --seeds N``: one fast leave-one-model-out per training seed (the generated rows
+    and the trees' seed both change), materials right and pixel-weighted, then mean and range.
+    Compare two recipes by their means, or seed by seed (paired)."""
+    from argparse import Namespace
+
+    from ucad_cl import labeller_train as T
+
+    print(f"\n## Labeller, fast leave-one-model-out at {args.seeds} training seeds (frame "
+          f"{args.frame}; {args.vehicles} generated vehicles + the other real models)")
+    print(f"{'seed':>6s} | {'names kept':>22s} | {'names hidden':>22s}")
+    tables = real_tables(T.load_real_models(VEHICLES, frame=args.frame), args)
+    rows = []
+    for seed in range(args.seed, args.seed + args.seeds):
+        a = Namespace(**{**vars(args), "seed": seed})
+        res = fast_lomo(a, tables=tables, log=None)
+        rows.append([(res[k].ok, res[k].pix) for k in ("named", "hidden")])
+        n = res["named"].n
+        print(f"{seed:6d} | " + " | ".join(f"{ok:4d}/{n} {pix:6.1%} px" for ok, pix in rows[-1]),
+              flush=True)
+    r = np.array(rows, dtype=np.float64)                       # (seeds, 2, 2)
+    print("  mean | " + " | ".join(f"{r[:, k, 0].mean():6.1f}   {r[:, k, 1].mean():6.1%} px"
+                                   for k in range(2)))
+    print(" range | " + " | ".join(f"{r[:, k, 0].min():4.0f}-{r[:, k, 0].max():<4.0f} "
+                                   f"{r[:, k, 1].min():5.1%}-{r[:, k, 1].max():5.1%}"
+                                   for k in range(2)))
 
 
 def generated_table(args, synth, real):
@@ -408,6 +445,9 @@ def main():
     ap.add_argument("--vehicles", type=int, default=None,
                     help="generated training vehicles (default: the training script's)")
     ap.add_argument("--seed", type=int, default=2026)
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="with --fast: repeat at this many training seeds from --seed and "
+                         "print each seed's totals, their mean and range")
     ap.add_argument("--generated", type=int, default=100,
                     help="generated held-out vehicles to score (0: skip)")
     ap.add_argument("--cache", default="/tmp/ucad-labeller-cache")
