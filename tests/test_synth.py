@@ -556,11 +556,12 @@ def test_inner_shell_and_mirror_glass_traits():
 
         body = V[faces(*[n for n, p in t.items() if p == "body"]).ravel()]
         lo, hi = body.min(axis=0), body.max(axis=0)
-        for side in "LR":
-            glass = V[faces("mirror_glass")].reshape(-1, 3)
-            glass = glass[np.sign(glass[:, 2]) == (1 if side == "R" else -1)]
+        assert t["mirror_glass"] == "chrome"
+        mirror = V[faces("mirror_glass").ravel()]
+        for side, sign in (("L", -1), ("R", 1)):
+            glass = mirror[np.sign(mirror[:, 2]) == sign]
             housing = V[faces(f"paint_mirror_{side}").ravel()]
-            assert t["mirror_glass"] == "chrome" and len(glass)
+            assert len(glass)
             assert glass[:, 0].max() < housing[:, 0].min()             # behind the housing
             assert (glass[:, 1:] > housing[:, 1:].min(axis=0)).all()
             assert (glass[:, 1:] < housing[:, 1:].max(axis=0)).all()
