@@ -141,12 +141,13 @@ def accuracy_table(args):
         scored = models
     ring = T.make_ring_of(0)
     print(f"\n## Labeller, leave-one-model-out on {len(scored)} real models "
-          f"({ring.n_views} views, {ring.width} px; training recipe: {args.vehicles} generated "
-          f"vehicles seed {args.seed} + the other real models)")
+          f"({ring.n_views} views, {ring.width} px; training recipe: {args.members} members, each "
+          f"{args.vehicles} generated vehicles (seeds {args.seed}..{args.seed + args.members - 1}) "
+          "+ the other real models)")
     t0 = time.perf_counter()
-    synth = load_synth_rows(args)
+    synth = member_rows(args)
     real = T.real_rows(models)
-    print(f"training rows: {synth.X.shape[0]} generated, "
+    print(f"training rows: {sum(r.X.shape[0] for r in synth)} generated, "
           f"{sum(r.X.shape[0] for r in real.values())} real ({time.perf_counter() - t0:.0f} s)")
     tmp = Path(tempfile.mkdtemp(prefix="ucad-lomo-"))
     tot = {k: Score() for k in ("lab_named", "lab_hidden", "prior_named", "prior_hidden")}
@@ -154,8 +155,8 @@ def accuracy_table(args):
           f"{'prior named':>13s} {'hidden':>13s} | wrong (labeller, names hidden)")
     for rm in scored:
         t1 = time.perf_counter()
-        rows = T.Rows.concat([synth] + [r for f, r in real.items() if f != rm.file])
-        clf = T.fit(rows, args.seed)
+        others = [r for f, r in real.items() if f != rm.file]
+        clf = T.fit_members([T.Rows.concat([s] + others) for s in synth], args.seed)
         path = T.export_onnx(clf, tmp / f"fold_{len(list(tmp.iterdir()))}.onnx",
                              {"leave_out": rm.file})
         views = render_views(rm.mesh, ring)
@@ -185,9 +186,16 @@ def accuracy_table(args):
         generated_table(args, synth, real)
 
 
-def load_synth_rows(args):
-    """The recipe's generated training rows, cached in ``--cache`` (keyed by count, seed, the
-    recipe and the source of the feature and generator modules)."""
+def member_rows(args) -> list:
+    """The generated training rows of each ensemble member (``labeller_train.member_seeds``)."""
+    from ucad_cl import labeller_train as T
+
+    return [load_synth_rows(args, s) for s in T.member_seeds(args.seed, args.members)]
+
+
+def load_synth_rows(args, seed: int):
+    """The recipe's generated training rows of run ``seed``, cached in ``--cache`` (keyed by
+    count, seed, the recipe and the source of the feature and generator modules)."""
     from ucad_cl import labeller_train as T
 
     import hashlib
@@ -199,11 +207,11 @@ def load_synth_rows(args):
     key = hashlib.sha256(json.dumps([T.REALISM_PROB, T.HIDE_NAMES, T.RINGS]).encode()
                          + b"".join(Path(m.__file__).read_bytes() for m in (
                              ucad_cl.labeller, ucad_cl.names, ucad_cl.synth))).hexdigest()[:12]
-    cache = Path(args.cache) / f"synth_{args.vehicles}_{args.seed}_{key}.npz"
+    cache = Path(args.cache) / f"synth_{args.vehicles}_{seed}_{key}.npz"
     if cache.exists():
         z = np.load(cache, allow_pickle=True)
         return T.Rows(z["X"], z["y"], z["w"], z["group"])
-    rows = T.synth_rows(args.vehicles, args.seed)
+    rows = T.synth_rows(args.vehicles, seed)
     cache.parent.mkdir(parents=True, exist_ok=True)
     np.savez(cache, X=rows.X, y=rows.y, w=rows.w, group=rows.group)
     return rows
@@ -275,16 +283,16 @@ def fast_verdicts(t: dict, prob: np.ndarray, min_pixels: int = 4) -> tuple[Score
 
 def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
     """Leave-one-model-out over cached feature rows (``real_tables``): for every real model,
-    fit on the generated rows + the other real models' named rows (``fit(rows)``, default
-    ``labeller_train.fit`` with the recipe's seed), predict its names-kept and names-hidden
+    fit each member on its generated rows + the other real models' named rows (``fit(rows per
+    member)``, default ``labeller_train.fit_members`` with the recipe's seed), predict its names-kept and names-hidden
     rows, and score with ``fast_verdicts``. Returns {"named": Score, "hidden": Score,
     "per_model": {file: {...}}}."""
     from ucad_cl import labeller_train as T
 
     models = T.load_real_models(VEHICLES, frame=args.frame) if tables is None else None
     tables = tables if tables is not None else real_tables(models, args)
-    synth = synth if synth is not None else load_synth_rows(args)
-    fit = fit or (lambda rows: T.fit(rows, args.seed))
+    synth = synth if synth is not None else member_rows(args)
+    fit = fit or (lambda rows: T.fit_members(rows, args.seed))
     real = {f: T.Rows(t["Xn"][t["y"] >= 0], t["y"][t["y"] >= 0],
                       np.full(int((t["y"] >= 0).sum()), T.REAL_WEIGHT),
                       np.array([f"real:{f}"] * int((t["y"] >= 0).sum()), object))
@@ -294,7 +302,8 @@ def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
     scored = [f for f in tables if not args.folds or f in args.folds]
     for f in scored:
         t0 = time.perf_counter()
-        clf = fit(T.Rows.concat([synth] + [r for g, r in real.items() if g != f]))
+        others = [r for g, r in real.items() if g != f]
+        clf = fit([T.Rows.concat([s] + others) for s in synth])
         t = tables[f]
         res = {}
         for tag, X in (("named", t["Xn"]), ("hidden", t["Xh"])):
@@ -315,13 +324,14 @@ def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
 
 def fast_table(args):
     """``--fast``: the leave-one-model-out table from cached feature rows (minutes); with
-    ``--seeds N`` > 1, the totals at training seeds ``--seed`` .. ``--seed + N - 1`` and their
-    mean and range (the training seed alone moves the totals by a few materials)."""
+    ``--seeds N`` > 1, the totals at N recipe seeds (``seeds_table``) and their mean and range
+    (the generated draw alone moves a single model's totals by a few materials)."""
     if args.seeds > 1:
         return seeds_table(args)
     print(f"\n## Labeller, fast leave-one-model-out over cached feature rows (frame "
-          f"{args.frame}; {args.vehicles} generated vehicles seed {args.seed} + the other real "
-          "models; per-material argmax, no masks)")
+          f"{args.frame}; {args.members} members of {args.vehicles} generated vehicles, seeds "
+          f"{args.seed}..{args.seed + args.members - 1}, + the other real models; per-material "
+          "argmax, no masks)")
     print(f"{'model':44s} {'mats':>4s} | {'named':>13s} | {'hidden':>13s} | wrong (names hidden)")
     res = fast_lomo(args, log=lambda *a, **k: print(*a, **k))
     for k in ("named", "hidden"):
@@ -333,19 +343,21 @@ def fast_table(args):
 
 
 def seeds_table(args):
-    """``--fast --seeds N``: one fast leave-one-model-out per training seed (the generated rows
-    and the trees' seed both change), materials right and pixel-weighted, then mean and range.
-    Compare two recipes by their means, or seed by seed (paired)."""
+    """``--fast --seeds N``: one fast leave-one-model-out per recipe seed (the generated rows
+    and the trees' seeds all change; seeds step by ``--members``, so no two runs share a
+    generated draw), materials right and pixel-weighted, then mean and range. Compare two
+    recipes by their means, or seed by seed (paired)."""
     from argparse import Namespace
 
     from ucad_cl import labeller_train as T
 
     print(f"\n## Labeller, fast leave-one-model-out at {args.seeds} training seeds (frame "
-          f"{args.frame}; {args.vehicles} generated vehicles + the other real models)")
+          f"{args.frame}; {args.members} members of {args.vehicles} generated vehicles + the other "
+          "real models)")
     print(f"{'seed':>6s} | {'names kept':>22s} | {'names hidden':>22s}")
     tables = real_tables(T.load_real_models(VEHICLES, frame=args.frame), args)
     rows = []
-    for seed in range(args.seed, args.seed + args.seeds):
+    for seed in range(args.seed, args.seed + args.seeds * args.members, args.members):
         a = Namespace(**{**vars(args), "seed": seed})
         res = fast_lomo(a, tables=tables, log=None)
         rows.append([(res[k].ok, res[k].pix) for k in ("named", "hidden")])
@@ -365,7 +377,7 @@ def generated_table(args, synth, real):
     from ucad_cl import labeller_train as T
     from ucad_cl.synth import make_vehicle
 
-    clf = T.fit(T.Rows.concat([synth] + list(real.values())), args.seed)
+    clf = T.fit_members([T.Rows.concat([s] + list(real.values())) for s in synth], args.seed)
     path = T.export_onnx(clf, Path(tempfile.mkdtemp(prefix="ucad-gen-")) / "all.onnx", {})
     test_seed = args.seed + 1_000_003
     tot = {k: Score() for k in ("lab_named", "lab_hidden", "prior_named", "prior_hidden")}
@@ -444,10 +456,13 @@ def main():
                     help="score only these real model files (default: all)")
     ap.add_argument("--vehicles", type=int, default=None,
                     help="generated training vehicles (default: the training script's)")
-    ap.add_argument("--seed", type=int, default=2026)
+    ap.add_argument("--seed", type=int, default=2026,
+                    help="recipe seed (member k of the ensemble trains on seed + k)")
+    ap.add_argument("--members", type=int, default=None,
+                    help="models averaged (default: the training script's)")
     ap.add_argument("--seeds", type=int, default=1,
-                    help="with --fast: repeat at this many training seeds from --seed and "
-                         "print each seed's totals, their mean and range")
+                    help="with --fast: repeat at this many recipe seeds (--seed, --seed + "
+                         "members, ...) and print each seed's totals, their mean and range")
     ap.add_argument("--generated", type=int, default=100,
                     help="generated held-out vehicles to score (0: skip)")
     ap.add_argument("--cache", default="/tmp/ucad-labeller-cache")
@@ -465,9 +480,11 @@ def main():
                     default=[64, 256, 1024])
     ap.add_argument("--skip-speed", action="store_true")
     args = ap.parse_args()
+    from ucad_cl.labeller_train import DEFAULT_VEHICLES, MEMBERS
     if args.vehicles is None:
-        from ucad_cl.labeller_train import DEFAULT_VEHICLES
         args.vehicles = DEFAULT_VEHICLES
+    if args.members is None:
+        args.members = MEMBERS
     if not args.skip_accuracy:
         if (VEHICLES / "manifest.json").exists():
             fast_table(args) if args.fast else accuracy_table(args)

@@ -324,11 +324,24 @@ def test_training_script_end_to_end_is_deterministic(tmp_path, runtime):
     assert outs[0].read_bytes() == outs[1].read_bytes()
     rec = json.loads(outs[0].with_suffix(".json").read_text())
     assert rec["recipe"]["seed"] == 5 and rec["recipe"]["vehicles"] == 2
+    assert rec["recipe"]["member_seeds"] == [5, 6, 7]
     assert 0 <= rec["metrics"]["heldout_generated_material_accuracy"] <= 1
+    import onnx
+
     from ucad_cl.labeller import LabellerModel
 
+    ops = [n.op_type for n in onnx.load(str(outs[0])).graph.node]
+    assert ops.count("TreeEnsembleClassifier") == 3 and "Mean" in ops
     p = LabellerModel(outs[0]).predict(np.array(rec["check"]["X"], np.float32))
     np.testing.assert_allclose(p, np.array(rec["check"]["prob"]), atol=1e-4)
+    # one member: its own graph, and probabilities other than the three members' average
+    one = tmp_path / "one" / "labeller.onnx"
+    assert main(["--vehicles", "2", "--test-vehicles", "1", "--max-iter", "3", "--no-real",
+                 "--seed", "5", "--members", "1", "--out", str(one)]) == 0
+    ops = [n.op_type for n in onnx.load(str(one)).graph.node]
+    assert ops.count("TreeEnsembleClassifier") == 1 and "Mean" not in ops
+    p1 = LabellerModel(one).predict(np.array(rec["check"]["X"], np.float32))
+    assert np.abs(p1 - p).max() > 1e-3
 
 
 # ---------------------------------------------------------------------------------------------

@@ -13,10 +13,13 @@ Optional real models (a folder with ``manifest.json``, brought into the vehicle 
 manifest's ``up``/``front``) add their materials (rendered with the rings ``REAL_RINGS``) with
 weight ``REAL_WEIGHT`` per material; a bench fold leaves the scored model out of them.
 
-Model: scikit-learn's ``HistGradientBoostingClassifier`` (``MODEL_PARAMS``, fixed seed, no early
-stopping, so the same data gives the same trees), exported by ``tree_ensemble_onnx`` to one
-``TreeEnsembleClassifier`` (ONNX-ML) that onnxruntime runs; probabilities are the softmax of the
-summed leaf values.
+Model: ``MEMBERS`` scikit-learn ``HistGradientBoostingClassifier``s (``MODEL_PARAMS``, fixed
+seeds, no early stopping, so the same data gives the same trees), member k fitted on the generated
+vehicles of seed ``seed + k`` plus the same real rows, its trees seeded ``seed + k``; their
+probabilities are averaged (``Ensemble``): one generated draw moved the real models' scores by
+3-5 materials, and the average of three draws is steadier than any one of them. Exported by
+``tree_ensemble_onnx`` to one ``TreeEnsembleClassifier`` (ONNX-ML) per member, whose
+probabilities (softmax of the summed leaf values) the graph averages, then adds the names.
 """
 from __future__ import annotations
 
@@ -59,6 +62,7 @@ LATER_TRAITS: tuple[str, ...] = ("axles", "light_bar", "plate_looks", "no_glass"
 REAL_RINGS = (0,)          # rings whose renders of each real model give training rows
 DEFAULT_VEHICLES = 1000    # generated training vehicles of the shipped model
 DEFAULT_SEED = 2026
+MEMBERS = 3                # models averaged; member k trains on the generated vehicles of seed + k
 HIDE_NAMES = 0.5           # share of generated vehicles with names hidden
 REAL_WEIGHT = 24.0         # weight of a real model's material row (a generated one weighs 1)
 MODEL_PARAMS = dict(max_iter=150, learning_rate=0.1, max_leaf_nodes=15, min_samples_leaf=10,
@@ -82,6 +86,11 @@ class Rows:
                         np.zeros(0), np.zeros(0, object))
         return Rows(*(np.concatenate([getattr(r, k) for r in items])
                       for k in ("X", "y", "w", "group")))
+
+
+def member_seeds(seed: int, members: int = MEMBERS) -> list[int]:
+    """Generated-data and tree seeds of the ensemble members of a run with ``seed``."""
+    return [int(seed) + k for k in range(int(members))]
 
 
 def vehicle_seed(seed: int, i: int) -> int:
@@ -275,9 +284,31 @@ def fit(rows: Rows, seed: int, *, max_iter: int | None = None):
     return clf
 
 
+class Ensemble:
+    """Fitted members (``fit``) whose tree probabilities are averaged (arithmetic mean, float64);
+    the names enter once, after the average (``predict``), with the first member's weights (all
+    members see the same real rows, so the same ``name_weights``)."""
+
+    def __init__(self, members: list):
+        if not members:
+            raise ValueError("an ensemble needs at least one member")
+        self.members = list(members)
+        self.name_weights_ = members[0].name_weights_
+
+    def predict_proba(self, X: np.ndarray) -> np.ndarray:
+        return np.mean([m.predict_proba(X) for m in self.members], axis=0)
+
+
+def fit_members(rows: list[Rows], seed: int, *, max_iter: int | None = None) -> Ensemble:
+    """An ``Ensemble`` of ``fit(rows[k], seed + k)`` (``member_seeds``)."""
+    return Ensemble([fit(r, s, max_iter=max_iter)
+                     for r, s in zip(rows, member_seeds(seed, len(rows)))])
+
+
 def predict(clf, X: np.ndarray) -> np.ndarray:
     """(N, P) probabilities of the whole labeller in NumPy (the reference for the ONNX graph):
-    softmax(log p_trees(X without names) + w_name * name one-hot + w_node * node shares)."""
+    softmax(log p_trees(X without names) + w_name * name one-hot + w_node * node shares), with
+    p_trees the members' mean for an ``Ensemble``."""
     a, b = name_columns()
     X = np.asarray(X, np.float32)
     p = clf.predict_proba(without_names(X))
@@ -310,19 +341,64 @@ def export_onnx(clf, path: str | Path, record: dict, check: np.ndarray | None = 
 
 
 def tree_ensemble_onnx(clf, n_features: int):
-    """A fitted multi-class ``HistGradientBoostingClassifier`` (from ``fit``) as an ONNX graph:
-    input ``features`` (N, D) float32; the name columns zeroed, one ONNX-ML
-    ``TreeEnsembleClassifier`` (opset ai.onnx.ml 3; softmax of baseline + leaves), then the
-    names added as in ``predict``; outputs ``label`` (N,) int64 and ``probabilities`` (N, C).
+    """A fitted multi-class ``HistGradientBoostingClassifier`` (from ``fit``) or an ``Ensemble``
+    of them as an ONNX graph: input ``features`` (N, D) float32; the name columns zeroed, one
+    ONNX-ML ``TreeEnsembleClassifier`` per member (opset ai.onnx.ml 3; softmax of baseline +
+    leaves), their ``Mean``, then the names added as in ``predict``; outputs ``label`` (N,) int64
+    and ``probabilities`` (N, C).
 
     Written here rather than with skl2onnx (whose converter fails on this scikit-learn). Exact:
     a split ``x <= t`` (t float64) becomes ``x <= t32`` with t32 the largest float32 <= t, the
     same test for every float32 x; the features have no NaN (no missing-value branches)."""
     from onnx import TensorProto, helper
 
-    K = len(clf.classes_)
-    if K < 3 or list(clf.classes_) != list(range(K)):
-        raise ValueError("expected a multi-class model with classes 0..K-1")
+    members = getattr(clf, "members", [clf])
+    K = len(members[0].classes_)
+    ops = [_trees_node(m, K, f"tree_prob_{j}" if len(members) > 1 else "tree_prob")
+           for j, m in enumerate(members)]
+    if len(members) > 1:
+        ops.append(helper.make_node("Mean", [f"tree_prob_{j}" for j in range(len(members))],
+                                    ["tree_prob"]))
+    # names: the trees see the features with the name columns zeroed; the names enter as
+    # log-likelihood ratios: softmax(log p_trees + w_name * name one-hot + w_node * node shares)
+    a, b = name_columns()
+    keep = np.ones(n_features, np.float32)
+    keep[a] = 0
+    keep[b] = 0
+    wn, wd = getattr(clf, "name_weights_", (0.0, 0.0))
+    wname = np.zeros((n_features, K), np.float32)
+    wname[a, np.arange(K)] = wn
+    wname[b, np.arange(K)] = wd
+    init = [helper.make_tensor("keep", TensorProto.FLOAT, [n_features], keep.tolist()),
+            helper.make_tensor("w_names", TensorProto.FLOAT, [n_features, K],
+                               wname.ravel().tolist()),
+            helper.make_tensor("eps", TensorProto.FLOAT, [], [1e-9])]
+    nodes_ = [helper.make_node("Mul", ["features", "keep"], ["trees_in"]), *ops,
+              helper.make_node("Max", ["tree_prob", "eps"], ["tree_prob_safe"]),
+              helper.make_node("Log", ["tree_prob_safe"], ["tree_logp"]),
+              helper.make_node("MatMul", ["features", "w_names"], ["name_logit"]),
+              helper.make_node("Add", ["tree_logp", "name_logit"], ["logit"]),
+              helper.make_node("Softmax", ["logit"], ["probabilities"], axis=1),
+              helper.make_node("ArgMax", ["probabilities"], ["label"], axis=1, keepdims=0)]
+    graph = helper.make_graph(
+        nodes_, "ucad_labeller",
+        [helper.make_tensor_value_info("features", TensorProto.FLOAT, [None, n_features])],
+        [helper.make_tensor_value_info("label", TensorProto.INT64, [None]),
+         helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, [None, K])],
+        initializer=init)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17),
+                                                    helper.make_opsetid("ai.onnx.ml", 3)],
+                              producer_name="ucad_cl.labeller_train")
+    model.ir_version = 8
+    return model
+
+
+def _trees_node(clf, K: int, out: str):
+    """One member's ``TreeEnsembleClassifier`` node: input ``trees_in``, probabilities ``out``."""
+    from onnx import helper
+
+    if len(clf.classes_) != K or K < 3 or list(clf.classes_) != list(range(K)):
+        raise ValueError("expected multi-class models with classes 0..K-1")
     nodes = {k: [] for k in ("treeids", "nodeids", "featureids", "values", "modes",
                              "truenodeids", "falsenodeids", "missing")}
     cls = {k: [] for k in ("treeids", "nodeids", "ids", "weights")}
@@ -358,8 +434,8 @@ def tree_ensemble_onnx(clf, n_features: int):
                 nodes["missing"].append(int(bool(n["missing_go_to_left"])) if not n["is_leaf"]
                                         else 0)
             tree += 1
-    op = helper.make_node(
-        "TreeEnsembleClassifier", ["trees_in"], ["tree_label", "tree_prob"],
+    return helper.make_node(
+        "TreeEnsembleClassifier", ["trees_in"], [out + "_label", out],
         domain="ai.onnx.ml",
         nodes_treeids=nodes["treeids"], nodes_nodeids=nodes["nodeids"],
         nodes_featureids=nodes["featureids"],
@@ -371,38 +447,6 @@ def tree_ensemble_onnx(clf, n_features: int):
         class_weights=np.asarray(cls["weights"], np.float32).tolist(),
         classlabels_int64s=list(range(K)), post_transform="SOFTMAX",
         base_values=np.asarray(clf._baseline_prediction, np.float32).ravel().tolist())
-    # names: the trees see the features with the name columns zeroed; the names enter as
-    # log-likelihood ratios: softmax(log p_trees + w_name * name one-hot + w_node * node shares)
-    a, b = name_columns()
-    keep = np.ones(n_features, np.float32)
-    keep[a] = 0
-    keep[b] = 0
-    wn, wd = getattr(clf, "name_weights_", (0.0, 0.0))
-    wname = np.zeros((n_features, K), np.float32)
-    wname[a, np.arange(K)] = wn
-    wname[b, np.arange(K)] = wd
-    init = [helper.make_tensor("keep", TensorProto.FLOAT, [n_features], keep.tolist()),
-            helper.make_tensor("w_names", TensorProto.FLOAT, [n_features, K],
-                               wname.ravel().tolist()),
-            helper.make_tensor("eps", TensorProto.FLOAT, [], [1e-9])]
-    nodes_ = [helper.make_node("Mul", ["features", "keep"], ["trees_in"]), op,
-              helper.make_node("Max", ["tree_prob", "eps"], ["tree_prob_safe"]),
-              helper.make_node("Log", ["tree_prob_safe"], ["tree_logp"]),
-              helper.make_node("MatMul", ["features", "w_names"], ["name_logit"]),
-              helper.make_node("Add", ["tree_logp", "name_logit"], ["logit"]),
-              helper.make_node("Softmax", ["logit"], ["probabilities"], axis=1),
-              helper.make_node("ArgMax", ["probabilities"], ["label"], axis=1, keepdims=0)]
-    graph = helper.make_graph(
-        nodes_, "ucad_labeller",
-        [helper.make_tensor_value_info("features", TensorProto.FLOAT, [None, n_features])],
-        [helper.make_tensor_value_info("label", TensorProto.INT64, [None]),
-         helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, [None, K])],
-        initializer=init)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17),
-                                                    helper.make_opsetid("ai.onnx.ml", 3)],
-                              producer_name="ucad_cl.labeller_train")
-    model.ir_version = 8
-    return model
 
 
 def accuracy(clf, rows: Rows) -> float:
@@ -414,23 +458,28 @@ def accuracy(clf, rows: Rows) -> float:
 
 def train(out: str | Path, *, vehicles: int, seed: int, real: str | Path | None = None,
           leave_out: tuple[str, ...] = (), test_vehicles: int = 0, max_iter: int | None = None,
-          log=print) -> dict:
-    """The whole recipe: generate ``vehicles`` training vehicles (+ real models except
-    ``leave_out``), fit, score on ``test_vehicles`` generated vehicles of another seed (never
-    used for training), export to ``out`` (.onnx + .json). Returns the JSON record."""
+          members: int = MEMBERS, log=print) -> dict:
+    """The whole recipe: for each of ``members`` members (``member_seeds``), generate
+    ``vehicles`` training vehicles of its seed (+ the real models except ``leave_out``, the same
+    for every member), fit them (``fit_members``), score on ``test_vehicles`` generated vehicles
+    of another seed (never used for training), export to ``out`` (.onnx + .json). Returns the
+    JSON record."""
     t0 = time.perf_counter()
-    rows = [synth_rows(vehicles, seed)]
+    real_list: list[Rows] = []
     n_real = 0
     if real is not None:
         models = [m for m in load_real_models(real) if m.file not in leave_out]
         n_real = len(models)
-        rows += list(real_rows(models).values())
-    data = Rows.concat(rows)
+        real_list = list(real_rows(models).values())
+    per_member = [Rows.concat([synth_rows(vehicles, s)] + real_list)
+                  for s in member_seeds(seed, members)]
+    data = Rows.concat(per_member)
     t_data = time.perf_counter() - t0
-    clf = fit(data, seed, max_iter=max_iter)
+    clf = fit_members(per_member, seed, max_iter=max_iter)
     t_fit = time.perf_counter() - t0 - t_data
     record = {
-        "recipe": {"vehicles": vehicles, "seed": seed, "realism_prob": REALISM_PROB,
+        "recipe": {"vehicles": vehicles, "seed": seed, "members": members,
+                   "member_seeds": member_seeds(seed, members), "realism_prob": REALISM_PROB,
                    "hide_names": HIDE_NAMES, "rings": [list(map(str, r)) for r in RINGS],
                    "real_models": n_real, "real_weight": REAL_WEIGHT,
                    "leave_out": list(leave_out), "model": "HistGradientBoostingClassifier",
