@@ -284,8 +284,8 @@ def fast_verdicts(t: dict, prob: np.ndarray, min_pixels: int = 4) -> tuple[Score
 def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
     """Leave-one-model-out over cached feature rows (``real_tables``): for every real model,
     fit each member on its generated rows + the other real models' named rows (``fit(rows per
-    member)``, default ``labeller_train.fit_members`` with the recipe's seed), predict its names-kept and names-hidden
-    rows, and score with ``fast_verdicts``. Returns {"named": Score, "hidden": Score,
+    member)``, default ``labeller_train.fit_members`` with the recipe's seed), predict its
+    names-kept and names-hidden rows, and score with ``fast_verdicts``. Returns {"named": Score, "hidden": Score,
     "per_model": {file: {...}}}."""
     from ucad_cl import labeller_train as T
 

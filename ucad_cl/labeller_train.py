@@ -286,8 +286,9 @@ def fit(rows: Rows, seed: int, *, max_iter: int | None = None):
 
 class Ensemble:
     """Fitted members (``fit``) whose tree probabilities are averaged (arithmetic mean, float64);
-    the names enter once, after the average (``predict``), with the first member's weights (all
-    members see the same real rows, so the same ``name_weights``)."""
+    the names enter once, after the average (``predict``), with the first member's
+    ``name_weights`` (measured on the real rows, the same for every member; on member 0's
+    generated rows when there are no real rows)."""
 
     def __init__(self, members: list):
         if not members:
