@@ -1,10 +1,10 @@
 """The learned offline labeller: per-material features -> part probabilities (ONNX trees).
 
 ``label_materials(mesh, views) -> MaterialLabels`` is the whole stage: it computes one feature row
-per material (``material_table``), runs the shipped gradient-boosted tree model
-(``ucad_cl/models/labeller.onnx``, trained by ``scripts/train_labeller.py`` on the procedural
-generator's truth; its data recipe, seed and reached metrics are in ``labeller.json`` beside it)
-with onnxruntime, and adds the see-through-glass layer and the split of shared materials.
+per material (``material_table``), runs the shipped gradient-boosted tree models
+(``ucad_cl/models/labeller.onnx``: three, each trained by ``scripts/train_labeller.py`` on its own
+draw of the procedural generator's truth, averaged in the graph; the data recipe, seeds and
+reached metrics are in ``labeller.json`` beside it) with onnxruntime, and adds the see-through-glass layer and the split of shared materials.
 ``segment.LabellerSegmenter`` paints the result into per-view part masks for ``classify_parts``.
 
 Frame: the canonical vehicle frame (+Y up, the vehicle's length along the longer horizontal
