@@ -4,7 +4,7 @@ vehicles, and the IoU-pass speed.
     .venv/bin/python bench/parts.py                       # everything (about 15-25 min on 2 cores)
     .venv/bin/python bench/parts.py --skip-speed --folds kenney_sedan/sedan.glb,o3dv_car.glb
     .venv/bin/python bench/parts.py --skip-speed --fast   # LOMO from cached feature rows (minutes)
-    .venv/bin/python bench/parts.py --skip-speed --fast --seeds 3   # the same at 3 training seeds
+    .venv/bin/python bench/parts.py --skip-speed --fast --seeds 3   # the same at 3 recipe seeds
 
 Accuracy (needs the ``[train]`` extra). The learned labeller (``ucad_cl.labeller``) is retrained
 for every fold without the scored real model (generated vehicles of the training recipe + the
@@ -21,9 +21,10 @@ pipeline does with a file nobody labelled) or by the manifest's ``up``/``front``
 (``--frame manifest``), for scoring and for the other folds' training rows alike
 (``labeller_train.load_real_models``).
 
-``--fast --seeds N``: the fast loop at N training seeds, each seed's totals with their mean and
-range: a change of training seed alone moves the totals by 3-5 materials, so compare recipes by
-these means (or seed by seed), not by one run.
+``--fast --seeds N``: the fast loop at N recipe seeds (stepping by ``--members``, so no two runs
+share a generated draw), each seed's totals with their mean and range: a change of seed alone
+moved one model's totals by 3-5 materials and the three-member average's by 1-2, so compare
+recipes by these means (or seed by seed), not by one run.
 
 ``--fast``: the same leave-one-model-out from feature rows cached per model in ``--cache``
 (names kept and hidden, truth, pixels; ``real_tables``; the cache keys hash the feature, name
@@ -285,8 +286,8 @@ def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
     """Leave-one-model-out over cached feature rows (``real_tables``): for every real model,
     fit each member on its generated rows + the other real models' named rows (``fit(rows per
     member)``, default ``labeller_train.fit_members`` with the recipe's seed), predict its
-    names-kept and names-hidden rows, and score with ``fast_verdicts``. Returns {"named": Score, "hidden": Score,
-    "per_model": {file: {...}}}."""
+    names-kept and names-hidden rows, and score with ``fast_verdicts``. Returns {"named": Score,
+    "hidden": Score, "per_model": {file: {...}}}."""
     from ucad_cl import labeller_train as T
 
     models = T.load_real_models(VEHICLES, frame=args.frame) if tables is None else None
@@ -485,6 +486,8 @@ def main():
         args.vehicles = DEFAULT_VEHICLES
     if args.members is None:
         args.members = MEMBERS
+    if args.members < 1:
+        ap.error("--members must be >= 1")
     if not args.skip_accuracy:
         if (VEHICLES / "manifest.json").exists():
             fast_table(args) if args.fast else accuracy_table(args)
