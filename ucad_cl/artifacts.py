@@ -32,9 +32,13 @@ from ucad_catalog.parts import PART_NAMES
 from ucad_catalog.views import (BACKGROUND_MAT, BACKGROUND_TRI, CameraRing, ViewSet,
                                 nonzero_box)
 
-__all__ = ["BACKGROUND_MAT", "BACKGROUND_TRI", "PART_NAMES", "CameraRing", "EdgeSet",
-           "Features", "IngestReport", "Material", "MaterialPart", "Mesh", "PartMasks",
+__all__ = ["BACKGROUND_MAT", "BACKGROUND_TRI", "PART_NAMES", "VEHICLE_KINDS", "CameraRing",
+           "EdgeSet", "Features", "IngestReport", "Material", "MaterialPart", "Mesh", "PartMasks",
            "PartTable", "Verdict", "ViewSet", "nonzero_box", "pack_masks"]
+
+#: the vehicle kinds the generator (``ucad_cl.synth``) builds; here so that the CLI lists them
+#: without importing the generator (and trimesh)
+VEHICLE_KINDS: tuple[str, ...] = ("sedan", "suv", "van", "truck", "bus", "hatchback", "pickup")
 
 
 

@@ -45,9 +45,9 @@ import trimesh  # noqa: TID253  the generator is trimesh throughout
 from trimesh.visual import TextureVisuals  # noqa: TID253
 from trimesh.visual.material import PBRMaterial  # noqa: TID253
 
-from .artifacts import PART_NAMES, Material, Mesh
+from .artifacts import PART_NAMES, VEHICLE_KINDS, Material, Mesh
 
-KINDS: tuple[str, ...] = ("sedan", "suv", "van", "truck", "bus", "hatchback", "pickup")
+KINDS = VEHICLE_KINDS
 
 #: messy traits: pose/units traits combine with others; the rest are applied alone.
 POSE_TRAITS: tuple[str, ...] = ("z_up", "rotated", "units_mm", "units_cm", "units_km", "offset")

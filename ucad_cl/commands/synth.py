@@ -5,7 +5,7 @@ import sys
 
 
 def register(sub) -> None:
-    from ..synth import KINDS
+    from ..artifacts import VEHICLE_KINDS as KINDS
     p = sub.add_parser(
         "synth", help="write a procedural vehicle library with ground truth",
         description="Write COUNT procedural vehicles as OUT/NAME.glb + OUT/NAME.json (the truth: "
