@@ -309,3 +309,31 @@ def test_bad_segmenter_specs_fail_before_any_work(library, tmp_path):
     assert not (tmp_path / "cat").exists()
     assert main(["build", str(library), "--catalog", str(tmp_path / "c2"), "--segmenter",
                  "onnx:m.onnx"]) == 2
+    # a missing labeller model fails in the driver too (its check runs in a child process)
+    with pytest.raises(FileNotFoundError, match="nope.onnx"):
+        build(library, tmp_path / "c3", BuildOptions(segmenter=f"labeller:{tmp_path}/nope.onnx"),
+              progress=False, log=lambda *a: None)
+    assert not (tmp_path / "c3").exists()
+
+
+def test_driver_loads_neither_opencl_nor_onnxruntime(tmp_path):
+    """What the build driver checks before starting workers (the device report, the segmenter)
+    runs in child processes: in a fresh interpreter, neither pyopencl nor onnxruntime gets
+    imported, and the device reported is the one ``get_runtime`` picks in-process."""
+    code = ("import json, sys\n"
+            "from ucad_cl.runtime import pick_device_info\n"
+            "from ucad_cl.segment import check_segmenter_spec\n"
+            "info, why = pick_device_info()\n"
+            "check_segmenter_spec('labeller')\n"
+            "print(json.dumps([info.spec, why, [m for m in ('pyopencl', 'onnxruntime')\n"
+            "                                   if m in sys.modules]]))\n")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    env.pop("UCAD_CL_DEVICE", None)
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    spec, why, loaded = json.loads(run.stdout.strip().splitlines()[-1])
+    assert loaded == []
+    from ucad_cl.runtime import create_runtime
+    rt = create_runtime()
+    assert rt.info is not None and (spec, why) == (rt.info.spec, rt.why)

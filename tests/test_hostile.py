@@ -2,7 +2,7 @@
 
 The corpus (``tests/hostile_corpus.py``, 79 files in 7 classes) is built in one library
 with good vehicles: every good mesh accepted, every bad one rejected with the reason the corpus
-names, the driver under 300 MB, workers under their limit, the exit status telling the truth.
+names, the driver under 150 MB, workers under their limit, the exit status telling the truth.
 """
 from __future__ import annotations
 
@@ -142,7 +142,8 @@ def test_reason_codes_one_documented_table():
 
 def test_corpus_build_every_verdict_right(corpus, tmp_path, runtime):
     """The whole corpus in one library, built by the CLI in a fresh process (so the driver's
-    memory is its own): every verdict right, driver < 300 MB, each worker under its limit."""
+    memory is its own): every verdict right, driver < 150 MB (measured 43 MB: it never loads
+    OpenCL or onnxruntime), each worker under its limit."""
     folder, cases = corpus
     cat = tmp_path / "cat"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
@@ -167,7 +168,7 @@ def test_corpus_build_every_verdict_right(corpus, tmp_path, runtime):
                     r"(\d+) MB, largest worker (\d+) MB \(limit 2048 MB", run.stdout)
     assert mem, run.stdout
     tree, driver, worker = (int(x) for x in mem.groups())
-    assert driver < 300 and 0 < worker < 2048 and tree >= worker, mem.group(0)
+    assert driver < 150 and 0 < worker < 2048 and tree >= worker, mem.group(0)
     assert seconds < CORPUS_SECONDS, seconds
     # identity = content + format: good_3.glb and its bytes as copy_of_good_3.stl are two meshes
     good, copy = rows[str(folder / "good_3.glb")], rows[str(folder / "copy_of_good_3.stl")]
@@ -513,17 +514,13 @@ def test_a_paused_worker_costs_a_retry_not_a_verdict(small_library, tmp_path, ru
     with twice the time and accepted; nothing is recorded as 'timeout'."""
     import threading
 
-    import psutil
-
     stopped = []
 
     def pause_first_worker():
-        me = psutil.Process()
         for _ in range(400):
-            kids = [p for p in me.children(recursive=True)
-                    if "spawn_main" in " ".join(p.cmdline())]
+            kids = _workers_of(os.getpid())   # (short-lived checker children come and go)
             if kids:
-                time.sleep(0.3)                       # busy with its first mesh by now
+                time.sleep(0.3)                   # busy with its first mesh by now
                 kids[0].send_signal(signal.SIGSTOP)
                 stopped.append(kids[0].pid)
                 return

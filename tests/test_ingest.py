@@ -525,3 +525,41 @@ def test_node_names_are_the_same_on_every_load(vehicles_dir):
     names = json.loads(runs[0])
     assert runs[0] == runs[1] and len(names) > len(set(names))     # repeated names, same stems
     assert not any(re.search(r"_[0-9a-f]{6}$", n) for n in names)
+
+
+def _returns(x, *, times=1):
+    return [x] * times
+
+
+def _raises_value_error(text):
+    raise ValueError(f"bad {text}")
+
+
+class _Unpicklable(Exception):
+    def __init__(self, a, b):                 # pickles as Unpicklable(msg): one argument short
+        super().__init__(f"{a} and {b}")
+
+
+def _raises_unpicklable():
+    raise _Unpicklable("one", "two")
+
+
+def test_call_isolated_returns_raises_and_survives_crashes():
+    """system.call_isolated: the value back; the child's exception raised again here with its
+    type; one that does not pickle as RuntimeError text; a crash or a hang as
+    IsolatedCallFailed naming the signal or the timeout."""
+    from ucad_cl.system import IsolatedCallFailed, call_isolated
+
+    assert call_isolated(_returns, (1, "a"), times=2, timeout=60) == [(1, "a"), (1, "a")]
+    with pytest.raises(ValueError, match="bad input"):
+        call_isolated(_raises_value_error, "input", timeout=60)
+    with pytest.raises(RuntimeError, match="_Unpicklable: one and two"):
+        call_isolated(_raises_unpicklable, timeout=60)
+    with pytest.raises(IsolatedCallFailed, match="SIGSEGV") as e:
+        call_isolated(_segfault_loader, "x", timeout=60)
+    assert e.value.kind == "crashed"
+    with pytest.raises(IsolatedCallFailed, match="within 1 s") as e:
+        call_isolated(_sleepy_loader, "x", timeout=1.0)
+    assert e.value.kind == "timeout"
+    with pytest.raises(ValueError, match="timeout must be > 0"):
+        call_isolated(_returns, 1, timeout=0)

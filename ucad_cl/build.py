@@ -6,6 +6,10 @@ filter by views -> edges -> segment -> classify -> features) in worker processes
 each mesh atomically from the driver, the catalogue's single writer.
 
 Untrusted libraries (decisions; reason codes in ``ucad_cl/reasons.py``)
+* The driver loads neither OpenCL nor a model: the segmenter check (a bad ``--segmenter`` fails
+  before any work) and the CLI's device report run in child processes
+  (``system.call_isolated``), which keeps the driver at ~45 MB instead of ~260 MB (PoCL with its
+  LLVM and an onnxruntime session stay in a process's memory for good; ``tests/test_hostile.py``).
 * The driver never opens a mesh file: discovery and the "unchanged" test use ``stat`` only
   (path, size, mtime against the last commit of that path). Reading, hashing (the content key,
   ``ingest.mesh_identity``: format + bytes) and parsing happen in a worker, under its timeout and
@@ -72,7 +76,7 @@ from . import reasons
 from .engines import run_local, run_ray
 from .ingest import SUPPORTED_SUFFIXES
 from .jobs import CODE_VERSION, BuildOptions, BuildStopped, MeshRef, environment_code
-from .segment import segmenter_from_spec
+from .segment import check_segmenter_spec
 from .system import default_memory_limit_mb, printable, process_memory_mb, tree_rss_mb
 
 __all__ = ["build", "discover", "read_uid_list", "library_root", "relative_path", "BuildOptions",
@@ -313,7 +317,7 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     """
     t_start = time.perf_counter()
     options = options or BuildOptions()
-    segmenter_from_spec(options.segmenter)   # a bad --segmenter fails here, not in every worker
+    check_segmenter_spec(options.segmenter)   # a bad --segmenter fails here, not in every worker
     if engine not in ("local", "ray"):
         raise ValueError(f"unknown engine {engine!r}: use local or ray")
     retry = tuple(reasons.check(r, reasons.REJECTION) for r in (retry_failed or ()))

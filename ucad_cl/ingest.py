@@ -90,16 +90,11 @@ import hashlib
 import io
 import json
 import os
-import pickle
 import re
-import signal
 import stat
 import struct
-import subprocess
-import sys
 import traceback
 from dataclasses import dataclass, field, replace
-from multiprocessing.connection import Connection
 from pathlib import Path
 from urllib.parse import unquote
 
@@ -108,6 +103,7 @@ import numpy as np
 from . import reasons
 from .artifacts import IngestReport, Material, Mesh, node_stem
 from .orient import orient_mesh
+from .system import IsolatedCallFailed, call_isolated
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 DRACO = "KHR_draco_mesh_compression"
@@ -242,77 +238,30 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean: bool = True,
                        loader=None, **kwargs) -> Mesh:
-    """``load_mesh(path, clean=clean, **kwargs)`` in a fresh child interpreter, so a native crash
-    or hang cannot kill us (the CLI's ``render``, ``parts`` and ``pose`` load user files this
-    way; ``build`` isolates loading in its workers instead).
+    """``load_mesh(path, clean=clean, **kwargs)`` in a fresh child interpreter
+    (``system.call_isolated``), so a native crash or hang cannot kill us (the CLI's ``render``,
+    ``parts`` and ``pose`` load user files this way; ``build`` isolates loading in its workers
+    instead).
 
-    The child is ``python -c`` (not multiprocessing 'spawn', which re-runs the caller's
-    ``__main__`` and breaks scripts without a main guard); arguments go in on stdin, the pickled
-    result comes back on a dedicated pipe (native libraries may write to stdout). A child that
-    dies without answering raises ``IngestError`` reason ``loader_crashed`` (the message names
-    the signal or exit code); one still running after ``timeout`` seconds is killed and raises
-    reason ``timeout``. ``loader`` (a picklable module-level function
+    A child that dies without answering raises ``IngestError`` reason ``loader_crashed`` (the
+    message names the signal or exit code); one still running after ``timeout`` seconds is killed
+    and raises reason ``timeout``; any other exception than ``IngestError`` raises reason
+    ``unreadable`` naming it. ``loader`` (a picklable module-level function
     ``loader(path, clean=..., **kwargs) -> Mesh``) replaces ``load_mesh``, for tests; ``kwargs``
     (budgets, orientation, overrides) must pickle.
     """
-    if not timeout > 0:
-        raise ValueError(f"timeout must be > 0 seconds, got {timeout}")
-    read_fd, write_fd = os.pipe()
-    code = ("import pickle, sys; sys.path[:0] = pickle.load(sys.stdin.buffer); "
-            "from ucad_cl.ingest import _isolated_child; _isolated_child(int(sys.argv[1]))")
     try:
-        proc = subprocess.Popen([sys.executable, "-c", code, str(write_fd)], pass_fds=(write_fd,),
-                                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL)
-    finally:
-        os.close(write_fd)
-    conn = Connection(read_fd, writable=False)
-    try:
-        try:
-            proc.stdin.write(pickle.dumps([p for p in sys.path if isinstance(p, str)]))
-            proc.stdin.write(pickle.dumps((str(path), dict(kwargs, clean=clean),
-                                           loader or load_mesh)))
-            proc.stdin.close()
-        except BrokenPipeError:
-            pass                                    # the child died early: reported below
-        if not conn.poll(timeout):
-            proc.kill()
-            proc.wait()
+        return call_isolated(loader or load_mesh, str(path), timeout=timeout, clean=clean,
+                             **kwargs)
+    except IsolatedCallFailed as exc:
+        if exc.kind == "timeout":
             raise IngestError(path, "timeout",
-                              f"loader did not finish within {timeout:g} s (killed)")
-        try:
-            kind, payload = conn.recv()
-        except (EOFError, OSError):
-            code = proc.wait()
-            how = (f"killed by signal {signal.Signals(-code).name}" if code < 0
-                   else f"exit code {code}")
-            raise IngestError(path, "loader_crashed", f"loader process died ({how})") from None
-    finally:
-        conn.close()
-        if proc.poll() is None:
-            try:
-                proc.wait(5.0)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-    if kind == "ok":
-        return payload
-    if kind == "ingest_error":
-        raise IngestError(*payload)
-    raise IngestError(path, "unreadable", f"loader raised {payload}")
-
-
-def _isolated_child(fd: int) -> None:
-    """Child side of ``load_mesh_isolated``: read (path, kwargs, loader) on stdin, answer on fd."""
-    conn = Connection(fd, readable=False)
-    try:
-        path, kwargs, loader = pickle.load(sys.stdin.buffer)
-        result = ("ok", loader(path, **kwargs))
-    except IngestError as e:
-        result = ("ingest_error", (e.path, e.reason, e.message))
-    except BaseException as e:  # noqa: BLE001 - everything goes back to the parent as text
-        result = ("error", f"{type(e).__name__}: {e}")
-    conn.send(result)
-    conn.close()
+                              f"loader did not finish within {timeout:g} s (killed)") from None
+        raise IngestError(path, "loader_crashed", f"loader process {exc.how}") from None
+    except IngestError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - whatever the loader raised names the file
+        raise IngestError(path, "unreadable", f"loader raised {describe_exception(exc)}") from None
 
 
 def describe_exception(exc: BaseException) -> str:

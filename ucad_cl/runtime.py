@@ -35,6 +35,7 @@ import numpy as np
 from importlib import resources
 
 from . import abi
+from .system import IsolatedCallFailed, call_isolated
 
 INSTALL_HINT = (
     "Install the portable CPU runtime from PyPI with\n"
@@ -273,10 +274,22 @@ def _why(chosen: DeviceInfo, others: list[DeviceInfo], failed: list[str]) -> str
     return "; ".join(parts) or "the first device that compiles"
 
 
-def pick_device_info(spec: str | None = None) -> tuple[DeviceInfo, str]:
-    """(DeviceInfo, why) of the device ``get_runtime`` would pick, without keeping a context
-    (the build driver uses it to report the device its workers will use)."""
-    _dev, info, why = _pick_device(spec or os.environ.get("UCAD_CL_DEVICE"))
+def pick_device_info(spec: str | None = None, *, timeout: float = 300.0) -> tuple[DeviceInfo, str]:
+    """(DeviceInfo, why) of the device ``get_runtime`` would pick (the build driver uses it to
+    report the device its workers will use). The devices are probed in a child process
+    (``system.call_isolated``): a process that loads PoCL and its LLVM holds ~150 MB more for
+    good, which the driver, which never runs a kernel, should not. ``OpenCLUnavailable`` as
+    ``get_runtime`` raises it, and when the probe crashes or runs past ``timeout`` seconds."""
+    try:
+        return call_isolated(_picked_device_info, spec or os.environ.get("UCAD_CL_DEVICE"),
+                             timeout=timeout)
+    except IsolatedCallFailed as exc:
+        raise OpenCLUnavailable(f"probing the OpenCL devices failed: {exc}\n{INSTALL_HINT}") from None
+
+
+def _picked_device_info(spec: str | None) -> tuple[DeviceInfo, str]:
+    """The child side of ``pick_device_info``."""
+    _dev, info, why = _pick_device(spec)
     return info, why
 
 

@@ -47,6 +47,7 @@ from .artifacts import PART_NAMES, Mesh, PartMasks, ViewSet
 from .labeller import MODEL_PATH, LabellerModel, label_materials
 from .names import name_prior
 from .runtime import Runtime
+from .system import IsolatedCallFailed, call_isolated
 
 
 class Segmenter(Protocol):
@@ -179,6 +180,22 @@ def segmenter_from_spec(spec: str, runtime: Runtime | None = None):
     kind, _, arg = str(spec).partition(":")
     model, _, config = arg.partition(":") if kind == "onnx" else (arg, "", "")
     return make_segmenter(kind, model or None, config or None, runtime=runtime)
+
+
+def check_segmenter_spec(spec: str, *, timeout: float = 300.0) -> None:
+    """Build the segmenter ``spec`` names in a child process and drop it: ValueError /
+    FileNotFoundError as ``segmenter_from_spec`` raises them (a missing or stale model, a bad
+    config), ValueError when loading it crashes the child. The build driver checks a spec this
+    way before starting workers: an onnxruntime session would otherwise stay in its memory."""
+    try:
+        call_isolated(_segmenter_loads, str(spec), timeout=timeout)
+    except IsolatedCallFailed as exc:
+        raise ValueError(f"--segmenter {spec}: loading it failed: {exc}") from None
+
+
+def _segmenter_loads(spec: str) -> None:
+    """The child side of ``check_segmenter_spec``."""
+    segmenter_from_spec(spec)
 
 
 def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict | None = None,
