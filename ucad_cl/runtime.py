@@ -274,7 +274,8 @@ def _why(chosen: DeviceInfo, others: list[DeviceInfo], failed: list[str]) -> str
     return "; ".join(parts) or "the first device that compiles"
 
 
-def pick_device_info(spec: str | None = None, *, timeout: float = 300.0) -> tuple[DeviceInfo, str]:
+def pick_device_info(spec: str | None = None, *,
+                     timeout: float = 300.0) -> tuple[DeviceInfo, str]:
     """(DeviceInfo, why) of the device ``get_runtime`` would pick (the build driver uses it to
     report the device its workers will use). The devices are probed in a child process
     (``system.call_isolated``): a process that loads PoCL and its LLVM holds ~150 MB more for
@@ -284,7 +285,8 @@ def pick_device_info(spec: str | None = None, *, timeout: float = 300.0) -> tupl
         return call_isolated(_picked_device_info, spec or os.environ.get("UCAD_CL_DEVICE"),
                              timeout=timeout)
     except IsolatedCallFailed as exc:
-        raise OpenCLUnavailable(f"probing the OpenCL devices failed: {exc}\n{INSTALL_HINT}") from None
+        raise OpenCLUnavailable(f"probing the OpenCL devices failed: {exc}\n"
+                                f"{INSTALL_HINT}") from None
 
 
 def _picked_device_info(spec: str | None) -> tuple[DeviceInfo, str]:
