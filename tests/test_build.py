@@ -314,6 +314,15 @@ def test_bad_segmenter_specs_fail_before_any_work(library, tmp_path):
         build(library, tmp_path / "c3", BuildOptions(segmenter=f"labeller:{tmp_path}/nope.onnx"),
               progress=False, log=lambda *a: None)
     assert not (tmp_path / "c3").exists()
+    # a file that is no ONNX model: a clear error naming the spec, not onnxruntime's traceback
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="bad.onnx: the model does not load"):
+        build(library, tmp_path / "c4", BuildOptions(segmenter=f"labeller:{bad}"), progress=False,
+              log=lambda *a: None)
+    assert main(["build", str(library), "--catalog", str(tmp_path / "c5"), "--segmenter",
+                 f"labeller:{bad}"]) == 2
+    assert not (tmp_path / "c4").exists() and not (tmp_path / "c5").exists()
 
 
 def test_driver_loads_neither_opencl_nor_onnxruntime(tmp_path):

@@ -185,8 +185,9 @@ def segmenter_from_spec(spec: str, runtime: Runtime | None = None):
 def check_segmenter_spec(spec: str, *, timeout: float = 300.0) -> None:
     """Build the segmenter ``spec`` names in a child process and drop it: ValueError /
     FileNotFoundError as ``segmenter_from_spec`` raises them (a missing or stale model, a bad
-    config), ValueError when loading it crashes the child. The build driver checks a spec this
-    way before starting workers: an onnxruntime session would otherwise stay in its memory."""
+    config), ValueError when the model does not load (onnxruntime's own errors: a file that is
+    no ONNX model) or loading it crashes the child. The build driver checks a spec this way
+    before starting workers: an onnxruntime session would otherwise stay in its memory."""
     try:
         call_isolated(_segmenter_loads, str(spec), timeout=timeout)
     except IsolatedCallFailed as exc:
@@ -195,7 +196,13 @@ def check_segmenter_spec(spec: str, *, timeout: float = 300.0) -> None:
 
 def _segmenter_loads(spec: str) -> None:
     """The child side of ``check_segmenter_spec``."""
-    segmenter_from_spec(spec)
+    try:
+        segmenter_from_spec(spec)
+    except (ValueError, OSError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - onnxruntime's errors are none of the above
+        raise ValueError(f"--segmenter {spec}: the model does not load ({type(exc).__name__}: "
+                         f"{str(exc)[:300]})") from None
 
 
 def make_segmenter(kind: str, arg: str | None = None, config: str | Path | dict | None = None,
