@@ -317,7 +317,7 @@ def test_bad_segmenter_specs_fail_before_any_work(library, tmp_path):
     # a file that is no ONNX model: a clear error naming the spec, not onnxruntime's traceback
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(b"not a model")
-    with pytest.raises(ValueError, match="bad.onnx: the model does not load"):
+    with pytest.raises(ValueError, match="bad.onnx: onnxruntime cannot load this model"):
         build(library, tmp_path / "c4", BuildOptions(segmenter=f"labeller:{bad}"), progress=False,
               log=lambda *a: None)
     assert main(["build", str(library), "--catalog", str(tmp_path / "c5"), "--segmenter",

@@ -173,6 +173,19 @@ def label_materials(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
 # ---------------------------------------------------------------------------------------------
 # the model
 # ---------------------------------------------------------------------------------------------
+def onnx_session(path: Path, options=None):
+    """An onnxruntime CPU session of the model at ``path``; ValueError naming the file when
+    onnxruntime cannot load it (its own errors, e.g. ``InvalidProtobuf`` for a file that is no
+    ONNX model, are none of ValueError / OSError)."""
+    import onnxruntime as ort
+
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # noqa: BLE001 - onnxruntime's exception types are its own
+        raise ValueError(f"{path}: onnxruntime cannot load this model ({type(exc).__name__}: "
+                         f"{str(exc)[:300]})") from None
+
+
 class LabellerModel:
     """The ONNX tree ensemble and its JSON record (feature names must match this code's)."""
 
@@ -195,8 +208,7 @@ class LabellerModel:
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1
         opts.inter_op_num_threads = 1
-        self.session = ort.InferenceSession(str(self.path), opts,
-                                            providers=["CPUExecutionProvider"])
+        self.session = onnx_session(self.path, opts)
         self.input_name = self.session.get_inputs()[0].name
         outs = [o.name for o in self.session.get_outputs()]
         self.prob_name = next((o for o in outs if "prob" in o), outs[-1])
