@@ -4,7 +4,8 @@
 per material (``material_table``), runs the shipped gradient-boosted tree models
 (``ucad_cl/models/labeller.onnx``: three, each trained by ``scripts/train_labeller.py`` on its own
 draw of the procedural generator's truth, averaged in the graph; the data recipe, seeds and
-reached metrics are in ``labeller.json`` beside it) with onnxruntime, and adds the see-through-glass layer and the split of shared materials.
+reached metrics are in ``labeller.json`` beside it) with onnxruntime, and adds the
+see-through-glass layer and the split of shared materials.
 ``segment.LabellerSegmenter`` paints the result into per-view part masks for ``classify_parts``.
 
 Frame: the canonical vehicle frame (+Y up, the vehicle's length along the longer horizontal
