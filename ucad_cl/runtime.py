@@ -50,7 +50,7 @@ INSTALL_HINT = (
 INSTALL_FAST = ("install Debian/Ubuntu's PoCL, built for this CPU family: "
                 "`apt-get install pocl-opencl-icd` (scripts/setup.sh does it); it is then "
                 "picked by default")
-# what a slow PoCL cost when measured (bench/search.py, bench/edges.py; README, "OpenCL runtime")
+# what a slow PoCL cost when measured (bench/search.py, bench/edges.py; docs/OPENCL.md)
 SLOW_POCL_COST = ("measured on an AMD EPYC Zen 3 (AVX2): the exact search kernel 8.2x and Canny "
                   "3.3-3.9x slower than Debian's PoCL 3.1; on an Intel AVX-512 machine 4.2x and "
                   "2.5x")
@@ -237,7 +237,7 @@ def _pick_device(spec: str | None):
     # Default: the best-ranked device that really compiles and runs a kernel (device_rank).
     # (The PoCL 3.0-rc2 bundled with pyopencl's PyPI wheels uses LLVM 14, which cannot name newer
     # CPUs such as AMD Zen 5 and fails every build with "unknown target CPU 'generic'"; it is
-    # then skipped. See README, "OpenCL runtime".)
+    # then skipped. See docs/OPENCL.md.)
     ordered = sorted(devices, key=lambda t: device_rank(infos[t[0], t[1]]))
     errors: list[str] = []
     for pi, di, p, d in ordered:
