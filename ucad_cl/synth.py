@@ -28,6 +28,11 @@ trailer, both ends alike, two vehicles side by side); ``truth["orientation"]`` a
 file-frame up and front directions (and whether the body has a front).
 Determinism: everything derives from ``numpy.random.default_rng(seed)``; the same seed gives the
 same GLB bytes. Ties (majority part of a merged material) go to the part earlier in PART_NAMES.
+
+Why one module of over 800 lines: its bytes are the training and test data of the labeller and
+the orientation stage, and every part, trait and pose draws from seeded streams whose order is
+the contract (same seed, same bytes); one file keeps that order visible, and its public surface is
+``make_vehicle``, ``write_library`` and the trait tables.
 """
 from __future__ import annotations
 
