@@ -72,7 +72,7 @@ def test_filter_docstring_names_the_filter_codes():
     assert all(reasons.CODES[c].kind == reasons.REJECTION for c in emitted)
 
 
-def _doc_tables(text: str) -> dict[str, list[list[str]]]:
+def doc_tables(text: str) -> dict[str, list[list[str]]]:
     """{heading: rows of the first markdown table after it} for '###' headings and the
     'Meshes table' / 'Materials table' paragraphs of SCHEMA.md."""
     out: dict[str, list[list[str]]] = {}
@@ -82,9 +82,12 @@ def _doc_tables(text: str) -> dict[str, list[list[str]]]:
         if m or line.startswith(("Meshes table", "Materials table")):
             current = m.group(1) if m else "export " + line.split(" table")[0].lower()
             continue
+        if line.startswith("#"):                 # another heading ends the table's section
+            current = None
+            continue
         if current and line.startswith("|") and not line.startswith("|---"):
             cells = [c.strip() for c in line.strip().strip("|").split(" | ")]
-            if cells[0] not in ("column", "kind"):
+            if cells[0] not in ("column", "kind", "key"):
                 out.setdefault(current, []).append(cells)
     return out
 
@@ -98,7 +101,7 @@ def test_schema_doc_matches_the_code(tmp_path):
 
     text = (ROOT / "ucad_catalog" / "SCHEMA.md").read_text(encoding="utf-8")
     assert text.startswith(f"# Catalogue format — `schema_version` {SCHEMA_VERSION}")
-    doc = _doc_tables(text)
+    doc = doc_tables(text)
     Catalog.open(tmp_path / "c").close()
     con = sqlite3.connect(tmp_path / "c" / "catalog.sqlite")
     for table in ("runs", "meshes", "materials", "views", "artifacts"):

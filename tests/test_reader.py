@@ -369,32 +369,6 @@ def test_cli_uid_lists(built, tmp_path, capsys):
     assert "not a mesh folder, a mesh file" in capsys.readouterr().err
 
 
-def test_cli_export_show_and_errors(built, tmp_path, capsys):
-    from ucad_cl.cli import main
-
-    lib, cat, _ = built
-    assert main(["export", "--catalog", str(cat), "--out", "/missing/dir/x.jsonl"]) == 2
-    err = capsys.readouterr().err
-    assert err == "error: cannot write /missing/dir/x.jsonl: folder /missing/dir does not exist\n"
-    assert main(["export", "--catalog", str(cat), "--out", str(tmp_path / "x.txt")]) == 2
-    assert "cannot tell the export format" in capsys.readouterr().err
-    pq = pytest.importorskip("pyarrow.parquet")
-    assert main(["export", "--catalog", str(cat), "--out", str(tmp_path / "x.parquet")]) == 0
-    assert pq.read_table(tmp_path / "x.parquet").num_rows == 5           # suffix -> Parquet
-    assert pq.read_table(tmp_path / "x.materials.parquet").num_rows > 20
-    assert main(["export", "--catalog", str(cat), "--out", str(tmp_path / "y.parquet"),
-                 "--format", "jsonl"]) == 0                              # --format overrides
-    assert (tmp_path / "y.parquet").read_text().startswith('{"artifacts":')
-    capsys.readouterr()
-    with CatalogReader(cat) as r:
-        m = r.meshes()[0]
-    for key in (m.sha256[:8], str(lib / m.path), m.name):
-        assert main(["show", key, "--catalog", str(cat)]) == 0
-        assert capsys.readouterr().out.startswith(f"mesh {m.sha256[:12]}  {m.path}")
-    assert main(["show", "synth", "--catalog", str(cat)]) == 2
-    assert "0 meshes match 'synth'" in capsys.readouterr().err
-
-
 def test_cli_parts_segmenter_spelling_and_stem_clashes(built, tmp_path, capsys):
     from ucad_cl.cli import main
 
