@@ -38,7 +38,11 @@ the same decisions; ties go to fixed rules written next to the code):
    half), an axle pattern (a lone steering axle at the front, tandem axles at the rear) and
    the roof profile (the nose lower than the tail); weights FRONT_WEIGHTS.
 7. **Snap.** Up within SNAP_DEG of a signed file axis (SNAP_DEG_COARSE when no wheels level
-   it) is snapped to it, then front within SNAP_DEG; an axis-aligned file, the common case,
+   it; SNAP_DEG_ALIGNED when no wheels level it but the mirror plane is a file plane, within
+   SNAP_DEG: the file is then axis-aligned, and a wedge-shaped body without found wheels, whose
+   side view's smallest rectangle tilts with the wedge, must not pitch it: a low-poly DeLorean
+   came out 13.5 degrees nose-down) is snapped to it, then front within SNAP_DEG; an
+   axis-aligned file, the common case,
    gets an exact signed permutation, applied by indexing, so a re-posed file gives
    bit-identical canonical vertices.
 8. **Flags.** ``multiple_vehicles`` (vehicles side by side: nothing crosses the mirror plane;
@@ -91,6 +95,7 @@ SAMPLE_SEED = 0x0DE7            # fixed random stream: the same mesh gives the s
 FACE_BLOCK = 8192               # faces per block in per-face passes (temporaries stay in cache)
 SNAP_DEG = 1.5                  # snap front, and up levelled on wheels, within this angle
 SNAP_DEG_COARSE = 6.0           # snap up within this angle when no wheels level it
+SNAP_DEG_ALIGNED = 25.0         # ... and within this one when the mirror plane is a file plane
 UNCERTAIN_BELOW = Orientation.UNCERTAIN_BELOW   # confidence under which it is flagged
 UP_SCALE = 0.8                  # confidence = 1 - exp(-|summed score| / scale)
 FRONT_SCALE = 0.8
@@ -560,7 +565,7 @@ def _estimate_pass(mesh: Mesh, disabled: Sequence[str], budget: Budget,
     if wheels is not None:
         ctx.set_length_axis(wheels.settle(ctx))            # level on the tyres' contacts
     else:
-        snap_up = SNAP_DEG_COARSE
+        snap_up = SNAP_DEG_ALIGNED if _on_file_axis(ctx.w) else SNAP_DEG_COARSE
     front_cues = {k: v for k, v in _front_cues(ctx, wheels, names).items() if k not in disabled}
     front_score = sum(FRONT_WEIGHTS[k] * v for k, v in front_cues.items())
     front_sign = 1.0 if front_score >= 0 else -1.0         # tie: +a (a fixed rule)
@@ -656,6 +661,11 @@ def _ground_sheet(mesh: Mesh, S: _Samples, budget: Budget = FULL,
                                  n_faces=budget.face_samples),
                 V[:, 0] if above >= 0.5 else -V[:, 0])
     return None
+
+
+def _on_file_axis(n: np.ndarray) -> bool:
+    """True when the unit vector ``n`` is within SNAP_DEG of a signed file axis."""
+    return float(np.abs(n).max()) >= math.cos(math.radians(SNAP_DEG))
 
 
 def _snap(up: np.ndarray, front: np.ndarray, snap_up_deg: float) -> np.ndarray:
