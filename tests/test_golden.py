@@ -15,6 +15,9 @@ which keeps one set of digests per ``CODE_VERSION``.
   depth and pose features (mean, std and four fixed +-1 projections), scores, IoU and labeller
   probabilities, per-view statistics.
 
+The registry's rejection codes are stored too: a new code is a verdict a catalogued mesh may
+get, so adding one without a bump fails even when no mesh of the set hits it.
+
 Refresh (after bumping CODE_VERSION): ``.venv/bin/python tests/test_golden.py --update``. It adds
 the digests of the current CODE_VERSION and refuses to change those of a version already stored.
 """
@@ -168,18 +171,41 @@ def load_golden() -> dict:
     return json.loads(GOLDEN.read_text(encoding="utf-8")) if GOLDEN.exists() else {}
 
 
+def rejection_codes() -> list[str]:
+    """The registry's rejection codes: a new one is a new verdict some catalogued mesh may
+    get, so it comes with a CODE_VERSION bump even when no mesh of the set hits it."""
+    from ucad_cl import reasons
+
+    return sorted(reasons.of_kind(reasons.REJECTION))
+
+
+def current(workdir: Path) -> dict:
+    """What the golden file stores for one CODE_VERSION."""
+    return {"meshes": _round(compute(workdir)), "rejection_codes": rejection_codes()}
+
+
+def mismatches(got: dict, want: dict) -> list[str]:
+    """What differs between two stored entries: 'MESH: COMPONENT' or the codes added/removed."""
+    diffs = differences(got["meshes"], want["meshes"])
+    added = sorted(set(got["rejection_codes"]) - set(want["rejection_codes"]))
+    removed = sorted(set(want["rejection_codes"]) - set(got["rejection_codes"]))
+    if added or removed:
+        diffs.append(f"rejection codes added {added}, removed {removed} (ucad_cl/reasons.py)")
+    return diffs
+
+
 def test_per_mesh_results_match_the_code_version(tmp_path):
-    """Results of the fixed set equal the digests stored for the current CODE_VERSION."""
+    """Results of the fixed set, and the registry's rejection codes, equal those stored for
+    the current CODE_VERSION."""
     from ucad_cl.jobs import CODE_VERSION
 
     golden = load_golden().get("versions", {})
-    got = _round(compute(tmp_path))
     assert CODE_VERSION in golden, (
         f"tests/golden_results.json has no results for CODE_VERSION {CODE_VERSION!r} "
         f"(ucad_cl/jobs.py): run `{REFRESH}` and commit the file")
-    diffs = differences(got, golden[CODE_VERSION])
+    diffs = mismatches(current(tmp_path), golden[CODE_VERSION])
     assert not diffs, (
-        f"per-mesh results changed without a CODE_VERSION bump ({len(diffs)}: "
+        f"per-mesh results or verdicts changed without a CODE_VERSION bump ({len(diffs)}: "
         f"{', '.join(diffs[:8])}{' ...' if len(diffs) > 8 else ''}). If the change is meant, "
         f"bump CODE_VERSION in ucad_cl/jobs.py (existing catalogues then re-process their "
         f"meshes), run `{REFRESH}` and commit tests/golden_results.json; if not, it is a bug")
@@ -189,7 +215,7 @@ def test_golden_set_covers_accept_and_reject():
     """The stored set holds accepted meshes with every component and one rejection."""
     from ucad_cl.jobs import CODE_VERSION
 
-    stored = load_golden().get("versions", {}).get(CODE_VERSION, {})
+    stored = load_golden().get("versions", {}).get(CODE_VERSION, {}).get("meshes", {})
     assert set(stored) == set(MESHES), f"run `{REFRESH}`"
     assert "views" not in stored["one_material"]["exact"]
     assert all({"views", "edges", "parts", "parts.png"} <= set(stored[m]["exact"])
@@ -205,10 +231,10 @@ def update() -> int:
     data = load_golden() or {"about": "per-mesh result digests by CODE_VERSION "
                                       "(tests/test_golden.py)", "versions": {}}
     with tempfile.TemporaryDirectory() as tmp:
-        got = _round(compute(Path(tmp)))
+        got = current(Path(tmp))
     stored = data["versions"].get(CODE_VERSION)
     if stored is not None:
-        diffs = differences(got, stored)
+        diffs = mismatches(got, stored)
         if diffs:
             print(f"error: results differ from those stored for CODE_VERSION {CODE_VERSION} "
                   f"({', '.join(diffs[:8])}): bump CODE_VERSION in ucad_cl/jobs.py first",
