@@ -484,26 +484,18 @@ def test_sigkill_of_single_workers_leaves_an_identical_catalogue(kill_library, k
 
 def test_a_paused_worker_costs_a_retry_not_a_verdict(small_library, tmp_path, runtime):
     """The issue's case: a worker stopped (SIGSTOP) past --timeout. Its mesh is retried alone
-    with twice the time and accepted; nothing is recorded as 'timeout'."""
-    import threading
+    with twice the time and accepted; nothing is recorded as 'timeout'. The worker stops itself
+    in the middle of that mesh's first attempt (the loader seam), so the test depends neither on
+    the machine's speed nor on its load: the pause always lands while a mesh is in flight."""
+    from tests.faults import faulty_loader
 
-    stopped = []
-
-    def pause_first_worker():
-        for _ in range(400):
-            kids = _workers_of(os.getpid())   # (short-lived checker children come and go)
-            if kids:
-                time.sleep(0.3)                   # busy with its first mesh by now
-                kids[0].send_signal(signal.SIGSTOP)
-                stopped.append(kids[0].pid)
-                return
-            time.sleep(0.05)
-
-    t = threading.Thread(target=pause_first_worker, daemon=True)
-    t.start()
-    s = build(small_library, tmp_path / "cat", OPTS, timeout=4.0, **QUIET)
-    t.join()
-    assert stopped and s.retried >= 1
+    target = sorted(p.name for p in small_library.glob("synth_*.glb"))[2]
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    loader = faulty_loader(pause_once=[target], marks=str(marks))
+    s = build(small_library, tmp_path / "cat", OPTS, timeout=8.0, loader=loader, **QUIET)
+    assert (marks / target).exists()                  # the first attempt paused its worker
+    assert s.retried >= 1
     assert (s.accepted, s.rejected) == (5, 1) and "timeout" not in s.reasons, s.reasons
 
 

@@ -425,6 +425,8 @@ def test_info_names_the_device_and_why(capsys):
     assert f"in use: {rt.info.spec} " in out and f"why: {rt.why}" in out
     infos = device_infos()
     if not os.environ.get("UCAD_CL_DEVICE") and len(infos) > 1:
-        # the chosen device is the best-ranked one that compiles: nothing better-ranked works
+        # the chosen device is the best-ranked usable one: every better-ranked one is unusable,
+        # named with its reason, and listed as such
         better = [i for i in infos if device_rank(i) < device_rank(rt.info)]
-        assert all("could not compile" in rt.why for _ in better)
+        assert all(f"{i.spec} {i.device} is unusable (" in rt.why for i in better)
+        assert all(f"{i.spec}  unusable" in out for i in better)
