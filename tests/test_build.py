@@ -250,6 +250,11 @@ def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
     assert main(["pose", str(ref), "--box", *box, "--catalog", str(cat), "--top", "3",
                  "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
+    from tests.test_cli import documented_keys
+    assert list(doc) == documented_keys("pose catalogue output")     # ucad_catalog/SCHEMA.md
+    assert [list(c) for c in doc["candidates"]] == [
+        ["rank", "mesh", "sha256", "view", "azimuth", "elevation", "distance", "score", "K",
+         "w2c"]] * 3
     assert [c["rank"] for c in doc["candidates"]] == [1, 2, 3]
     c0 = doc["candidates"][0]
     assert c0["mesh"] == str(target) and c0["azimuth"] == float(best[1])
