@@ -426,6 +426,42 @@ def test_realism_traits_are_deterministic_and_checked():
         make_vehicle(5, "van", realism=["chrome_everything"])
 
 
+def test_shape_traits_cartoon_and_wedge():
+    """cartoon: the body shorter (x 0.72-0.88) and taller (y 1.1-1.3), every tyre bigger
+    (1.15-1.45) and still on the ground; wedge: heights scaled from 1 - k at the nose to
+    1 + k at the tail (k 0.08-0.2), wheels untouched. Part bounding boxes against the plain
+    build; other traits' bytes do not move, and the result is deterministic."""
+    from ucad_cl.synth import SHAPE_TRAITS
+    from ucad_cl.synth.builder import build_parts
+    from ucad_cl.synth.realism import apply_realism
+
+    def boxes(traits):
+        parts = build_parts("sedan", np.random.default_rng([4, 1]), 1.0)
+        parts = apply_realism(parts, traits, np.random.default_rng([4, 3]))
+        return {q.node: (q.vertices.min(0), q.vertices.max(0)) for q in parts}
+
+    plain, toon, wedge = boxes(()), boxes(("cartoon",)), boxes(("wedge",))
+    assert SHAPE_TRAITS == ("cartoon", "wedge")
+    body = [n for n in plain if not n.startswith(("tyre_", "rim_"))]
+    ext = lambda b, k: (max(b[n][1][k] for n in body) - min(b[n][0][k] for n in body))  # noqa
+    assert 0.72 <= ext(toon, 0) / ext(plain, 0) <= 0.88
+    assert 1.1 <= max(toon[n][1][1] for n in body) / max(plain[n][1][1] for n in body) <= 1.3
+    k = [(toon[n][1][1] - toon[n][0][1]) / (plain[n][1][1] - plain[n][0][1])
+         for n in plain if n.startswith("tyre_")]
+    assert 1.15 <= min(k) and max(k) <= 1.45 and np.ptp(k) < 1e-9      # one factor
+    assert all(abs(toon[n][0][1] - plain[n][0][1]) < 1e-9 for n in plain if n.startswith("tyre_"))
+    for n in plain:
+        if n.startswith(("tyre_", "rim_")):
+            assert np.array_equal(wedge[n][0], plain[n][0])
+    roof = [n for n in body if plain[n][1][1] > 1.2]              # the tallest parts
+    front = max(roof, key=lambda n: plain[n][1][0])
+    rear = min(roof, key=lambda n: plain[n][0][0])
+    assert wedge[front][1][1] < plain[front][1][1] and wedge[rear][1][1] > plain[rear][1][1]
+    a = make_vehicle(6, "suv", realism=["cartoon", "wedge", "axles"])
+    assert a.glb_bytes() == make_vehicle(6, "suv", realism=["axles", "wedge", "cartoon"]).glb_bytes()
+    assert a.truth["realism"] == ["cartoon", "wedge", "axles"]
+
+
 def test_lamp_variety_and_ground_base_traits():
     """lamp_variety: an amber indicator beside every lamp, a see-through red lens over a grey
     reflector at the back, all part light; ground_base: one base of part other under the

@@ -58,7 +58,8 @@ from .realism import apply_realism
 from .shapes import Part, compact
 
 __all__ = ["BODIES", "HUGE_TRIANGLES", "KINDS", "MANY_MATERIALS", "MAX_TILT_DEG", "MESSY_TRAITS",
-           "OFFSET", "POSES", "POSE_TRAITS", "REALISM_TRAITS", "REJECT_OF", "UNIT_SCALE",
+           "OFFSET", "POSES", "POSE_TRAITS", "REALISM_TRAITS", "REJECT_OF", "SHAPE_TRAITS",
+           "UNIT_SCALE",
            "SynthVehicle", "apply_realism", "axis_angle", "axis_rotations", "majority_part",
            "make_vehicle", "write_library"]
 
@@ -89,6 +90,10 @@ REALISM_TRAITS: tuple[str, ...] = (
     "opaque_glass", "dark_glass", "two_tone", "one_glass", "glass_looks", "grey_trim",
     "plain_lights", "lamp_variety", "ground_base", "axles", "light_bar", "plate_looks",
     "no_glass", "inner_shell", "mirror_glass", "meaningless_names", "misleading_names")
+#: body-shape traits (``apply_realism`` too, before the material traits): cartoon proportions
+#: and wedge bodies, as low-poly and stylised models have them. Kept apart from
+#: REALISM_TRAITS, whose draws make the labeller's training data
+SHAPE_TRAITS: tuple[str, ...] = ("cartoon", "wedge")
 
 
 def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
@@ -101,7 +106,7 @@ def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
     target_triangles: overrides detail, tessellates to about this many triangles (within ~10 %).
     messy: traits from MESSY_TRAITS to apply to the file (see module docstring).
     realism: traits from REALISM_TRAITS (how real libraries assign materials; see
-    ``apply_realism``), recorded in ``truth["realism"]``.
+    ``apply_realism``) and SHAPE_TRAITS (body shapes), recorded in ``truth["realism"]``.
     pose: one of POSES, the file's rotation (drawn from the seed), after the messy pose traits.
     body: one of BODIES, a body variant. ``truth["orientation"]`` gives the file-frame up and
     front directions in every case.
@@ -120,9 +125,10 @@ def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
     bad = [t for t in messy if t not in MESSY_TRAITS]
     if bad:
         raise ValueError(f"unknown messy trait(s) {bad}; expected some of {MESSY_TRAITS}")
-    bad = [t for t in realism if t not in REALISM_TRAITS]
+    bad = [t for t in realism if t not in REALISM_TRAITS + SHAPE_TRAITS]
     if bad:
-        raise ValueError(f"unknown realism trait(s) {bad}; expected some of {REALISM_TRAITS}")
+        raise ValueError(f"unknown realism trait(s) {bad}; expected some of "
+                         f"{REALISM_TRAITS + SHAPE_TRAITS}")
     if target_triangles is not None and int(target_triangles) < 1000:
         raise ValueError(f"target_triangles must be >= 1000, got {target_triangles}")
     messy = tuple(dict.fromkeys(messy))          # unique, order kept
@@ -143,7 +149,7 @@ def make_vehicle(seed: int, kind: str | None = None, *, detail: int = 1,
                 break
             res *= math.sqrt(target_triangles / n)
             parts = build(res)
-    realism = tuple(t for t in REALISM_TRAITS if t in realism)     # fixed application order
+    realism = tuple(t for t in SHAPE_TRAITS + REALISM_TRAITS if t in realism)   # fixed order
     parts = apply_realism(parts, realism, np.random.default_rng([seed, 3]))
     if body is not None:
         parts = body_variant(parts, body, np.random.default_rng([seed, 5]))

@@ -16,7 +16,8 @@ from .shapes import Part, box, compact, patch, revolve
 
 def apply_realism(parts: list[Part], traits: Sequence[str],  # noqa: C901  one branch per trait
                   r: np.random.Generator) -> list[Part]:
-    """The vehicle's parts with the realism ``traits`` applied, in ``REALISM_TRAITS`` order.
+    """The vehicle's parts with the realism ``traits`` applied in the order given
+    (``make_vehicle``: the body-shape traits ``SHAPE_TRAITS`` first, then ``REALISM_TRAITS``).
 
     Geometry traits: ``brake_discs`` (rims become rings with a grey disc and a red calliper
     behind them: part other), ``lens_lamps`` (every lamp enclosed in a clear lens box, part
@@ -57,6 +58,10 @@ def apply_realism(parts: list[Part], traits: Sequence[str],  # noqa: C901  one b
     pillars and doors lined inside in an interior material: ``_inner_shell``),
     ``mirror_glass`` (a reflective glass on the back of each door mirror: part chrome,
     ``_mirror_glass``).
+    Shape traits: ``cartoon`` (cartoon proportions: the body 12-28 % shorter and 10-30 %
+    taller, the wheels 15-45 % bigger, standing on the ground: ``_cartoon``), ``wedge`` (a
+    wedge body: every non-wheel part's height scaled from 1 - k at the nose to 1 + k at the
+    tail, k 8-20 %); both on streams of their own.
     ``opaque_glass`` and the traits from ``axles`` on draw from their own random streams
     (``_trait_rng``), so adding or changing one changes no other trait's draws.
     Name traits: ``meaningless_names`` (materials become ``Material.001``..., nodes
@@ -200,6 +205,10 @@ def apply_realism(parts: list[Part], traits: Sequence[str],  # noqa: C901  one b
             parts = _inner_shell(parts, _trait_rng(r, t))
         elif t == "mirror_glass":
             parts = _mirror_glass(parts, _trait_rng(r, t))
+        elif t == "cartoon":
+            parts = _cartoon(parts, _trait_rng(r, t))
+        elif t == "wedge":
+            parts = _wedge(parts, _trait_rng(r, t))
         elif t == "meaningless_names":
             renamed: dict[str, str] = {}
             for k, q in enumerate(parts):
@@ -219,6 +228,53 @@ def apply_realism(parts: list[Part], traits: Sequence[str],  # noqa: C901  one b
                     k = int(np.random.default_rng(list(nm.encode())).integers(len(wrong)))
                     q.material = shared(f"{words[wrong[k]]}_{nm}", q.material)
     return parts
+
+
+_WHEEL_NODES = ("tyre_", "rim_", "brake_", "calliper_")
+
+
+def _cartoon(parts: list[Part], r: np.random.Generator) -> list[Part]:
+    """Cartoon proportions, as toy and stylised models have them: x scaled by sx (0.72-0.88),
+    y by sy (1.1-1.3) about the ground (y = 0); each wheel (tyre, rim, brake parts: nodes
+    ending in its tag such as ``FL``) scaled by k (1.15-1.45) in x and y about its ground
+    contact, which moves with the body; axle rods keep joining the wheel centres."""
+    sx, sy, k = float(r.uniform(0.72, 0.88)), float(r.uniform(1.1, 1.3)), float(r.uniform(1.15,
+                                                                                             1.45))
+    tyres = {q.node[len("tyre_"):]: _bbox(q) for q in parts if q.node.startswith("tyre_")}
+    out = []
+    for q in parts:
+        v = np.array(q.vertices, np.float64)
+        tag = q.node.split("_", 1)[1] if q.node.startswith(_WHEEL_NODES) else None
+        if tag in tyres:
+            lo, hi = tyres[tag]
+            cx, gy = 0.5 * (lo[0] + hi[0]), lo[1]
+            v[:, 0] = cx * sx + (v[:, 0] - cx) * k
+            v[:, 1] = gy + (v[:, 1] - gy) * k
+        elif q.node.startswith("axle_"):
+            v[:, 0] = v[:, 0] * sx
+            v[:, 1] = v[:, 1] * k
+        else:
+            v[:, 0] *= sx
+            v[:, 1] *= sy
+        out.append(Part(q.node, q.part, q.material, v, q.faces))
+    return out
+
+
+def _wedge(parts: list[Part], r: np.random.Generator) -> list[Part]:
+    """A wedge body (nose low, tail high): every part but the wheels and axle rods has its
+    height above the ground scaled by 1 - k * x / (L / 2) (k 0.08-0.2; x from the middle of
+    the length L, positive to the front)."""
+    k = float(r.uniform(0.08, 0.2))
+    lo = min(float(q.vertices[:, 0].min()) for q in parts)
+    hi = max(float(q.vertices[:, 0].max()) for q in parts)
+    mid, half = 0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-9)
+    out = []
+    for q in parts:
+        v = np.array(q.vertices, np.float64)
+        if not q.node.startswith(_WHEEL_NODES + ("axle_",)):
+            v[:, 1] *= 1.0 - k * (v[:, 0] - mid) / half
+        out.append(Part(q.node, q.part, q.material, v, q.faces))
+    return out
 
 
 def _trait_rng(r: np.random.Generator, trait: str) -> np.random.Generator:
