@@ -16,6 +16,14 @@ built, 24 axis poses, yaw, tilt up to 3 deg, Z-up, arbitrary 3-D rotation) and b
 trailer, no wheels, two vehicles side by side, both ends alike; the last is scored on up only
 and must come out flagged uncertain). Held out.
 
+Table 2b: low-poly generated vehicles (seeds from --lowpoly-seed, never used for development or
+tuning; the cues were tuned on seeds 700000-710223): lamps in the body's texture (textured_body),
+no emission, MTL-like materials, one glass / no glass / opaque glass, meaningless names, in
+every kind, each plain, cartoon, wedge and cartoon + wedge (``synth.SHAPE_TRAITS``), re-posed
+by an axis rotation; front right, flagged (front_ambiguous) and wrong with confidence >= 0.5
+(the worst outcome), with all cues and without the cabin cue (the estimate before it). Held
+out.
+
 Table 3: ablation, each cue left out in turn (real models in 3 poses each; generated: the first
 --ablate vehicles of table 2).
 
@@ -238,6 +246,44 @@ def generated(args, disabled_sets=None):
     return cases
 
 
+LOWPOLY = (("textured_body", "plain_lights", "mtl_like", "one_glass", "meaningless_names"),
+           ("textured_body", "plain_lights", "mtl_like", "no_glass", "meaningless_names"),
+           ("textured_body", "mtl_like", "opaque_glass", "one_glass", "meaningless_names"),
+           ("one_paint", "plain_lights", "mtl_like", "meaningless_names"))
+SHAPES = ((), ("cartoon",), ("wedge",), ("cartoon", "wedge"))
+
+
+def lowpoly(args):
+    from ucad_cl.orient import estimate_orientation
+    from ucad_cl.synth import KINDS, make_vehicle
+
+    rows: dict[str, list] = {}
+    for i in range(args.lowpoly):
+        kind = KINDS[i % len(KINDS)]
+        shape = SHAPES[(i // len(KINDS)) % len(SHAPES)]
+        v = make_vehicle(args.lowpoly_seed + i, kind, target_triangles=8000,
+                         realism=LOWPOLY[i % len(LOWPOLY)] + shape)
+        Q = axis_rotations()[i % 24]
+        m = repose(v.mesh(), Q)
+        for label, off in (("all cues", ()), ("- cabin", ("cabin",))):
+            o = estimate_orientation(m, disabled=off)
+            ue, fe, _ = score(o.rotation, Q @ np.array([0.0, 1, 0]), Q @ np.array([1.0, 0, 0]))
+            r = (ue <= 10, fe <= 15, "front_ambiguous" in o.flags,
+                 fe > 15 and o.front_confidence >= 0.5)
+            for g in ("pooled", f"kind {kind}", f"shape {'+'.join(shape) or 'plain'}"):
+                rows.setdefault(g, []).append((label, r))
+    print(f"\nTable 2b: {args.lowpoly} low-poly generated vehicles, seeds {args.lowpoly_seed}..."
+          f"{args.lowpoly_seed + args.lowpoly - 1} (held out)")
+    print(f"{'group':22s} {'n':>4s} | {'up %':>6s} {'front %':>8s} {'flag %':>7s} "
+          f"{'wrong>=.5':>9s} | {'- cabin: front %':>16s} {'flag %':>7s} {'wrong>=.5':>9s}")
+    for g, rs in rows.items():
+        a = np.array([r for lab, r in rs if lab == "all cues"], float)
+        b = np.array([r for lab, r in rs if lab == "- cabin"], float)
+        print(f"{g:22s} {len(a):4d} | {100 * a[:, 0].mean():6.1f} {100 * a[:, 1].mean():8.1f} "
+              f"{100 * a[:, 2].mean():7.1f} {int(a[:, 3].sum()):9d} | "
+              f"{100 * b[:, 1].mean():16.1f} {100 * b[:, 2].mean():7.1f} {int(b[:, 3].sum()):9d}")
+
+
 # ----------------------------------------------------------------------------- ablation
 
 def ablation(args, loaded, cases):
@@ -324,12 +370,15 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=900_000, help="first generator seed")
     ap.add_argument("--triangles", type=int, default=20_000, help="triangles per generated car")
     ap.add_argument("--real-yaws", type=int, default=10, help="random yaws per real model")
+    ap.add_argument("--lowpoly", type=int, default=280, help="low-poly vehicles (table 2b)")
+    ap.add_argument("--lowpoly-seed", type=int, default=960_000,
+                    help="first generator seed of table 2b")
     ap.add_argument("--ablate", type=int, default=120, help="generated vehicles in table 3")
     ap.add_argument("--repeats", type=int, default=3, help="timing repeats (table 4)")
     ap.add_argument("--speed-meshes", type=int, default=21,
                     help="generated 50k-triangle vehicles timed in table 4")
-    ap.add_argument("--skip", nargs="*", default=[], choices=["real", "generated", "ablation",
-                                                             "speed"])
+    ap.add_argument("--skip", nargs="*", default=[], choices=["real", "generated", "lowpoly",
+                                                             "ablation", "speed"])
     args = ap.parse_args()
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     loaded, cases = {}, []
@@ -337,6 +386,8 @@ def main() -> None:
         loaded = real_models(args)
     if "generated" not in args.skip:
         cases = generated(args)
+    if "lowpoly" not in args.skip:
+        lowpoly(args)
     if "ablation" not in args.skip and (loaded or cases):
         ablation(args, loaded, cases)
     if "speed" not in args.skip:

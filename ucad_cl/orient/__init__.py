@@ -35,8 +35,10 @@ the same decisions; ties go to fixed rules written next to the code):
    FL/RR..., in several languages), lamp colours (red at the rear; white, yellow or amber at
    the front), the windscreen (more glazing across the length at the front of the glazed
    region), glazing only near one end (a cab), side mirrors (spikes of the width in the front
-   half), an axle pattern (a lone steering axle at the front, tandem axles at the rear) and
-   the roof profile (the nose lower than the tail); weights FRONT_WEIGHTS.
+   half), an axle pattern (a lone steering axle at the front, tandem axles at the rear),
+   the roof profile (the nose lower than the tail) and the cabin's place (the roof's middle
+   behind the middle of the length: it decides low-poly cars whose lamps share the body
+   colour, without glazing or names); weights FRONT_WEIGHTS (docs/ORIENTATION.md).
 7. **Snap.** Up within SNAP_DEG of a signed file axis (SNAP_DEG_COARSE when no wheels level
    it; SNAP_DEG_ALIGNED when no wheels level it but the mirror plane is a file plane, within
    SNAP_DEG: the file is then axis-aligned, and a wedge-shaped body without found wheels, whose
@@ -55,7 +57,9 @@ area and 4,096 face samples, fewer mirror candidates refined, 6 Hough radii); th
 is kept when it is clearly decided: no flag raised, symmetry at least FAST_ACCEPT_SYMMETRY and
 both confidences at least FAST_ACCEPT_UP / FAST_ACCEPT_FRONT (margins chosen on tuning data:
 generator seeds 800000-800499 and the real models; none of the cheap pass's kept decisions
-differed from the full estimate there). It gives up as soon as it cannot be kept (the
+differed from the full estimate there; with the cabin cue, one low-poly tuning vehicle of 140
+differs: the cheap pass finds its wheels and is right, the full estimate does not and is
+flagged, see docs/ORIENTATION.md). It gives up as soon as it cannot be kept (the
 commonest reason, no wheels found on the small budget, comes before the costly cues), and
 the full estimate (``FULL``: the budgets above) decides. Both passes draw their samples
 from the same content-independent stream, so the path taken and the result are the same for
@@ -125,7 +129,7 @@ UP_WEIGHTS: dict[str, float] = {"wheels": 3.0, "ground_plane": 3.0, "glass_high"
                                 "wheel_names_low": 1.0, "roof_narrow": 0.5}
 FRONT_WEIGHTS: dict[str, float] = {"names": 3.0, "lamp_colours": 2.0, "windscreen": 1.5,
                                    "cab_glass": 1.5, "mirrors": 1.0, "axles": 1.5,
-                                   "profile": 0.5}
+                                   "profile": 0.5, "cabin": 1.0}
 
 
 def orient_mesh(mesh: Mesh, mode: str | tuple[str, str] = "auto", *,

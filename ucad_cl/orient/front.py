@@ -37,7 +37,33 @@ def front_cue_scores(ctx: Context, wheels: Wheels | None, names: NameTable) -> d
         gaps = np.diff(ax)
         cues["axles"] = float(np.clip(3.0 * (gaps[-1] - gaps[0]), -1, 1))
     cues["profile"] = _profile(ctx)
+    cues["cabin"] = _cabin(ctx)
     return cues
+
+
+def _cabin(ctx: Context) -> float:
+    """The cabin sits behind the middle of the length (a bonnet in front of it is longer
+    than a boot behind it; a hatchback's, an SUV's or a van's roof runs to the tail), with
+    or without glazing and lamps. The side view's top edge (the highest sample in each of 40
+    columns along the length) above the level halfway from the higher end's top (the mean
+    of its 4 outermost columns) to the highest point is the roof; m is the roof's middle
+    (the columns' positions weighted by their height above that level, so a column near the
+    level weighs nearly nothing and the cue varies continuously). Score -3 (m - 0.025 sign
+    m), 0 within 0.025 (half a column), clipped. Pickups (cab ahead of the bed) and cab-over
+    trucks with a tall box can mislead it, hence its modest weight."""
+    col = np.minimum(((ctx.s + 1.0) * 20.0).astype(np.intp), 39)
+    top = np.full(40, -np.inf)
+    np.maximum.at(top, col, ctx.t)
+    seen = np.flatnonzero(np.isfinite(top))
+    if seen.size < 20:
+        return 0.0
+    h = top[seen]
+    level = 0.5 * (max(float(h[:4].mean()), float(h[-4:].mean())) + float(h.max()))
+    w = np.maximum(h - level, 0.0)
+    if w.sum() <= 0.0:
+        return 0.0
+    mid = float(((seen + 0.5) / 20.0 - 1.0) @ w / w.sum())
+    return float(np.clip(-3.0 * np.sign(mid) * max(abs(mid) - 0.025, 0.0), -1, 1))
 
 
 def _glass_cues(ctx: Context, glass: np.ndarray) -> dict[str, float]:
