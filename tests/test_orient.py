@@ -112,6 +112,20 @@ def test_low_poly_cars_without_lamp_colours_glass_or_names_face_front(j, shape):
         assert o.cues["front.cabin"] > 0, (kind, o.cues)
 
 
+def test_low_poly_pickups_have_their_bed_at_the_rear():
+    """The same low-poly pickups (seeds 720100-720103, plain, cartoon, wedge, both): the
+    open bed says the rear (front.bed > 0) and they face +X; a closed sedan has no bed."""
+    for j, shape in enumerate([(), ("cartoon",), ("wedge",), ("cartoon", "wedge")]):
+        m = make_vehicle(720_100 + j, "pickup", target_triangles=6000,
+                         realism=LOWPOLY + shape).mesh()
+        o = orient.estimate_orientation(m)
+        assert o.cues["front.bed"] > 0, (shape, o.cues)
+        assert _angle(o.rotation[0], FRONT) < 2.0, (shape, o.front_confidence, o.cues)
+    o = orient.estimate_orientation(make_vehicle(720_000, "sedan", target_triangles=6000,
+                                                 realism=LOWPOLY).mesh())
+    assert o.cues["front.bed"] == 0.0, o.cues
+
+
 def test_front_back_symmetric_body_reports_low_confidence():
     v = _synth(5, "van", body="symmetric_ends")
     assert v.truth["orientation"]["front_defined"] is False

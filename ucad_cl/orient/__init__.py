@@ -36,9 +36,10 @@ the same decisions; ties go to fixed rules written next to the code):
    the front), the windscreen (more glazing across the length at the front of the glazed
    region), glazing only near one end (a cab), side mirrors (spikes of the width in the front
    half), an axle pattern (a lone steering axle at the front, tandem axles at the rear),
-   the roof profile (the nose lower than the tail) and the cabin's place (the roof's middle
+   the roof profile (the nose lower than the tail), the cabin's place (the roof's middle
    behind the middle of the length: it decides low-poly cars whose lamps share the body
-   colour, without glazing or names); weights FRONT_WEIGHTS (docs/ORIENTATION.md).
+   colour, without glazing or names) and an open load bed at the rear (a pickup's, whose
+   cab is ahead of the middle); weights FRONT_WEIGHTS (docs/ORIENTATION.md).
 7. **Snap.** Up within SNAP_DEG of a signed file axis (SNAP_DEG_COARSE when no wheels level
    it; SNAP_DEG_ALIGNED when no wheels level it but the mirror plane is a file plane, within
    SNAP_DEG: the file is then axis-aligned, and a wedge-shaped body without found wheels, whose
@@ -129,7 +130,7 @@ UP_WEIGHTS: dict[str, float] = {"wheels": 3.0, "ground_plane": 3.0, "glass_high"
                                 "wheel_names_low": 1.0, "roof_narrow": 0.5}
 FRONT_WEIGHTS: dict[str, float] = {"names": 3.0, "lamp_colours": 2.0, "windscreen": 1.5,
                                    "cab_glass": 1.5, "mirrors": 1.0, "axles": 1.5,
-                                   "profile": 0.5, "cabin": 1.0}
+                                   "profile": 0.5, "cabin": 1.0, "bed": 1.0}
 
 
 def orient_mesh(mesh: Mesh, mode: str | tuple[str, str] = "auto", *,

@@ -38,7 +38,28 @@ def front_cue_scores(ctx: Context, wheels: Wheels | None, names: NameTable) -> d
         cues["axles"] = float(np.clip(3.0 * (gaps[-1] - gaps[0]), -1, 1))
     cues["profile"] = _profile(ctx)
     cues["cabin"] = _cabin(ctx)
+    cues["bed"] = _bed(ctx)
     return cues
+
+
+def _bed(ctx: Context) -> float:
+    """An open load bed (a pickup's, an open truck's) is at the rear: in each of 20 columns
+    along the length, the top of the middle (|q| < 0.4) lower by 0.15 of the half height
+    than the top of the sides (|q| > 0.7), with the sides a quarter of the height below the
+    highest point (a glassless window opening's pillars are higher), is a hollow column; (hollow columns in the back half - in the
+    front half) / 4, clipped. A closed body or a bonnet (highest in the middle) has none."""
+    col = np.minimum(((ctx.s + 1.0) * 10.0).astype(np.intp), 19)
+    aq = np.abs(ctx.q)
+    mid_top, side_top = np.full(20, -np.inf), np.full(20, -np.inf)
+    np.maximum.at(mid_top, col[aq < 0.4], ctx.t[aq < 0.4])
+    np.maximum.at(side_top, col[aq > 0.7], ctx.t[aq > 0.7])
+    both = np.isfinite(mid_top) & np.isfinite(side_top)
+    if both.sum() < 10:
+        return 0.0
+    roof = float(np.maximum(mid_top, side_top)[both].max())
+    hollow = both & (side_top - mid_top > 0.15) & (side_top < roof - 0.5)
+    d = int(hollow[:10].sum()) - int(hollow[10:].sum())      # back half - front half
+    return float(np.sign(d) * np.clip((abs(d) - 2) / 3.0, 0.0, 1.0))
 
 
 def _cabin(ctx: Context) -> float:
