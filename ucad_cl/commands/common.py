@@ -69,7 +69,8 @@ def format_low_confidence(sha256: str, rows, n: int, indent: str = "") -> str:
                   key=lambda r: (label_confidence(r), -r.pixels, r.index))[:max(n, 0)]
     lines = [f"{indent}lowest label confidence first ({len(todo)} of {len(rows)} materials; "
              "fix one with a --labels-file line):",
-             f"{indent}  {'conf':>5s} {'material':32s} {'part':9s} {'pixels':>8s}  labels-file line"]
+             f"{indent}  {'conf':>5s} {'material':32s} {'part':9s} {'pixels':>8s}  "
+             "labels-file line"]
     for r in todo:
         lines.append(f"{indent}  {label_confidence(r):5.2f} {r.name[:32]:32s} {r.part:9s} "
                      f"{r.pixels:8d}  {sha256} {key(r)} {'PART' if r.part == 'unseen' else r.part}")
