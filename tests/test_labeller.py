@@ -360,7 +360,10 @@ def test_labeller_segmenter_behind_glass_unseen_and_prob(car_views):
     rows = {r.name: r for r in table.rows}
     assert rows["seat"].decision == "behind-glass" and rows["seat"].pixels > 0
     assert rows["seat"].part in PART_NAMES
-    assert rows["hidden"].part == "unseen" and rows["hidden"].decision == "unseen"
+    # no pixel in the views nor behind glass: the labeller's part from geometry, own flag
+    hidden = rows["hidden"]
+    assert (hidden.decision, hidden.pixels, hidden.view) == ("never-visible", 0, -1)
+    assert hidden.part == PART_NAMES[int(masks.labels.part[hidden.material])]
     for r in table.rows:
         if r.part != "unseen":
             assert 0.0 < r.prob <= 1.0
