@@ -246,6 +246,12 @@ def test_shipped_model_record_and_size():
     assert rec["recipe"]["seed"] == 2026 and rec["recipe"]["vehicles"] >= 100
     assert rec["metrics"]["heldout_generated_material_accuracy"] >= 0.97
     assert len(rec["check"]["X"]) >= 5
+    # trained on every real model of ../shared (the manifest's, less the Draco duplicate of
+    # ferrari_458_nodraco.glb that labeller_train.load_real_models skips)
+    manifest = ROOT.parent / "shared" / "data" / "vehicles" / "manifest.json"
+    if manifest.exists():
+        models = json.loads(manifest.read_text())["models"]
+        assert rec["recipe"]["real_models"] == len(models) - 1 and not rec["recipe"]["leave_out"]
 
 
 def test_model_loads_and_predicts_in_a_fresh_environment(tmp_path):
