@@ -210,7 +210,10 @@ def member_rows(args) -> list:
 
 def load_synth_rows(args, seed: int):
     """The recipe's generated training rows of run ``seed``, cached in ``--cache`` (keyed by
-    count, seed, the recipe and the source of the feature and generator modules)."""
+    count, seed, the recipe and the source of the feature and generator modules). Vehicle i of
+    a run does not depend on the run's count, so a cache of more vehicles gives the rows of
+    the first ``args.vehicles`` (e.g. ``--vehicles 500`` per fold from the shipped recipe's
+    1000)."""
     from ucad_cl import labeller_train as T
 
     import hashlib
@@ -226,6 +229,11 @@ def load_synth_rows(args, seed: int):
     if cache.exists():
         z = np.load(cache, allow_pickle=True)
         return T.Rows(z["X"], z["y"], z["w"], z["group"])
+    for big in sorted(Path(args.cache).glob(f"synth_*_{seed}_{key}.npz")):
+        if int(big.name.split("_")[1]) > args.vehicles:
+            z = np.load(big, allow_pickle=True)
+            keep = np.array([int(str(g).split(":")[1]) < args.vehicles for g in z["group"]])
+            return T.Rows(z["X"][keep], z["y"][keep], z["w"][keep], z["group"][keep])
     rows = T.synth_rows(args.vehicles, seed)
     cache.parent.mkdir(parents=True, exist_ok=True)
     np.savez(cache, X=rows.X, y=rows.y, w=rows.w, group=rows.group)
@@ -272,10 +280,12 @@ def real_tables(models, args) -> dict[str, dict]:
     return out
 
 
-def fast_verdicts(t: dict, prob: np.ndarray, min_pixels: int = 4) -> tuple[Score, list]:
+def fast_verdicts(t: dict, prob: np.ndarray, min_pixels: int = 4,
+                  hidden: np.ndarray | None = None) -> tuple[Score, list]:
     """Material verdicts of the labeller's probabilities without masks: argmax part (ties ->
     PART_NAMES order); under ``min_pixels`` pixels its behind-glass pixels weigh it, and with
-    fewer there too it keeps the argmax as 'never-visible' (weight 0), as ``classify_parts``
+    fewer there too it takes ``hidden`` (the geometric part, ``labeller.never_visible_part``;
+    default the argmax) as 'never-visible' (weight 0), as ``classify_parts``
     decides on self-painted masks (each material's pixels all lie in its own argmax part, so
     every view scores it 1). Left out: the mirror-pair unification of ``classify_parts``."""
     from types import SimpleNamespace
@@ -290,6 +300,8 @@ def fast_verdicts(t: dict, prob: np.ndarray, min_pixels: int = 4) -> tuple[Score
             px = int(t["behind"][m])
             if px < min_pixels:
                 px, decision = 0, "never-visible"
+                if hidden is not None:
+                    part = PART_NAMES[int(hidden[m])]
         alts = [PART_NAMES[k] for k in np.flatnonzero(t["alt"][m])]
         if not sc.add(PART_NAMES[y], alts, SimpleNamespace(part=part, pixels=px,
                                                            decision=decision)):
@@ -348,19 +360,29 @@ def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
         others = [r for g, r in real.items() if g not in fold]
         clf = fit([T.Rows.concat([s] + others) for s in synth])
         for f in fold:
-            per[f] = _score_fold_model(T, clf, tables[f], tot)
+            per[f] = _score_fold_model(T, clf, tables[f], tot, args.ablate)
             if log:
                 _log_model(log, f, per[f], tables[f], time.perf_counter() - t0)
     return {"named": tot["named"], "hidden": tot["hidden"], "per_model": per, "tables": tables}
 
 
-def _score_fold_model(T, clf, t, tot) -> dict:
+def _score_fold_model(T, clf, t, tot, ablate=(), probs=None) -> dict:
+    """Score one model's names-kept and names-hidden rows: probabilities of ``clf`` (a fitted
+    ensemble, a ``LabellerModel``, or None with ``probs`` = {tag: saved raw probabilities}),
+    then the labeller's rules as ``label_materials`` applies them (``wheel_assembly``, and
+    ``never_visible_part`` for materials no view sees) unless ``ablate`` names them ("wheel",
+    "hidden": the argmax as is). Returns {tag: (Score, wrong, raw probabilities)}."""
+    from ucad_cl.labeller import never_visible_part, wheel_assembly
+
     res = {}
     for tag, X in (("named", t["Xn"]), ("hidden", t["Xh"])):
-        prob = clf.predict(X) if hasattr(clf, "session") else T.predict(clf, X)
-        sc, wrong = fast_verdicts(t, prob)
+        raw = (probs[tag] if probs is not None else
+               clf.predict(X) if hasattr(clf, "session") else T.predict(clf, X))
+        prob = raw if "wheel" in ablate else wheel_assembly(raw, X)
+        sc, wrong = fast_verdicts(t, prob, hidden=None if "hidden" in ablate
+                                  else never_visible_part(X))
         tot[tag] += sc
-        res[tag] = (sc, wrong, prob)
+        res[tag] = (sc, wrong, raw)
     return res
 
 
@@ -381,6 +403,8 @@ def fast_table(args):
         return seeds_table(args)
     if args.shipped:
         return shipped_table(args)
+    if args.probs:
+        return rescore_table(args)
     how = ("leave-one-model-out" if args.groups == "model" else
            "grouped leave-out (the models of one source repository left out together)")
     print(f"\n## Labeller, fast {how} over cached feature rows (frame "
@@ -391,6 +415,11 @@ def fast_table(args):
     print(f"{'model':44s} {'mats':>4s} | {'named':>13s} | {'hidden':>13s} | wrong (names hidden)")
     res = fast_lomo(args, log=lambda *a, **k: print(*a, **k))
     print_totals(res)
+    if args.save_probs:
+        np.savez_compressed(args.save_probs, **{f"{tag}:{f}": r[tag][2]
+                                                for f, r in res["per_model"].items()
+                                                for tag in ("named", "hidden")})
+        print(f"held-out probabilities per model written to {args.save_probs}")
 
 
 def print_totals(res) -> None:
@@ -399,6 +428,26 @@ def print_totals(res) -> None:
         print(f"  names {k:7s} {sc.line()}")
     for k in ("hidden", "named"):
         print_confusion(f"Confusion, labeller, names {k}, fast leave-out", res[k].conf)
+
+
+def rescore_table(args):
+    """``--fast --probs FILE``: the held-out probabilities a ``--save-probs`` run wrote, scored
+    again with the labeller's current rules (less ``--ablate``'s): a rule's contribution
+    without refitting a fold."""
+    from ucad_cl import labeller_train as T
+
+    saved = np.load(args.probs, allow_pickle=True)
+    tables = real_tables(T.load_real_models(VEHICLES, frame=args.frame), args)
+    print(f"\n## Held-out probabilities of {args.probs} rescored (rules ablated: "
+          f"{', '.join(args.ablate) or 'none'})")
+    print(f"{'model':44s} {'mats':>4s} | {'named':>13s} | {'hidden':>13s} | wrong (names hidden)")
+    tot = {"named": Score(), "hidden": Score()}
+    for f, t in tables.items():
+        if f"hidden:{f}" not in saved.files:
+            continue
+        probs = {tag: saved[f"{tag}:{f}"] for tag in ("named", "hidden")}
+        _log_model(print, f, _score_fold_model(T, None, t, tot, args.ablate, probs), t, 0.0)
+    print_totals(tot)
 
 
 def shipped_table(args):
@@ -416,7 +465,7 @@ def shipped_table(args):
     tot = {"named": Score(), "hidden": Score()}
     new = {"named": Score(), "hidden": Score()}
     for f, t in tables.items():
-        res = _score_fold_model(T, model, t, tot)
+        res = _score_fold_model(T, model, t, tot, args.ablate)
         if facts[f]["added"]:
             for k in new:
                 new[k] += res[k][0]
@@ -562,6 +611,15 @@ def main():
                     help="with --fast: real training rows from every model outside the fold "
                          "(all) or only from those the manifest does not mark 'added' (the "
                          "training set of the model shipped before them)")
+    ap.add_argument("--probs", default=None, metavar="FILE.npz",
+                    help="with --fast: rescore the held-out probabilities a --save-probs run "
+                         "wrote with the current rules (no fitting)")
+    ap.add_argument("--ablate", type=lambda s: [x for x in s.split(",") if x], default=[],
+                    help="with --fast: leave out labeller rules: wheel (tyre/rim by radial "
+                         "position), hidden (never-visible part from geometry)")
+    ap.add_argument("--save-probs", default=None, metavar="FILE.npz",
+                    help="with --fast: write each model's held-out probabilities ('named:FILE', "
+                         "'hidden:FILE'), to score rules on them without refitting")
     ap.add_argument("--shipped", default=None, metavar="MODEL.onnx",
                     help="with --fast: score this trained model, not retrained, on every model")
     ap.add_argument("--fast", action="store_true",

@@ -33,8 +33,8 @@ visible in view v:
 * Masks from a per-material labeller (``masks.labels``, see ``ucad_cl.labeller``): a material
   with fewer than ``min_pixels`` pixels in the views but at least that many in the layer behind
   glass takes the labeller's part (``'behind-glass'``, pixels = that layer's); one with neither
-  takes it too, from its geometry and appearance (``'never-visible'``: inside the cabin,
-  under the floor, inside a wheel; pixels 0), so only the other segmenters leave ``'unseen'``
+  takes a part from its geometry (``'never-visible'``: inside a wheel -> rim, under the floor
+  -> other, else interior; pixels 0), so only the other segmenters leave ``'unseen'``
   rows; in a mirror pair it ranks as unseen (the seen twin's label wins, the flag stays);
   every row reports
   the labeller's probability of its final part (``prob``) and a shared material's split into
@@ -110,12 +110,14 @@ def _behind_glass(rows, labels, min_pixels) -> None:
 
 
 def _never_visible(rows, labels) -> None:
-    """Materials still unseen (no pixel in the views nor behind glass) take the labeller's
-    part, decided from geometry and appearance alone (no view sees them: their visibility
-    features are zero): decision 'never-visible', pixels 0."""
+    """Materials still unseen (no pixel in the views nor behind glass) take their part from
+    geometry (``labels.hidden_part``, ``labeller.never_visible_part``: inside a wheel -> rim,
+    under the floor -> other, else interior; the labeller's argmax when absent): decision
+    'never-visible', pixels 0."""
+    hidden = labels.part if getattr(labels, "hidden_part", None) is None else labels.hidden_part
     for r in rows:
         if r.decision == "unseen":
-            r.part = PART_NAMES[int(labels.part[r.material])]
+            r.part = PART_NAMES[int(hidden[r.material])]
             r.decision = "never-visible"
 
 
