@@ -37,15 +37,44 @@ VEHICLES = ROOT.parent / "shared" / "data" / "vehicles"
 
 
 def load_revision(rev: str, module: str, as_name: str):
-    """``ucad_cl/<module>.py`` of git revision ``rev`` as module ``ucad_cl.<as_name>``."""
-    src = subprocess.run(["git", "show", f"{rev}:ucad_cl/{module}.py"], cwd=ROOT, check=True,
-                         capture_output=True, text=True).stdout
+    """``ucad_cl/<module>.py`` of git revision ``rev`` as module ``ucad_cl.<as_name>``, or the
+    package ``ucad_cl/<module>/`` of that revision (its files written to a temporary folder)."""
+    show = subprocess.run(["git", "show", f"{rev}:ucad_cl/{module}.py"], cwd=ROOT,
+                          capture_output=True, text=True)
+    if show.returncode != 0:
+        return _load_package_revision(rev, module, as_name)
+    src = show.stdout
     name = f"ucad_cl.{as_name}"
     spec = importlib.util.spec_from_loader(name, loader=None, origin=str(ROOT / "ucad_cl"))
     mod = importlib.util.module_from_spec(spec)
     mod.__file__ = str(ROOT / "ucad_cl" / f"{module}.py")     # MODEL_DIR beside it
     sys.modules[name] = mod
     exec(compile(src, f"{rev}:ucad_cl/{module}.py", "exec"), mod.__dict__)
+    return mod
+
+
+def _load_package_revision(rev: str, module: str, as_name: str):
+    """The package ``ucad_cl/<module>/`` of revision ``rev`` as ``ucad_cl.<as_name>``: its
+    ``.py`` files copied to a temporary folder that serves as the package's path (relative
+    imports of ``ucad_cl`` modules resolve to this tree's)."""
+    import tempfile
+
+    files = subprocess.run(["git", "ls-tree", "--name-only", f"{rev}:ucad_cl/{module}"],
+                           cwd=ROOT, check=True, capture_output=True, text=True).stdout.split()
+    folder = Path(tempfile.mkdtemp(prefix=f"{as_name}-")) / as_name
+    folder.mkdir()
+    for f in files:
+        if f.endswith(".py"):
+            (folder / f).write_text(subprocess.run(
+                ["git", "show", f"{rev}:ucad_cl/{module}/{f}"], cwd=ROOT, check=True,
+                capture_output=True, text=True).stdout, encoding="utf-8")
+    name = f"ucad_cl.{as_name}"
+    spec = importlib.util.spec_from_file_location(name, folder / "__init__.py",
+                                                  submodule_search_locations=[str(folder)])
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod
+    spec.loader.exec_module(mod)
     return mod
 
 

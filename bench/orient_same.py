@@ -1,6 +1,7 @@
 """Orientation records of this tree against another revision's, and their speed, in one process.
 
-Loads ``ucad_cl/orient.py`` of ``--before`` (a git revision, default ``main``) beside this tree's
+Loads ``ucad_cl/orient`` of ``--before`` (a git revision, default ``main``; the one module
+``orient.py`` before the split, the package after it) beside this tree's
 and, on the same meshes, checks that both give the same records: ``estimate_orientation`` with
 the cascade and without it (``cascade=False``), rotation bits, confidences, flags, cues and
 symmetry, and for the real models also ``orient_mesh`` (canonical vertices, ``file_to_norm``,

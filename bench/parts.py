@@ -255,8 +255,9 @@ def real_tables(models, args) -> dict[str, dict]:
     import ucad_cl.names
     import ucad_cl.orient
 
-    src = b"".join(Path(m.__file__).read_bytes()
-                   for m in (ucad_cl.labeller, ucad_cl.names, ucad_cl.orient))
+    files = [Path(m.__file__) for m in (ucad_cl.labeller, ucad_cl.names)]
+    files += sorted(Path(ucad_cl.orient.__file__).parent.glob("*.py"))      # a package
+    src = b"".join(f.read_bytes() for f in files)
     out = {}
     for rm in models:
         key = hashlib.sha256(src + json.dumps([args.frame, rm.file, rm.mesh.sha256, rm.truth,

@@ -5,7 +5,7 @@
 # OpenCL comes from PyPI (pyopencl[pocl]), but the PoCL that pyopencl's wheels bundle (3.0-rc2,
 # LLVM 14) runs our kernels several times slower than Debian/Ubuntu's PoCL 3.1 (LLVM 15), and
 # cannot compile at all on CPUs newer than LLVM 14 knows (e.g. AMD Zen 5, pocl issue #1049).
-# Measured on an AMD EPYC Zen 3: exact search 8.2x, Canny 3.3-3.9x (README, "OpenCL runtime"). So,
+# Measured on an AMD EPYC Zen 3: exact search 8.2x, Canny 3.3-3.9x (docs/OPENCL.md). So,
 # wherever apt-get works, this installs Debian/Ubuntu's pocl-opencl-icd, which the same pyopencl
 # finds as a second platform and ucad-index then picks by default (`ucad-index info` says which
 # and why). Idempotent: nothing is installed twice, and it is quiet when all is in place.
@@ -31,7 +31,7 @@ if ! dpkg -s pocl-opencl-icd >/dev/null 2>&1; then
       echo "setup: apt-get install pocl-opencl-icd failed; ucad-index falls back to the PyPI PoCL" >&2
   elif ! .venv/bin/ucad-index info >/dev/null 2>&1; then
     echo "setup: no apt-get and no OpenCL device that compiles; install a PoCL or vendor OpenCL" \
-         "ICD by hand (see README, 'OpenCL runtime')" >&2
+         "ICD by hand (see docs/OPENCL.md)" >&2
   fi
 fi
 if [[ ",${EXTRAS:-}," == *",bench,"* ]] && ! .venv/bin/python -c "import open3d" 2>/dev/null; then

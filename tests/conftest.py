@@ -4,8 +4,9 @@
 ``pytestmark = pytest.mark.every_device`` (the kernel tests, which pass ``runtime=`` to every
 call) it is parametrised instead over the devices ``UCAD_TEST_DEVICES`` names, as pyopencl's
 tests follow ``PYOPENCL_TEST``: a comma-separated list of device specs ("0:0", "pocl", see
-``ucad_cl.runtime``), or "all" for every device that compiles a probe kernel. Unset: the
-default device only.
+``ucad_cl.runtime``), or "all" for every device that passes the self-test (``ucad_cl/selftest.py``,
+run in a child process, so a broken OpenCL build never runs in the test process); the devices
+left out are listed with the reason in the report header. Unset: the default device only.
 """
 from __future__ import annotations
 
@@ -31,6 +32,19 @@ def device_specs_under_test() -> list[str | None]:
         from ucad_cl.runtime import usable_device_specs
         return list(usable_device_specs())
     return [s.strip() for s in value.split(",") if s.strip()]
+
+
+def pytest_report_header(config):
+    """The devices under test, and those UCAD_TEST_DEVICES=all leaves out, with the reason."""
+    if os.environ.get("UCAD_TEST_DEVICES", "").strip().lower() != "all":
+        return None
+    from ucad_cl.runtime import OpenCLUnavailable, device_report
+    try:
+        report = device_report()
+    except OpenCLUnavailable as exc:
+        return [f"OpenCL devices: none ({exc})"]
+    return [f"OpenCL device {st.info.spec} ({st.info.device}): "
+            + ("under test" if st.usable else f"excluded, {st.reason}") for st in report]
 
 
 

@@ -46,7 +46,7 @@ def catalogue_content(path) -> dict:
         for m in r.meshes(state=None):
             rec = r.record(m.sha256)
             out[m.sha256] = {
-                "path": Path(m.path).name, "state": m.state, "reason": m.reason,
+                "path": m.path, "state": m.state, "reason": m.reason,     # relative to the library
                 "materials": [(p.index, p.name, p.part, round(p.score, 6), p.view, p.decision,
                                p.pixels) for p in r.parts(m.sha256)],
                 "artifacts": sorted((k, v["sha256"]) for k, v in rec["artifacts"].items()),
@@ -204,15 +204,21 @@ def test_discover_layouts(tmp_path):
 
 
 def test_real_models_build_without_crash(vehicles_dir, tmp_path, runtime):
+    """Every real model of the shared manifest is processed, keyed by its path in the library
+    (several models share a file name: car.obj, scene.gltf, ...): accepted, or rejected with the
+    documented reason (a model of fewer than two materials: too_few_materials)."""
     cat = tmp_path / "real"
     s = build(vehicles_dir, cat, BuildOptions(azimuth_step=60.0, size=96), progress=False,
               log=lambda *a: None)
     content = {rec["path"]: rec for rec in catalogue_content(cat).values()}
-    assert s.failed == 0 and s.processed == len(content) >= 11
-    kenney = content["vehicle-truck-green.glb"]
-    assert kenney["state"] == "rejected" and kenney["reason"] == "too_few_materials"
-    for name in ("o3dv_car.glb", "ferrari_458.glb", "cesium_milk_truck.glb"):
-        assert content[name]["state"] == "accepted", content[name]
+    manifest = json.loads((vehicles_dir / "manifest.json").read_text())["models"]
+    assert s.failed == 0 and s.processed == len(content) == len(manifest) >= 44
+    for model in manifest:
+        rec = content[model["file"]]
+        want = ("rejected", "too_few_materials") if model["material_count"] < 2 else \
+            ("accepted", None)
+        assert (rec["state"], rec["reason"] or None) == want, (model["file"], rec)
+    assert content["kenney_truck_green/vehicle-truck-green.glb"]["state"] == "rejected"
 
 
 def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
@@ -244,6 +250,11 @@ def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
     assert main(["pose", str(ref), "--box", *box, "--catalog", str(cat), "--top", "3",
                  "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
+    from tests.test_cli import documented_keys
+    assert list(doc) == documented_keys("pose catalogue output")     # ucad_catalog/SCHEMA.md
+    assert [list(c) for c in doc["candidates"]] == [
+        ["rank", "mesh", "sha256", "view", "azimuth", "elevation", "distance", "score", "K",
+         "w2c"]] * 3
     assert [c["rank"] for c in doc["candidates"]] == [1, 2, 3]
     c0 = doc["candidates"][0]
     assert c0["mesh"] == str(target) and c0["azimuth"] == float(best[1])

@@ -128,9 +128,15 @@ def test_every_accepted_real_model_round_trips_with_parts(real_catalog, tmp_path
     with CatalogReader(real_catalog) as r:
         metas = r.meshes()
         assert len(metas) >= 15
+        # export-glb's documented naming: STEM.glb, STEM-<id8>.glb where stems collide (several
+        # real models are car.obj, scene.gltf, ...)
+        stems = [Path(m.path).stem for m in metas]
+        names = [f"{st}.glb" if stems.count(st) == 1 else f"{st}-{m.sha256[:8]}.glb"
+                 for st, m in zip(stems, metas)]
+        assert sorted(p.name for p in out.glob("*.glb")) == sorted(names)
         worst = 0.0
-        for m in metas:
-            glb = out / f"{Path(m.path).stem}.glb"
+        for m, name in zip(metas, names):
+            glb = out / name
             src, ours = file_triangles(m.source), file_triangles(glb)
             pts = src.reshape(-1, 3)
             diag = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))

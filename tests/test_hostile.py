@@ -23,7 +23,6 @@ import pytest
 from tests.hostile_corpus import (box_gltf, pack_glb, remove_deep, vehicle_glb, wrapped,
                                   write_corpus)
 from tests.test_build import catalogue_content
-from ucad_cl import reasons
 from ucad_cl.build import BuildOptions, BuildStopped, build
 from ucad_cl.ingest import Budgets, IngestError, load_mesh
 from ucad_cl.system import printable
@@ -116,26 +115,6 @@ def test_missing_mtl_keeps_usemtl_materials_and_says_so(corpus):
     assert not any(x.has_texture for x in m.materials)      # /dev/zero never read as a texture
     assert {x.name: x.base_color[:3] for x in m.materials} == {"red": (1.0, 0.0, 0.0),
                                                                "blue": (0.0, 0.0, 1.0)}
-
-
-def test_reason_codes_one_documented_table():
-    """Every reason code the code can emit is in the registry; CONVENTIONS.md shows the table."""
-    conventions = (ROOT / "docs" / "CONVENTIONS.md").read_text(encoding="utf-8")
-    assert reasons.markdown_table() in conventions
-    from ucad_cl.synth import REJECT_OF
-    for code in REJECT_OF.values():
-        assert reasons.CODES[code].kind == reasons.REJECTION
-    used = set()
-    for src in (ROOT / "ucad_cl").rglob("*.py"):
-        text = src.read_text(encoding="utf-8")
-        used |= set(re.findall(r'Verdict\(False, "(\w+)"', text))
-        used |= set(re.findall(r'IngestError\([^,]+, "(\w+)"', text))
-        used |= set(re.findall(r'\brecord\(i, "(\w+)"', text))
-        used |= set(re.findall(r'rejected_entry\(ref, [\w.()]+, "(\w+)"', text))
-        used |= set(re.findall(r'BuildStopped\("(\w+)"', text))
-    assert len(used) >= 15 and not used - set(reasons.CODES), used - set(reasons.CODES)
-    with pytest.raises(ValueError, match="unknown reason code"):
-        reasons.check("bogus")
 
 
 # ----------------------------------------------------------------------------- the build
@@ -295,8 +274,9 @@ def test_render_finishes_every_file_and_reports_each_failure(corpus, tmp_path, r
 
 # ----------------------------------------------------------------------------- the catalogue side
 
-def test_readers_never_take_the_writer_lock_and_a_second_writer_gets_one_line(
-        corpus, tmp_path, runtime, capsys):
+def test_a_second_writer_gets_one_line(corpus, tmp_path, runtime, capsys):
+    """A build on a catalogue another writer holds stops with one line (the readers' side,
+    status/export/show/verify under the lock and gc refused, is tests/test_cli.py's)."""
     from ucad_catalog.reader import CatalogReader
     from ucad_catalog.store import Catalog
     from ucad_cl.cli import main
@@ -309,19 +289,12 @@ def test_readers_never_take_the_writer_lock_and_a_second_writer_gets_one_line(
     cat = tmp_path / "cat"
     build(lib, cat, OPTS, **QUIET)
     with Catalog.open(cat, create=False):             # a build in progress holds this lock
-        assert main(["status", "--catalog", str(cat)]) == 0
-        assert "accepted: 1" in capsys.readouterr().out
-        assert main(["export", "--catalog", str(cat), "--out", str(tmp_path / "x.jsonl")]) == 0
-        assert len((tmp_path / "x.jsonl").read_text().splitlines()) == 2
-        assert main(["show", "good_3.glb", "--catalog", str(cat)]) == 0
-        assert main(["verify", "--catalog", str(cat)]) == 0
         with CatalogReader(cat) as r:
             assert r.status()["meshes"] == 2
         capsys.readouterr()
         assert main(["build", str(lib), "--catalog", str(cat)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "open for writing by another process" in err[0], err
-        assert main(["gc", "--catalog", str(cat)]) == 2              # gc writes: refused too
 
 
 def test_verify_gc_and_export_leftovers(corpus, tmp_path, runtime, capsys):
@@ -511,26 +484,18 @@ def test_sigkill_of_single_workers_leaves_an_identical_catalogue(kill_library, k
 
 def test_a_paused_worker_costs_a_retry_not_a_verdict(small_library, tmp_path, runtime):
     """The issue's case: a worker stopped (SIGSTOP) past --timeout. Its mesh is retried alone
-    with twice the time and accepted; nothing is recorded as 'timeout'."""
-    import threading
+    with twice the time and accepted; nothing is recorded as 'timeout'. The worker stops itself
+    in the middle of that mesh's first attempt (the loader seam), so the test depends neither on
+    the machine's speed nor on its load: the pause always lands while a mesh is in flight."""
+    from tests.faults import faulty_loader
 
-    stopped = []
-
-    def pause_first_worker():
-        for _ in range(400):
-            kids = _workers_of(os.getpid())   # (short-lived checker children come and go)
-            if kids:
-                time.sleep(0.3)                   # busy with its first mesh by now
-                kids[0].send_signal(signal.SIGSTOP)
-                stopped.append(kids[0].pid)
-                return
-            time.sleep(0.05)
-
-    t = threading.Thread(target=pause_first_worker, daemon=True)
-    t.start()
-    s = build(small_library, tmp_path / "cat", OPTS, timeout=4.0, **QUIET)
-    t.join()
-    assert stopped and s.retried >= 1
+    target = sorted(p.name for p in small_library.glob("synth_*.glb"))[2]
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    loader = faulty_loader(pause_once=[target], marks=str(marks))
+    s = build(small_library, tmp_path / "cat", OPTS, timeout=8.0, loader=loader, **QUIET)
+    assert (marks / target).exists()                  # the first attempt paused its worker
+    assert s.retried >= 1
     assert (s.accepted, s.rejected) == (5, 1) and "timeout" not in s.reasons, s.reasons
 
 

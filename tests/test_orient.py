@@ -11,6 +11,9 @@ import numpy as np
 import pytest
 
 from ucad_cl import orient
+from ucad_cl.orient import geometry as orient_geometry
+from ucad_cl.orient import names as orient_names
+from ucad_cl.orient import vehicles as orient_vehicles
 from ucad_cl.ingest import load_mesh
 from ucad_cl.orient import AXES, OrientationOverrides, orient_mesh, parse_mode
 from ucad_cl.synth import axis_angle, make_vehicle
@@ -264,8 +267,8 @@ def test_keyword_scan_of_many_names_equals_the_test_name_by_name():
             "brake", "задний", "фара", "tyre", "wheelhouse", "roof", "underbody", "bk", "f",
             "mat_12", "车窗", "spareWheel", "TopCoat", "backrest"]
     names = ["_".join(rng.choice(pool) for _ in range(rng.randint(0, 4))) for _ in range(3000)]
-    words = [orient._words(n) for n in names]
-    sets = [v for v in vars(orient).values() if isinstance(v, orient._Keywords)]
+    words = [orient_names._words(n) for n in names]
+    sets = [v for v in vars(orient_names).values() if isinstance(v, orient_names._Keywords)]
     assert len(sets) >= 7
     for kw in sets:
         expected = np.array([_keyword_test(kw, w) for w in words])
@@ -276,12 +279,12 @@ def test_keyword_scan_of_many_names_equals_the_test_name_by_name():
 
 
 def test_name_means_on_a_few_groups_equal_the_means_over_all_faces():
-    """``_NameTable.means_on`` (sums over the faces of the groups asked about) is bit-identical
+    """``NameTable.means_on`` (sums over the faces of the groups asked about) is bit-identical
     to ``means`` over every face."""
     mesh = _synth(4, "sedan").mesh()
-    geometry = orient._face_geometry(mesh)
-    S = orient._surface_samples(mesh, 1024, geometry=geometry)
-    table = orient._NameTable(orient._Names(mesh), S)
+    geometry = orient_geometry.face_geometry(mesh)
+    S = orient_geometry.surface_samples(mesh, 1024, geometry=geometry)
+    table = orient_names.NameTable(orient_names.Names(mesh), S)
     value = np.sin(37.0 * geometry[1][:, 0]) + geometry[1][:, 1]
     means = (table.names.sums(0, table.area * value)
              / np.maximum(table.share[0] * table.total_area, 1e-300))   # over every face
@@ -295,7 +298,7 @@ def test_dilation_by_shifts_equals_scipys_binary_dilation():
     rng = np.random.default_rng(8)
     for _ in range(200):
         g = rng.random(tuple(rng.integers(1, 12, 3))) < rng.random()
-        assert np.array_equal(orient._dilate(g), ndimage.binary_dilation(g))
+        assert np.array_equal(orient_vehicles._dilate(g), ndimage.binary_dilation(g))
 
 
 # --------------------------------------------------------------------------- modes, overrides

@@ -293,6 +293,8 @@ def test_cli_table_json_and_errors(tmp_path, capsys, runtime):
                "--out", str(tmp_path / "side2.png")])
     doc = json.loads(capsys.readouterr().out)
     assert rc == 0 and doc["object"]["source"] == "mask" and len(doc["candidates"]) == 3
+    from tests.test_cli import documented_keys
+    assert list(doc) == documented_keys("pose output")              # ucad_catalog/SCHEMA.md
     for c in doc["candidates"]:
         assert {"azimuth", "elevation", "distance", "score", "K", "w2c", "twin", "gap"} <= set(c)
         assert np.asarray(c["K"]).shape == (3, 3) and np.asarray(c["w2c"]).shape == (4, 4)

@@ -131,3 +131,21 @@ def test_catalogue_package_does_not_import_ucad_cl():
     bad = sorted(f"{m} -> {t}" for m in graph if m.startswith("ucad_catalog")
                  for t in graph[m] if t.startswith("ucad_cl"))
     assert bad == []
+
+
+MAX_LINES = 800
+
+
+def test_long_modules_say_why():
+    """A module over MAX_LINES lines says why it is one module: its docstring has a sentence
+    with '800 lines' (CONTRIBUTING.md, 'The layout'). Otherwise split it by concern."""
+    long = []
+    for pkg in PACKAGES:
+        for f in sorted((ROOT / pkg).rglob("*.py")):
+            text = f.read_text(encoding="utf-8")
+            n = len(text.splitlines())
+            doc = ast.get_docstring(ast.parse(text)) or ""
+            if n > MAX_LINES and f"{MAX_LINES} lines" not in doc:
+                long.append(f"{f.relative_to(ROOT)}: {n} lines")
+    assert long == [], ("split these modules by concern, or say in their docstring why they "
+                        f"are one module of over {MAX_LINES} lines: {long}")

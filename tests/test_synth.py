@@ -499,7 +499,7 @@ def test_axles_light_bar_and_plate_looks_traits():
 
 
 def test_trait_streams_leave_the_shared_stream_alone():
-    from ucad_cl.synth import _trait_rng
+    from ucad_cl.synth.realism import _trait_rng
 
     a, b = np.random.default_rng([8, 3]), np.random.default_rng([8, 3])
     ra, rb = _trait_rng(b, "axles"), _trait_rng(b, "plate_looks")

@@ -10,12 +10,13 @@ Nothing here imports OpenCL.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import sqlite3
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -261,11 +262,40 @@ def printable(text: str) -> str:
         return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
-def catalog_status(conn: sqlite3.Connection, root: Path) -> dict:
-    """Counts by state and by rejection reason, accepted meshes flagged by reason
-    (``uncertain_orientation``), object totals, and the last run (one snapshot)."""
+RECENT_RUNS = 5      # runs that ``status`` lists (newest first)
+
+
+@contextlib.contextmanager
+def read_snapshot(conn: sqlite3.Connection) -> Iterator[sqlite3.Connection]:
+    """Reads inside the block see one committed state. Inside a transaction already (a
+    ``CatalogReader.snapshot()`` block, the writer's transaction) it joins it instead of
+    starting one, so snapshot readers nest."""
+    if conn.in_transaction:
+        yield conn
+        return
     conn.execute("BEGIN")
     try:
+        yield conn
+    finally:
+        conn.execute("COMMIT")
+
+
+def run_rows(conn: sqlite3.Connection, n: int) -> list[dict]:
+    """The last ``n`` runs, newest first: id, started, finished (s since the epoch; finished
+    None while running or after a kill), engine, options_hash, counts, meshes_per_s."""
+    rows = conn.execute("SELECT id, started, finished, engine, options_hash, counts, "
+                        "meshes_per_s FROM runs ORDER BY id DESC LIMIT ?", (int(n),)).fetchall()
+    return [{"id": r[0], "started": r[1], "finished": r[2], "engine": r[3],
+             "options_hash": r[4], "counts": json.loads(r[5]) if r[5] else {},
+             "meshes_per_s": r[6]} for r in rows]
+
+
+def catalog_status(conn: sqlite3.Connection, root: Path, recent: int = RECENT_RUNS) -> dict:
+    """Counts by state and by rejection reason, accepted meshes flagged by reason
+    (``uncertain_orientation``), object totals, the number of runs and the ``recent`` last
+    ones (``run_rows``), all in one snapshot (``read_snapshot``). SCHEMA.md, 'Command output',
+    documents the keys."""
+    with read_snapshot(conn):
         by_state = {"accepted": 0, "rejected": 0}
         by_state.update(dict(conn.execute("SELECT state, count(*) FROM meshes GROUP BY state")))
         by_reason = dict(conn.execute("SELECT reason, count(*) FROM meshes WHERE "
@@ -277,19 +307,13 @@ def catalog_status(conn: sqlite3.Connection, root: Path) -> dict:
             "AND instr(orientation, '\"uncertain\":true') > 0").fetchone()[0]}
         n_obj, n_bytes = conn.execute("SELECT count(*), coalesce(sum(bytes), 0) FROM "
                                       "(SELECT DISTINCT sha256, bytes FROM artifacts)").fetchone()
-        last = conn.execute("SELECT id, started, finished, engine, options_hash, counts, "
-                            "meshes_per_s FROM runs ORDER BY id DESC LIMIT 1").fetchone()
         n_runs = conn.execute("SELECT count(*) FROM runs").fetchone()[0]
-    finally:
-        conn.execute("COMMIT")
-    last_run = None if last is None else {
-        "id": last[0], "started": last[1], "finished": last[2], "engine": last[3],
-        "options_hash": last[4], "counts": json.loads(last[5]) if last[5] else None,
-        "meshes_per_s": last[6]}
+        runs = run_rows(conn, max(int(recent), 1))
     return {"root": str(root), "schema_version": SCHEMA_VERSION,
             "meshes": sum(by_state.values()), "by_state": by_state,
             "by_reason": by_reason, "flagged": flagged, "objects": n_obj,
-            "object_bytes": n_bytes, "runs": n_runs, "last_run": last_run}
+            "object_bytes": n_bytes, "n_runs": n_runs, "runs": runs[:max(int(recent), 0)],
+            "last_run": runs[0] if runs else None}
 
 
 def remove_stale_exports(out: Path) -> None:

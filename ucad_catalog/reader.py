@@ -42,8 +42,8 @@ import numpy as np
 
 from .export import format_for, write_export
 from .exr import ViewStackFile
-from ._db import (MESH_ORDER, CatalogError, catalog_status, check_catalog_db, locate_db,
-                  mesh_records, object_path, verify_catalog)
+from ._db import (MESH_ORDER, RECENT_RUNS, CatalogError, catalog_status, check_catalog_db,
+                  locate_db, mesh_records, object_path, run_rows, verify_catalog)
 
 MIN_ID_PREFIX = 8          # hex digits of a sha256 prefix accepted as a mesh id
 _OPEN_STACKS = 8           # view-stack headers kept per reader
@@ -200,21 +200,19 @@ class CatalogReader:
             self._conn.execute("COMMIT")
 
     # ------------------------------------------------------------------ whole catalogue
-    def status(self) -> dict:
-        """Counts by state and reason, object totals, last run (as ``Catalog.status``)."""
-        return catalog_status(self._conn, self.root)
+    def status(self, recent: int = RECENT_RUNS) -> dict:
+        """Counts by state and reason, object totals, the run count and the ``recent`` last runs
+        (as ``Catalog.status``; keys in SCHEMA.md, 'Command output'), one snapshot."""
+        return catalog_status(self._conn, self.root, recent)
 
     def verify(self, rehash: bool = True) -> dict:
         """Consistency report (``_db.verify_catalog``): problems, unreferenced objects."""
         return verify_catalog(self._conn, self.root, rehash)
 
-    def runs(self, n: int = 5) -> list[dict]:
-        """The last ``n`` runs, newest first: id, started, finished, engine, counts, meshes/s."""
-        rows = self._conn.execute("SELECT id, started, finished, engine, counts, meshes_per_s "
-                                  "FROM runs ORDER BY id DESC LIMIT ?", (int(n),)).fetchall()
-        return [{"id": r[0], "started": r[1], "finished": r[2], "engine": r[3],
-                 "counts": json.loads(r[4]) if r[4] else {}, "meshes_per_s": r[5]}
-                for r in rows]
+    def runs(self, n: int = RECENT_RUNS) -> list[dict]:
+        """The last ``n`` runs, newest first: id, started, finished, engine, options_hash,
+        counts, meshes/s (the rows of ``status()["runs"]``)."""
+        return run_rows(self._conn, n)
 
     # ------------------------------------------------------------------ index
     def meshes(self, state: str | None = "accepted") -> list[MeshInfo]:

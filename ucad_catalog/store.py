@@ -32,9 +32,10 @@ from typing import Any
 
 import numpy as np
 
-from ._db import (DB_NAME, FORMAT_NAME, LOCK_NAME, OBJECTS_DIR, SCHEMA_SQL, SCHEMA_VERSION,
-                  TMP_PREFIX, CatalogError, canonical_json, catalog_status, check_catalog_db,
-                  is_sha256, mesh_records, object_path, options_hash, printable, verify_catalog)
+from ._db import (DB_NAME, FORMAT_NAME, LOCK_NAME, OBJECTS_DIR, RECENT_RUNS, SCHEMA_SQL,
+                  SCHEMA_VERSION, TMP_PREFIX, CatalogError, canonical_json, catalog_status,
+                  check_catalog_db, is_sha256, mesh_records, object_path, options_hash, printable,
+                  verify_catalog)
 from .entry import CatalogEntry
 from .export import format_for, write_export
 
@@ -260,9 +261,10 @@ class Catalog:
         return int(mid)
 
     # ------------------------------------------------------------------ maintenance
-    def status(self) -> dict:
-        """Counts by state and by rejection reason, object totals, and the last run."""
-        return catalog_status(self._db, self.root)
+    def status(self, recent: int = RECENT_RUNS) -> dict:
+        """Counts by state and by rejection reason, object totals, the run count and the
+        ``recent`` last runs (``CatalogReader.status``)."""
+        return catalog_status(self._db, self.root, recent)
 
     def export(self, path: str | Path, format: str | None = None) -> int:
         """Write the meshes table to ``path`` and the materials table beside it; returns the

@@ -59,6 +59,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
+    except RuntimeError as exc:
+        from .runtime import OpenCLUnavailable
+        if not isinstance(exc, OpenCLUnavailable):
+            raise
+        print(f"error: {exc}", file=sys.stderr)       # no usable OpenCL device: one line
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -83,6 +83,11 @@ Conventions and decisions (see also ``ucad_cl/artifacts.py``):
   ``ucad_cl.reasons``) and a message naming the file. ``MemoryError`` is not turned into an
   ``IngestError``: the caller decides (the build records ``too_large`` only for a mesh that
   overruns the worker's memory limit on its own).
+
+Why one module of over 800 lines: every reader path (the untrusted-file checks, the budgets from
+headers, identity, flattening, cleaning) shares one ``_Resolver`` and one ``Budgets`` contract,
+and the security argument above is read top to bottom; the public surface is small
+(``load_mesh``, ``mesh_identity``, ``Budgets``, ``IngestError``).
 """
 from __future__ import annotations
 

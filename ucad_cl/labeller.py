@@ -67,8 +67,18 @@ into groups: inside a wheel (rim if their mean rho < 0.8, else wheel) and elsewh
 material's label); reported when at least two groups each hold >= ``SPLIT_MIN_SHARE`` of the
 material's area, with each group's area share, face count and component boxes.
 
+Rules after the trees (``wheel_assembly``, ``never_visible_part``): tyre against rim by radial
+position inside a wheel assembly, and the part of a material no view sees from geometry alone
+(inside a wheel -> rim, under the floor -> other, else interior; ``classify``'s
+``'never-visible'``).
+
 Determinism: NumPy reductions in a fixed order, tie rules stated at each argmax; the ONNX tree
 model is evaluated exactly (thresholds compare float32 features).
+
+Why one module of over 800 lines: the feature columns (``FEATURE_NAMES``), the code that
+computes them, the model that reads them and the rules that read them after it change together
+(a column renamed or moved breaks all four, and the shipped model's record is checked against
+these names), so they live in one file; the training recipe is ``labeller_train``.
 """
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
 """Reason codes: the one list shared by ingest, filter, build, the engines, the generator and the
-catalogue (``meshes.reason``). Documented once in ``docs/CONVENTIONS.md`` (tested to match).
+catalogue (``meshes.reason``). Its table in ``docs/CONVENTIONS.md`` is generated from ``CODES``
+(``scripts/docs.py``; ``tests/test_docs.py`` checks).
 
 Each code has a kind:
 
@@ -12,7 +13,8 @@ Each code has a kind:
   non-zero exit status, and the next run processes the meshes it did not finish.
 * ``flag``: a note recorded on an accepted mesh (no rejection).
 
-Other stages add codes by adding a row to ``CODES`` (keep it a plain table).
+Other stages add codes by adding a row to ``CODES`` (keep it a plain table), then run
+``.venv/bin/python scripts/docs.py``; CONTRIBUTING.md, 'A reason code', lists the rest.
 """
 from __future__ import annotations
 
@@ -123,7 +125,7 @@ def default_retry() -> tuple[str, ...]:
 
 
 def markdown_table() -> str:
-    """The table documented in ``docs/CONVENTIONS.md`` (a test keeps the two equal)."""
+    """The table of ``docs/CONVENTIONS.md`` (``scripts/docs.py`` writes it there)."""
     rows = ["| code | kind | retried by `--retry-failed` | meaning |", "|---|---|---|---|"]
     for code, e in CODES.items():
         rows.append(f"| `{code}` | {e.kind} | {'yes' if e.retry else ''} | {e.description} |")

@@ -29,7 +29,7 @@ from .runtime import Runtime, get_runtime
 from .artifacts import CameraRing, Mesh, ViewSet
 
 BUILD_OPTIONS = ("-cl-fp32-correctly-rounded-divide-sqrt",)
-LOCAL_SMALL = (64, 1)   # work-group (faces, views); see bench/render.py and the README
+LOCAL_SMALL = (64, 1)   # work-group (faces, views); see bench/render.py and docs/OPENCL.md
 LOCAL_PROJECT = (64, 1)  # work-group (vertices, views)
 LANES = 16              # work-items sharing one large triangle (rows interleaved)
 MAX_FACES = 2**32 - 2   # face ids must stay below the background id

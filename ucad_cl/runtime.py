@@ -1,15 +1,25 @@
 """The one place that picks the OpenCL device and builds (and caches) kernel programs.
 
+A device is **usable** only when it passes this project's self-test (``ucad_cl/selftest.py``:
+every kernel built and created, a small render, Canny and search checked against NumPy / OpenCV),
+run in a child process so that a broken OpenCL compiler cannot abort the caller, and cached on
+disk per device, driver and kernel sources (``device_status``; ``$XDG_CACHE_HOME/ucad-cl``).
+PyPI's PoCL 3.0 on an AMD Zen 4 is such a device: it builds our programs, cannot create their
+kernels, and its LLVM aborts the interpreter at exit.
+
 Device choice, first match wins:
   1. ``get_runtime(device=...)`` / the CLI's ``--device``;
   2. the environment variable ``UCAD_CL_DEVICE``;
-  3. the best PoCL CPU device that really compiles a probe kernel, else the first other device
-     that does. "Best" (``device_rank``): kernels compiled for a named CPU before a PoCL that
-     compiles for the generic x86-64 target; then the newer PoCL, then the newer LLVM. Measured
-     on this project's machine (AMD EPYC Zen 3, AVX2, 2 cores), Debian's PoCL 3.1 (LLVM 15)
-     ran the exact search kernel 8.2x and Canny 3.3-3.9x faster than the PoCL 3.0-rc2 (LLVM 14) that
-     pyopencl's PyPI wheels bundle (``SLOW_POCL_COST``); ``slow_reason`` flags such a device
-     and ``ucad-index info`` / the build say so, with the fix (``INSTALL_FAST``).
+  (1 and 2 must name a usable device: an unusable one is refused with the self-test's reason)
+  3. the best-ranked usable device (``device_rank``): a GPU first (measured: an NVIDIA H100
+     rendered 100k triangles x 72 views at 256 px at 13,900 views/s, where a 2-core PoCL CPU
+     does ~770); then a PoCL CPU device, kernels compiled for a named CPU before the generic
+     x86-64 target, then the newer PoCL, then the newer LLVM. Measured on this project's machine
+     (AMD EPYC Zen 3, AVX2, 2 cores), Debian's PoCL 3.1 (LLVM 15) ran the exact search kernel
+     8.2x and Canny 3.3-3.9x faster than the PoCL 3.0-rc2 (LLVM 14) that pyopencl's PyPI wheels
+     bundle (``SLOW_POCL_COST``); ``slow_reason`` flags such a device and ``ucad-index info`` /
+     the build say so, with the fix (``INSTALL_FAST``). Outputs are the same bytes on every
+     usable device (tests/test_render.py, tests/test_edges.py compare them).
 
 A device spec is ``"P:D"`` (platform and device index, e.g. ``"0:0"``) or a case-insensitive
 substring of the platform or device name (e.g. ``"pocl"``, ``"nvidia"``).
@@ -24,33 +34,35 @@ must be set before the first OpenCL call in the process.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import re
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
-import numpy as np
 from importlib import resources
 
 from . import abi
 from .system import IsolatedCallFailed, call_isolated
 
-INSTALL_HINT = (
-    "Install the portable CPU runtime from PyPI with\n"
-    "    pip install 'pyopencl[pocl]'\n"
-    "and, where that PoCL cannot compile for this CPU (newer CPUs: 'unknown target CPU generic'),\n"
-    "Debian/Ubuntu's PoCL with\n"
-    "    apt-get install pocl-opencl-icd\n"
-    "(scripts/setup.sh does both), or a vendor OpenCL driver (an ICD); check with `ucad-index info`."
-)
+INSTALL_HINT = ("install Debian/Ubuntu's PoCL (`apt-get install pocl-opencl-icd`; scripts/setup.sh "
+                "does it and pyopencl[pocl]) or a vendor OpenCL driver (an ICD); "
+                "`ucad-index info` lists every device and why it is or is not usable")
+#: the self-test, run by name in a child process (``system.call_isolated``)
+SELF_TEST = "ucad_cl.selftest:check_device"
+SELF_TEST_TIMEOUT_S = 900.0
+#: files whose text decides a self-test verdict (with the device and its driver): the cache key
+SELF_TEST_SOURCES = ("selftest.py", "runtime.py", "abi.py", "render.py", "edges.py", "search.py")
 
 
 INSTALL_FAST = ("install Debian/Ubuntu's PoCL, built for this CPU family: "
                 "`apt-get install pocl-opencl-icd` (scripts/setup.sh does it); it is then "
                 "picked by default")
-# what a slow PoCL cost when measured (bench/search.py, bench/edges.py; README, "OpenCL runtime")
+# what a slow PoCL cost when measured (bench/search.py, bench/edges.py; docs/OPENCL.md)
 SLOW_POCL_COST = ("measured on an AMD EPYC Zen 3 (AVX2): the exact search kernel 8.2x and Canny "
                   "3.3-3.9x slower than Debian's PoCL 3.1; on an Intel AVX-512 machine 4.2x and "
                   "2.5x")
@@ -70,6 +82,8 @@ class DeviceInfo:
     pocl_version: tuple[int, ...] | None
     llvm_version: tuple[int, ...] | None
     target_cpu: str | None
+    kind: str = "cpu"                   # "cpu", "gpu", "accelerator" or "other"
+    driver: str = ""                    # platform version | device version | driver version
 
     @property
     def generic_target(self) -> bool:
@@ -90,7 +104,7 @@ class DeviceInfo:
 
     def summary(self) -> str:
         if not self.is_pocl:
-            return f"{self.platform} | {self.device}"
+            return f"{self.platform} | {self.device} | {self.kind}, {self.driver}"
         v = ".".join(map(str, self.pocl_version or ())) or "?"
         llvm = ".".join(map(str, self.llvm_version or ())) or "?"
         return (f"{self.platform} | {self.device} | PoCL {v}, LLVM {llvm}, kernels for "
@@ -99,7 +113,14 @@ class DeviceInfo:
 
 def device_info(spec: str, platform, device) -> DeviceInfo:
     """Parse the platform / device strings of a pyopencl platform and device."""
+    import pyopencl as cl
+
     pocl = "portable computing language" in platform.name.lower()
+    t = int(device.type)
+    kind = ("gpu" if t & cl.device_type.GPU else "accelerator" if t & cl.device_type.ACCELERATOR
+            else "cpu" if t & cl.device_type.CPU else "other")
+    driver = " | ".join(x.strip() for x in (platform.version, device.version,
+                                            device.driver_version))
     pv = re.search(r"PoCL (\d+)\.(\d+)", platform.version)
     lv = re.search(r"LLVM (\d+)\.(\d+)(?:\.(\d+))?", platform.version)
     hstr = re.search(r"HSTR:\s*(\S+)", device.version or "")
@@ -107,12 +128,13 @@ def device_info(spec: str, platform, device) -> DeviceInfo:
     return DeviceInfo(spec, platform.name.strip(), device.name.strip(), pocl,
                       tuple(int(x) for x in pv.groups()) if pv else None,
                       tuple(int(x) for x in lv.groups() if x is not None) if lv else None,
-                      cpu if pocl else None)
+                      cpu if pocl else None, kind, driver)
 
 
 def device_rank(info: DeviceInfo) -> tuple:
-    """Sort key of the default choice, best first (see the module docstring)."""
-    return (not info.is_pocl, info.generic_target, tuple(-x for x in info.pocl_version or ()),
+    """Sort key of the default choice among usable devices, best first (see the module
+    docstring): a GPU, then PoCL on the CPU by target, PoCL and LLVM version; then the spec."""
+    return (info.kind != "gpu", not info.is_pocl, info.generic_target, tuple(-x for x in info.pocl_version or ()),
             tuple(-x for x in info.llvm_version or ()),
             tuple(int(x) for x in info.spec.split(":")))
 
@@ -195,18 +217,23 @@ class Runtime:
     def program(self, name: str, options: tuple[str, ...] = ()):
         """Built program for ``ucad_cl/kernels/<name>.cl``, with the kernel ABI's constants
         (``abi.defines()``) and ``options``; cached per process and on disk."""
-        import pyopencl as cl
-
         key = (name, tuple(options))
         with self._lock:
             prg = self._programs.get(key)
             if prg is None:
                 t0 = time.perf_counter()
-                prg = cl.Program(self.ctx, kernel_source(name)).build(
-                    options=["-cl-std=CL1.2", *abi.defines(), *options])
+                prg = self.build_source(kernel_source(name), options)
                 self.compile_seconds[key] = time.perf_counter() - t0
                 self._programs[key] = prg
         return prg
+
+    def build_source(self, source: str, options: tuple[str, ...] = ()):
+        """A program built from OpenCL C ``source`` with the options every program of this
+        project gets (OpenCL C 1.2, the kernel ABI's constants) and ``options``; not cached."""
+        import pyopencl as cl
+
+        return cl.Program(self.ctx, source).build(
+            options=["-cl-std=CL1.2", *abi.defines(), *options])
 
 
 _RUNTIME: Runtime | None = None
@@ -214,51 +241,56 @@ _RUNTIME_LOCK = threading.Lock()
 
 
 def _pick_device(spec: str | None):
-    """(device, DeviceInfo, why): the device to use and one sentence on why."""
-    import pyopencl as cl
-
-    try:
-        platforms = cl.get_platforms()
-    except Exception as exc:  # pyopencl raises LogicError/RuntimeError without an ICD
-        raise OpenCLUnavailable(f"{INSTALL_HINT}\n(pyopencl said: {exc})") from exc
-    devices = [(pi, di, p, d) for pi, p in enumerate(platforms)
-               for di, d in enumerate(p.get_devices())]
-    infos = {(pi, di): device_info(f"{pi}:{di}", p, d) for pi, di, p, d in devices}
+    """(device, DeviceInfo, why): the device to use and one sentence on why. Only a usable
+    device (``device_status``) is returned; OpenCLUnavailable (one line) otherwise."""
+    devices = _devices()
     if not devices:
-        raise OpenCLUnavailable(INSTALL_HINT)
+        raise OpenCLUnavailable(f"no OpenCL device found; {INSTALL_HINT}")
     if spec:
-        m = re.fullmatch(r"(\d+):(\d+)", spec.strip())
-        for pi, di, p, d in devices:
-            if (m and (pi, di) == (int(m.group(1)), int(m.group(2)))) or (
-                    not m and (spec.lower() in p.name.lower() or spec.lower() in d.name.lower())):
-                return d, infos[pi, di], f"selected with --device / UCAD_CL_DEVICE={spec!r}"
-        listing = "\n".join(f"  {pi}:{di}  {p.name} | {d.name.strip()}" for pi, di, p, d in devices)
-        raise OpenCLUnavailable(f"No OpenCL device matches {spec!r}. Available:\n{listing}")
-    # Default: the best-ranked device that really compiles and runs a kernel (device_rank).
-    # (The PoCL 3.0-rc2 bundled with pyopencl's PyPI wheels uses LLVM 14, which cannot name newer
-    # CPUs such as AMD Zen 5 and fails every build with "unknown target CPU 'generic'"; it is
-    # then skipped. See README, "OpenCL runtime".)
-    ordered = sorted(devices, key=lambda t: device_rank(infos[t[0], t[1]]))
-    errors: list[str] = []
-    for pi, di, p, d in ordered:
-        ok, why = _probe(d)
-        if ok:
-            others = [infos[t[0], t[1]] for t in ordered if t[:2] != (pi, di)]
-            return d, infos[pi, di], _why(infos[pi, di], others, errors)
-        errors.append(f"  {pi}:{di}  {p.name} {p.version.strip()} | {d.name.strip()}: {why}")
-    raise OpenCLUnavailable("No OpenCL device could compile a kernel:\n" + "\n".join(errors)
-                            + "\n" + INSTALL_HINT)
+        info, dev = _match(spec, devices)
+        status = device_status(info)
+        if not status.usable:
+            raise OpenCLUnavailable(f"OpenCL device {info.spec} ({info.device}) cannot run "
+                                    f"ucad-cl's kernels: {status.reason}; choose another with "
+                                    f"--device / UCAD_CL_DEVICE, or {INSTALL_HINT}")
+        return dev, info, f"selected with --device / UCAD_CL_DEVICE={spec!r}"
+    ordered = sorted(devices, key=lambda t: device_rank(t[0]))
+    failed: list[DeviceStatus] = []
+    for info, dev in ordered:
+        status = device_status(info)
+        if status.usable:
+            others = [i for i, _ in ordered if i.spec != info.spec]
+            return dev, info, _why(info, others, failed)
+        failed.append(status)
+    raise OpenCLUnavailable("no usable OpenCL device ("
+                            + "; ".join(f"{f.info.spec} {f.info.device}: {f.reason}"
+                                        for f in failed) + f"); {INSTALL_HINT}")
 
 
-def _why(chosen: DeviceInfo, others: list[DeviceInfo], failed: list[str]) -> str:
+def _match(spec: str, devices: list[tuple[DeviceInfo, Any]]) -> tuple[DeviceInfo, Any]:
+    """The device a spec names: "P:D", or a case-insensitive substring of the platform or
+    device name (the first match in platform / device order)."""
+    m = re.fullmatch(r"(\d+):(\d+)", spec.strip())
+    for info, dev in devices:
+        if (m and info.spec == f"{int(m.group(1))}:{int(m.group(2))}") or (
+                not m and (spec.lower() in info.platform.lower()
+                           or spec.lower() in info.device.lower())):
+            return info, dev
+    listing = "; ".join(f"{i.spec} {i.platform} | {i.device}" for i, _ in devices)
+    raise OpenCLUnavailable(f"no OpenCL device matches {spec!r} (available: {listing})")
+
+
+def _why(chosen: DeviceInfo, others: list[DeviceInfo], failed: list[DeviceStatus]) -> str:
     """One sentence: why the default choice is ``chosen`` (the decisive rule per other device)."""
     if not others:
         return "the only OpenCL device"
     parts = []
     for o in others:
         if device_rank(o) < device_rank(chosen):
-            continue                                   # better ranked: it failed the probe
-        if o.is_pocl != chosen.is_pocl:
+            continue                                   # better ranked: it failed the self-test
+        if (o.kind == "gpu") != (chosen.kind == "gpu"):
+            rule = "not a GPU"
+        elif o.is_pocl != chosen.is_pocl:
             rule = "not PoCL on the CPU"
         elif o.generic_target != chosen.generic_target:
             rule = "compiles for the generic x86-64 CPU"
@@ -269,9 +301,8 @@ def _why(chosen: DeviceInfo, others: list[DeviceInfo], failed: list[str]) -> str
         else:
             rule = "listed later"
         parts.append(f"preferred over {o.spec} {o.device} ({rule})")
-    if failed:
-        parts.append(f"{len(failed)} better-ranked device(s) could not compile a probe kernel")
-    return "; ".join(parts) or "the first device that compiles"
+    parts += [f"{f.info.spec} {f.info.device} is unusable ({f.reason})" for f in failed]
+    return "; ".join(parts) or "the first usable device"
 
 
 def pick_device_info(spec: str | None = None, *,
@@ -295,23 +326,83 @@ def _picked_device_info(spec: str | None) -> tuple[DeviceInfo, str]:
     return info, why
 
 
-def _probe(dev) -> tuple[bool, str]:
-    """Build and run a one-line kernel on ``dev``; (ok, first line of the error)."""
+@dataclass(frozen=True)
+class DeviceStatus:
+    """The self-test's verdict on one device: ``usable``, else ``reason`` (one line);
+    ``seconds`` the self-test took when it ran; ``cached`` when read from the disk cache."""
+
+    info: DeviceInfo
+    usable: bool
+    reason: str = ""
+    seconds: float = 0.0
+    cached: bool = False
+
+
+def device_status(info: DeviceInfo, *, checks: tuple[str, ...] | None = None,
+                  refresh: bool = False, timeout: float = SELF_TEST_TIMEOUT_S) -> DeviceStatus:
+    """Whether ``info``'s device runs this project's kernels correctly: the self-test
+    (``ucad_cl/selftest.py``) run in a child process, so that a compiler that crashes or
+    aborts (also at exit) harms only the child. The verdict of the default checks is cached on
+    disk (``self_test_cache_dir()``), keyed by the device, its driver and the text of
+    SELF_TEST_SOURCES and the kernels; ``refresh`` runs it again. ``checks``: other checks
+    ("module:function", see ``selftest.check_device``), never cached."""
+    path = self_test_cache_dir() / f"{_status_key(info)}.json"
+    if checks is None and not refresh:
+        try:
+            rec = json.loads(path.read_text())
+            return DeviceStatus(info, bool(rec["usable"]), str(rec["reason"]),
+                                float(rec["seconds"]), cached=True)
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    args = (info.spec,) if checks is None else (info.spec, checks)
+    try:
+        seconds = float(call_isolated(SELF_TEST, *args, timeout=timeout, clean_exit=True))
+        status = DeviceStatus(info, True, "", round(seconds, 3))
+    except IsolatedCallFailed as exc:
+        status = DeviceStatus(info, False, f"the self-test's process {exc.how}")
+    except Exception as exc:  # noqa: BLE001 - SelfTestFailed, or the device could not open
+        status = DeviceStatus(info, False, (str(exc).strip().splitlines() or [""])[0]
+                              or type(exc).__name__)
+    if checks is None:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(json.dumps({"device": info.summary(), "usable": status.usable,
+                                       "reason": status.reason, "seconds": status.seconds}))
+            os.replace(tmp, path)
+        except OSError:
+            pass                                       # a read-only home: test again next time
+    return status
+
+
+def self_test_cache_dir() -> Path:
+    """Where self-test verdicts are kept: ``$XDG_CACHE_HOME/ucad-cl/selftest`` (default
+    ``~/.cache``). Delete it to test every device again."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "ucad-cl" / "selftest"
+
+
+def _status_key(info: DeviceInfo) -> str:
+    h = hashlib.sha256(json.dumps([info.platform, info.device, info.driver]).encode())
+    h.update(" ".join(abi.defines()).encode())
+    pkg = resources.files("ucad_cl")
+    for name in SELF_TEST_SOURCES:
+        h.update((pkg / name).read_bytes())
+    for p in sorted(resources.files("ucad_cl.kernels").iterdir(), key=lambda p: p.name):
+        if p.name.endswith((".cl", ".h")):
+            h.update(p.name.encode() + p.read_bytes())
+    return h.hexdigest()[:32]
+
+
+def create_unchecked_runtime(spec: str) -> Runtime:
+    """A runtime on exactly the device ``spec`` names, without the self-test (what the
+    self-test itself runs on; anything else uses ``create_runtime``)."""
     import pyopencl as cl
 
-    try:
-        ctx = cl.Context([dev])
-        q = cl.CommandQueue(ctx)
-        prg = cl.Program(ctx, "kernel void probe(global int *a) { a[get_global_id(0)] = 7; }").build()
-        buf = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, 4)
-        prg.probe(q, (1,), None, buf)
-        out = np.zeros(1, np.int32)
-        cl.enqueue_copy(q, out, buf)
-        q.finish()
-        return bool(out[0] == 7), "probe kernel gave a wrong result"
-    except Exception as exc:  # build failure, missing compiler, ...
-        lines = [ln for ln in str(exc).splitlines() if "error" in ln.lower()]
-        return False, (lines[0] if lines else str(exc).splitlines()[0]).strip()
+    info, dev = _match(spec, _devices())
+    ctx = cl.Context([dev])
+    return Runtime(ctx=ctx, queue=cl.CommandQueue(ctx), device=dev, info=info,
+                   why="self-test: no choice made")
 
 
 def create_runtime(device: str | None = None) -> Runtime:
@@ -336,14 +427,26 @@ def get_runtime(device: str | None = None) -> Runtime:
 
 
 def list_devices() -> list[str]:
-    """Human-readable list of every OpenCL device: ``"P:D  platform | device | PoCL ..."``."""
-    return [f"{i.spec}  {i.summary()}" for i in device_infos()]
+    """Human-readable list of every OpenCL device and its self-test verdict:
+    ``"P:D  usable    platform | device | PoCL ..."`` or ``"P:D  unusable  ... -- reason"``."""
+    out = []
+    for st in device_report():
+        verdict = "usable  " if st.usable else "unusable"
+        out.append(f"{st.info.spec}  {verdict}  {st.info.summary()}"
+                   + ("" if st.usable else f" -- {st.reason}"))
+    return out
+
+
+def device_report(checks: tuple[str, ...] | None = None) -> list[DeviceStatus]:
+    """The self-test verdict of every OpenCL device, in platform / device order (``checks``:
+    see ``device_status``)."""
+    return [device_status(info, checks=checks) for info in device_infos()]
 
 
 def usable_device_specs() -> list[str]:
-    """Specs ("P:D") of every device that builds and runs a probe kernel, best first."""
-    found = sorted(_devices(), key=lambda t: device_rank(t[0]))
-    return [info.spec for info, dev in found if _probe(dev)[0]]
+    """Specs ("P:D") of every device that passes the self-test, best first."""
+    usable = [st.info for st in device_report() if st.usable]
+    return [i.spec for i in sorted(usable, key=device_rank)]
 
 
 def device_infos() -> list[DeviceInfo]:
@@ -357,8 +460,10 @@ def _devices() -> list[tuple[DeviceInfo, Any]]:
 
     try:
         platforms = cl.get_platforms()
-    except Exception as exc:
-        raise OpenCLUnavailable(f"{INSTALL_HINT}\n(pyopencl said: {exc})") from exc
+    except Exception as exc:  # pyopencl raises LogicError/RuntimeError without an ICD
+        first = (str(exc).strip().splitlines() or [""])[0]
+        raise OpenCLUnavailable(f"no OpenCL platform (pyopencl: {first}); {INSTALL_HINT}"
+                                ) from exc
     return [(device_info(f"{pi}:{di}", p, d), d)
             for pi, p in enumerate(platforms) for di, d in enumerate(p.get_devices())]
 

@@ -3,6 +3,7 @@ default worker memory limit, process memory from /proc (MB), and ``call_isolated
 run in a fresh child interpreter)."""
 from __future__ import annotations
 
+import importlib
 import os
 import pickle
 import signal
@@ -77,7 +78,7 @@ class IsolatedCallFailed(RuntimeError):
         super().__init__(f"the child process {how}")
 
 
-def call_isolated(func, *args, timeout: float, **kwargs):
+def call_isolated(func, *args, timeout: float, clean_exit: bool = False, **kwargs):
     """``func(*args, **kwargs)`` in a fresh child interpreter; its return value, or the exception
     it raised, raised again here.
 
@@ -90,7 +91,9 @@ def call_isolated(func, *args, timeout: float, **kwargs):
     caller's ``__main__`` and breaks scripts without a main guard) with this process's
     ``sys.path`` and environment; the call goes in on stdin, the answer comes back on a dedicated
     pipe (native libraries may write to stdout). ``IsolatedCallFailed`` when the child dies
-    without answering or runs past ``timeout`` seconds (then it is killed).
+    without answering or runs past ``timeout`` seconds (then it is killed); with ``clean_exit``,
+    also when it answers and then exits abnormally (LLVM aborting at exit, say). ``func`` may be
+    given as ``"module:function"``, imported only in the child.
     """
     if not timeout > 0:
         raise ValueError(f"timeout must be > 0 seconds, got {timeout}")
@@ -125,15 +128,19 @@ def call_isolated(func, *args, timeout: float, **kwargs):
         conn.close()
         if proc.poll() is None:
             try:
-                proc.wait(5.0)
+                proc.wait(timeout if clean_exit else 5.0)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-    if kind == "ok":
-        return payload
     if kind == "raise":
         raise payload
-    raise RuntimeError(payload)
+    if kind != "ok":
+        raise RuntimeError(payload)
+    if clean_exit and proc.returncode != 0:
+        rc = proc.returncode
+        how = f"killed by signal {signal.Signals(-rc).name}" if rc < 0 else f"exit code {rc}"
+        raise IsolatedCallFailed("crashed", f"answered, then died at exit ({how})")
+    return payload
 
 
 def serve_isolated_call(fd: int) -> None:
@@ -142,6 +149,9 @@ def serve_isolated_call(fd: int) -> None:
     conn = Connection(fd, readable=False)
     try:
         func, args, kwargs = pickle.load(sys.stdin.buffer)
+        if isinstance(func, str):                   # "module:function"
+            module, name = func.split(":")
+            func = getattr(importlib.import_module(module), name)
         result: tuple = ("ok", func(*args, **kwargs))
     except BaseException as e:  # noqa: BLE001 - everything goes back to the parent
         try:

@@ -6,15 +6,21 @@ import sys
 import time
 from pathlib import Path
 
+from ucad_catalog.reader import RECENT_RUNS
+
 from .common import format_low_confidence, format_rows, match_meshes, open_reader
 
 
 def register(sub) -> None:
-    p = sub.add_parser("status", help="counts by state and reason, and the last runs' throughput",
-                       description="Summarise a catalogue: meshes by state and rejection reason, "
-                                   "stored objects, and the last run that processed meshes.")
+    p = sub.add_parser("status", help=f"counts by state and reason, and the last {RECENT_RUNS} "
+                                      f"runs' throughput",
+                       description=f"Summarise a catalogue: meshes by state and rejection "
+                                   f"reason, flagged meshes, stored objects, and the last "
+                                   f"{RECENT_RUNS} runs (newest first), all read in one snapshot. "
+                                   f"Reads without locking: safe while a build runs.")
     p.add_argument("--catalog", required=True, type=Path, metavar="PATH")
-    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.add_argument("--json", action="store_true",
+                   help="machine-readable output (keys: ucad_catalog/SCHEMA.md, 'Command output')")
     p.set_defaults(func=run_status)
 
     p = sub.add_parser("show", help="one mesh: verdict, materials with parts and evidence",
@@ -56,8 +62,7 @@ def run_status(args) -> int:
     if r is None:
         return 2
     with r:
-        st = r.status()
-        runs = r.runs(5)
+        st = r.status(RECENT_RUNS)                  # one snapshot: counts and runs agree
     if args.json:
         print(json.dumps(st, indent=1))
         return 0
@@ -72,7 +77,7 @@ def run_status(args) -> int:
     print(f"  objects: {st['objects']} ({st['object_bytes'] / 2**20:.1f} MiB)")
     print("  recent runs:")
     print(f"    {'run':>4} {'started':>19} {'engine':>6} {'processed':>9} {'skipped':>7} {'meshes/s':>8}")
-    for run in runs:
+    for run in st["runs"]:
         c = run["counts"]
         n = c.get("accepted", 0) + c.get("rejected", 0)
         when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(run["started"]))

@@ -5,15 +5,20 @@ import sys
 
 
 def register(sub) -> None:
-    p = sub.add_parser("info", help="show the OpenCL devices, the one in use and why",
+    p = sub.add_parser("info", help="show the OpenCL devices, which are usable, the one in use "
+                                    "and why",
                        description="List every OpenCL platform/device (for PoCL: its version, "
-                                   "LLVM version and the CPU its kernels are compiled for) and "
-                                   "show which one ucad-index uses and why. The default is the "
-                                   "best PoCL CPU device that compiles (a named-CPU target before "
-                                   "the generic x86-64 one, then the newer PoCL and LLVM); a "
-                                   "device known to be slow is flagged with the measured cost "
-                                   "and the fix. Select another with --device P:D or a name "
-                                   "substring (or UCAD_CL_DEVICE).")
+                                   "LLVM version and the CPU its kernels are compiled for), "
+                                   "usable or unusable with the reason: a device is usable when "
+                                   "it passes the self-test (every kernel built and created, a "
+                                   "small render, Canny and search checked against NumPy and "
+                                   "OpenCV, run in a child process and cached per device, driver "
+                                   "and kernel sources). Then the one ucad-index uses and why: "
+                                   "the best usable device (a GPU, then PoCL on the CPU: a "
+                                   "named-CPU target before the generic x86-64 one, then the "
+                                   "newer PoCL and LLVM); a device known to be slow is flagged "
+                                   "with the measured cost and the fix. Select another with "
+                                   "--device P:D or a name substring (or UCAD_CL_DEVICE).")
     p.set_defaults(func=run)
 
 
@@ -32,6 +37,6 @@ def run(args) -> int:
         if warning:
             print(warning, file=sys.stderr)
     except OpenCLUnavailable as exc:
-        print(str(exc), file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     return 0

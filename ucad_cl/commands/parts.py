@@ -112,6 +112,8 @@ def run(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     ring = ring_from_args(args)
+    from ..runtime import get_runtime
+    get_runtime()           # no usable OpenCL device: one line (cli.main), not one per file
     args.out.mkdir(parents=True, exist_ok=True)
     failed = 0
     for path, name in zip(args.meshes, stems):

@@ -138,6 +138,8 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    from ..runtime import get_runtime
+    get_runtime()           # no usable OpenCL device: one line (cli.main), not one per file
     args.out.mkdir(parents=True, exist_ok=True)
     failed = 0
     bar = tqdm(args.meshes, unit="mesh", desc="render", disable=None)

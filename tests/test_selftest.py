@@ -1,0 +1,144 @@
+"""The device self-test (ucad_cl/selftest.py) and what it decides (ucad_cl/runtime.py): a device
+is usable only if it runs this project's kernels correctly; a broken one is excluded with its
+reason, found in a child process that may crash without harming the caller.
+
+The failures are built for real on the device under test: a program that builds but declares a
+kernel that cannot be created (what PyPI's PoCL 3.0 does on an AMD Zen 4: INVALID_KERNEL_NAME), a
+kernel that returns wrong results, a child that aborts, and one that answers and then aborts at
+exit (LLVM's "still have references to IRs"). The check functions below run in the child."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ucad_cl.runtime import (OpenCLUnavailable, create_runtime, device_infos, device_report,
+                             device_status, get_runtime, self_test_cache_dir,
+                             usable_device_specs)
+from ucad_cl.selftest import SelfTestFailed, check_program, kernel_names
+
+HERE = "tests.test_selftest"
+
+
+# ------------------------------------------------------------- checks run in the child process
+def check_uncreatable_kernel(rt) -> None:
+    """A program that builds, and declares a kernel the build does not contain."""
+    check_program(rt, "ghost.cl", "kernel void real_one(global int *a) { a[0] = 1; }\n"
+                                  "#if 0\nkernel void ghost(global int *a) { a[0] = 2; }\n#endif\n")
+
+
+def check_wrong_results(rt) -> None:
+    """A kernel whose result differs from NumPy's in one element (a device computing wrong)."""
+    import pyopencl as cl
+
+    prg = rt.build_source("kernel void add(global const float *a, global const float *b, "
+                          "global float *c) { int i = get_global_id(0); "
+                          "c[i] = a[i] + b[i] + (i == 7 ? 1.0f : 0.0f); }")
+    a = np.arange(16, dtype=np.float32)
+    b = np.full(16, 0.5, np.float32)
+    mf = cl.mem_flags
+    da = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+    db = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=b)
+    dc = cl.Buffer(rt.ctx, mf.WRITE_ONLY, a.nbytes)
+    prg.add(rt.queue, (16,), None, da, db, dc)
+    c = np.empty_like(a)
+    cl.enqueue_copy(rt.queue, c, dc)
+    bad = np.flatnonzero(c != a + b)
+    if bad.size:
+        raise SelfTestFailed(f"add: {bad.size} of 16 sums differ from NumPy")
+
+
+def check_aborts(rt) -> None:
+    os.abort()
+
+
+def check_aborts_at_exit(rt) -> None:
+    import atexit
+    atexit.register(os.abort)
+
+
+# ------------------------------------------------------------------------------------- tests
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    """A fresh verdict cache (the self-test's children inherit the variable)."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    return tmp_path / "cache"
+
+
+def test_kernel_names_parses_declarations():
+    src = ("__kernel void a(global int *x) {}\n"
+           "kernel __attribute__((reqd_work_group_size(8, 1, 1))) void b_2 (int y) {}\n"
+           "void not_a_kernel(void) {}\n")
+    assert kernel_names(src) == ["a", "b_2"]
+
+
+def test_every_usable_device_passes_and_the_verdict_is_cached(cache):
+    info = get_runtime().info
+    first = device_status(info, refresh=True)
+    assert first.usable and first.reason == "" and not first.cached and first.seconds > 0
+    again = device_status(info)
+    assert again.usable and again.cached
+    files = list(self_test_cache_dir().glob("*.json"))
+    assert len(files) == 1 and json.loads(files[0].read_text())["usable"] is True
+    assert info.spec in usable_device_specs()
+
+
+@pytest.mark.parametrize("check, reason", [
+    ("check_uncreatable_kernel", "kernels: ghost.cl builds but kernel 'ghost' cannot be created"),
+    ("check_wrong_results", "add: 1 of 16 sums differ from NumPy"),
+    ("check_aborts", "the self-test's process died (killed by signal SIGABRT)"),
+    ("check_aborts_at_exit", "the self-test's process answered, then died at exit (killed by "
+                             "signal SIGABRT)"),
+])
+def test_broken_devices_are_excluded_with_their_reason(cache, check, reason):
+    rt = get_runtime()
+    checks = (f"{HERE}:{check}",)
+    report = device_report(checks=checks)
+    mine = [st for st in report if st.info.spec == rt.info.spec]
+    assert len(mine) == 1 and not mine[0].usable
+    assert mine[0].reason.startswith(reason), mine[0].reason
+    assert "\n" not in mine[0].reason
+    assert not list(cache.glob("**/*.json"))           # other checks are never cached
+    # the caller is unharmed: its runtime still renders, and the real suite still passes
+    assert device_status(rt.info).usable
+
+
+def test_no_usable_device_is_one_line_naming_what_to_install(cache, tmp_path, monkeypatch):
+    """Every device marked unusable in the cache: `info` lists each with its reason and exits 2,
+    a command that needs OpenCL prints one line naming what to install; no traceback."""
+    env = {**os.environ, "XDG_CACHE_HOME": str(cache)}
+    env.pop("UCAD_CL_DEVICE", None)
+    for info in device_infos():
+        device_status(info)                               # fill the cache ...
+    for f in self_test_cache_dir().glob("*.json"):        # ... and mark every device broken
+        rec = json.loads(f.read_text())
+        f.write_text(json.dumps({**rec, "usable": False, "reason": "kernels: simulated"}))
+    monkeypatch.delenv("UCAD_CL_DEVICE", raising=False)
+    assert usable_device_specs() == []
+    with pytest.raises(OpenCLUnavailable, match="no usable OpenCL device"):
+        create_runtime()
+    cli = [str(Path(sys.executable).parent / "ucad-index")]
+    info = subprocess.run([*cli, "info"], env=env, capture_output=True, text=True, timeout=120)
+    assert info.returncode == 2
+    assert info.stdout.count("unusable") == len(device_infos())
+    assert "kernels: simulated" in info.stdout
+    err = info.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: no usable OpenCL device")
+    assert "apt-get install pocl-opencl-icd" in err[0]
+    mesh = tmp_path / "tri.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    run = subprocess.run([*cli, "render", str(mesh), "--out", str(tmp_path / "r")], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and "Traceback" not in run.stderr
+    assert run.stderr.strip().splitlines()[-1].startswith("error: no usable OpenCL device")
+    # a device named explicitly is refused with the self-test's reason, in one line
+    spec = device_infos()[0].spec
+    named = subprocess.run([*cli, "--device", spec, "info"], env=env, capture_output=True,
+                           text=True, timeout=120)
+    assert named.returncode == 2
+    assert f"OpenCL device {spec}" in named.stderr and "kernels: simulated" in named.stderr
