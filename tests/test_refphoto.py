@@ -105,3 +105,193 @@ def test_lab_agrees_with_opencv():
     ours = cm.linear_to_lab(cm.srgb_to_linear(srgb[0].astype(np.float64)))
     assert np.abs(ours - ref).max() < 0.5
     assert np.median(cm.delta_e2000(ours, ref)) < 0.1
+
+
+# ----------------------------------------------------------------------------- the renderer
+
+from ucad_cl.artifacts import PART_NAMES, CameraRing, Material, Mesh  # noqa: E402
+from ucad_cl.refphoto import (CAR_COLOR_FREQUENCIES, RefLight, draw_car_colors,  # noqa: E402
+                              draw_light, photo_camera, render_reference)
+
+
+def _box_mesh(parts_per_face_pair=None, materials=None) -> Mesh:
+    """A box 0.8 x 0.4 x 0.4 (diagonal < 1) centred at the origin, its 6 sides each one
+    material (order -x, +x, -y, +y, -z, +z); outward-wound faces."""
+    lo, hi = np.array([-0.4, -0.2, -0.2]), np.array([0.4, 0.2, 0.2])
+    V = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                  for z in (lo[2], hi[2])])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    F = []
+    for a, b, c, d in quads:
+        F += [(a, b, c), (a, c, d)]
+    mats = materials or [Material(name=f"side{k}") for k in range(6)]
+    fm = np.repeat(np.arange(6) % len(mats), 2).astype(np.uint16)
+    return Mesh(path="box.obj", sha256="0" * 64, vertices=V.astype(np.float64),
+                faces=np.array(F, np.uint32), face_material=fm, materials=mats)
+
+
+def _uniform_sky(L=0.5, exposure=1.0) -> RefLight:
+    c = (L, L, L)
+    return RefLight(sun_dir=(0.0, 1.0, 0.0), sun_color=(0.0, 0.0, 0.0), sky_zenith=c,
+                    sky_horizon=c, ground=c, exposure=exposure, ao_rays=4)
+
+
+def _clean(**kw):
+    return dict(background="plain", noise=0.0, jpeg_quality=None, **kw)
+
+
+def _synth(seed):
+    from ucad_cl.synth import make_vehicle
+
+    v = make_vehicle(seed)
+    parts = dict(v.truth["materials"])
+    mesh = v.mesh()
+    return mesh, [parts.get(m.name, "other") for m in mesh.materials]
+
+
+def test_mask_and_parts_match_the_rasterizer_at_the_same_camera():
+    from ucad_cl.render import render_views
+
+    mesh, pom = _synth(3)
+    rng = np.random.default_rng(7)
+    ref = render_reference(mesh, pom, draw_car_colors(rng), azimuth=37.3, elevation=11.9,
+                           size=(150, 200), fov=50.0, fill=0.8, offset=(0.6, -0.4),
+                           light=draw_light(rng), seed=3)
+    ring = CameraRing(K=ref.K, w2c=ref.w2c[None], width=200, height=150,
+                      azimuth=np.array([ref.azimuth]), elevation=np.array([ref.elevation]),
+                      distance=ref.distance, near=0.01 * ref.distance)
+    views = render_views(mesh, ring)
+    cover = views.mat_id[0] > 0
+    assert cover.sum() > 2000                                   # the vehicle is in the frame
+    assert (ref.mask == cover).mean() >= 0.99
+    part_of_id = np.array([-1] + [PART_NAMES.index(p) if p in PART_NAMES else
+                                  PART_NAMES.index("other") for p in pom])
+    both = ref.mask & cover
+    assert (ref.part_map[both] == part_of_id[views.mat_id[0][both]]).mean() >= 0.98
+    assert np.all(ref.part_map[~ref.mask] == -1)
+    # off-centre: the vehicle's centre does not project to the image centre
+    c = ref.K @ (ref.w2c[:3, 3])
+    assert abs(c[0] / c[2] - 100) > 10
+    # the camera centre is at the reported azimuth/elevation/distance (the pose convention)
+    from ucad_cl.cameras import camera_position
+    centre = -ref.w2c[:3, :3].T @ ref.w2c[:3, 3]
+    np.testing.assert_allclose(centre, camera_position(37.3, 11.9, ref.distance), atol=1e-9)
+    x0, y0, x1, y1 = ref.box
+    rows, cols = np.flatnonzero(cover.any(1)), np.flatnonzero(cover.any(0))
+    assert abs(x0 - cols[0]) <= 1 and abs(x1 - cols[-1] - 1) <= 1
+    assert abs(y0 - rows[0]) <= 1 and abs(y1 - rows[-1] - 1) <= 1
+
+
+def test_white_furnace_every_opaque_part_returns_the_sky():
+    # albedo 1 everywhere under a uniform sky, no sun: every material model returns L
+    # (energy conservation of the diffuse + Schlick + clear coat layering)
+    from ucad_cl.colorimetry import linear_to_srgb8
+
+    box = _box_mesh()
+    pom = ["body", "rim", "interior", "plate", "wheel", "chrome"]
+    white = {p: (1.0, 1.0, 1.0) for p in pom}
+    for az, el in ((20.0, 25.0), (200.0, -10.0)):
+        ref = render_reference(box, pom, white, azimuth=az, elevation=el, size=(90, 120),
+                               light=_uniform_sky(0.5), fill=0.9, **_clean())
+        inner = _eroded(ref.mask)
+        want = linear_to_srgb8(np.array([0.5, 0.5, 0.5]))
+        assert inner.sum() > 500
+        assert np.abs(ref.image[inner].astype(int) - want.astype(int)).max() <= 1
+
+
+def _eroded(mask):
+    m = mask.copy()
+    for di, dj in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        m &= np.roll(mask, (di, dj), axis=(0, 1))
+    return m
+
+
+@pytest.mark.parametrize("part", ["interior", "body"])
+def test_flat_front_facing_panel_has_its_known_colour(part):
+    # the box's +x side seen head-on (azimuth 0, elevation 0) under a uniform sky of radiance
+    # L, no sun: the documented layering at normal incidence (n.v = 1 at the image centre)
+    from ucad_cl.colorimetry import linear_to_srgb8
+
+    box = _box_mesh()
+    c = np.array([0.6, 0.1, 0.05])
+    pom = [part] * 6
+    L, ex = 0.6, 1.2
+    ref = render_reference(box, pom, {part: tuple(c)}, azimuth=0.0, elevation=0.0,
+                           size=(61, 81), light=_uniform_sky(L, ex), **_clean())
+    if part == "interior":                              # metallic 0, no coat
+        want = L * (0.96 * c + 0.04)
+    else:                                               # metallic 0.5, clear coat 1
+        F0 = 0.02 + 0.5 * c
+        base = 0.5 * 0.96 * c * L + F0 * L
+        want = 0.96 * base + 0.04 * L
+    centre = ref.image[28:33, 38:43].reshape(-1, 3).astype(int)
+    assert np.abs(centre - linear_to_srgb8(ex * want).astype(int)).max() <= 1
+    assert ref.colors[part] == tuple(c)
+    np.testing.assert_allclose(ref.material_colors, np.tile(c, (6, 1)))
+
+
+def test_sun_and_shadow_change_the_image_and_the_ground_shadow_falls_on_the_background():
+    box = _box_mesh()
+    pom = ["interior"] * 6
+    sky = _uniform_sky(0.3)
+    sun = RefLight(sun_dir=(-0.5, 0.6, 0.5), sun_color=(0.6, 0.6, 0.6), sky_zenith=(0.3,) * 3,
+                   sky_horizon=(0.3,) * 3, ground=(0.3,) * 3, exposure=1.0, ao_rays=0)
+    a = render_reference(box, pom, {}, azimuth=30, elevation=20, size=(90, 120), light=sky,
+                         **_clean())
+    b = render_reference(box, pom, {}, azimuth=30, elevation=20, size=(90, 120), light=sun,
+                         **_clean())
+    top = b.mask & (b.image.astype(int).sum(-1) > a.image.astype(int).sum(-1) + 30)
+    assert top.sum() > 50                               # the sunlit top is brighter
+    bg_dark = ~b.mask & (b.image[..., 0] < a.image[..., 0] - 20)
+    assert bg_dark.sum() > 50                           # the box's shadow on the ground
+
+
+def test_same_seed_same_bytes_other_seed_other_photo():
+    mesh, pom = _synth(4)
+    kw = dict(azimuth=123.4, elevation=17.0, size=(96, 128), fill=0.9)
+    r1 = render_reference(mesh, pom, {"body": (0.4, 0.05, 0.03)}, seed=11, **kw)
+    r2 = render_reference(mesh, pom, {"body": (0.4, 0.05, 0.03)}, seed=11, **kw)
+    r3 = render_reference(mesh, pom, {"body": (0.4, 0.05, 0.03)}, seed=12, **kw)
+    assert r1.image.tobytes() == r2.image.tobytes()
+    assert np.array_equal(r1.part_map, r2.part_map) and np.array_equal(r1.mask, r3.mask)
+    assert r1.image.tobytes() != r3.image.tobytes()
+    assert r1.image.dtype == np.uint8 and r1.image.shape == (96, 128, 3)
+    assert r1.part_map.dtype == np.int16
+
+
+def test_car_colours_follow_the_published_frequencies():
+    from ucad_cl.colorimetry import linear_to_lab
+
+    rng = np.random.default_rng(0)
+    n = 3000
+    bodies = np.array([draw_car_colors(rng)["body"] for _ in range(n)])
+    lab = linear_to_lab(bodies)
+    chroma = np.hypot(lab[:, 1], lab[:, 2])
+    white = (lab[:, 0] > 85) & (chroma < 6)
+    black = (lab[:, 0] < 22) & (chroma < 6)
+    assert abs(white.mean() - CAR_COLOR_FREQUENCIES["white"]) < 0.03
+    assert abs(black.mean() - CAR_COLOR_FREQUENCIES["black"]) < 0.03
+    red = (lab[:, 1] > 35) & (lab[:, 2] > 15)
+    assert abs(red.mean() - CAR_COLOR_FREQUENCIES["red"]) < 0.02
+    assert bodies.min() >= 0 and bodies.max() <= 1
+    light = draw_light(rng)
+    assert light.sun_dir[1] > 0 and light.exposure > 0
+
+
+def test_photo_camera_centres_the_vehicle_without_offset():
+    K, w2c, d = photo_camera(75.0, 20.0, 200, 100, fov=40.0, fill=0.5)
+    c = K @ w2c[:3, 3]
+    np.testing.assert_allclose(c[:2] / c[2], [100.0, 50.0], atol=1e-9)
+    assert abs(np.degrees(np.arcsin(0.5 / d)) - 0.5 * 20.0) < 1e-9
+
+
+def test_bad_arguments_name_the_problem():
+    box = _box_mesh()
+    with pytest.raises(ValueError, match="box.obj: part_of_material has 2 entries"):
+        render_reference(box, ["body", "rim"], {}, azimuth=0, elevation=0)
+    with pytest.raises(ValueError, match="unknown part 'roof'"):
+        render_reference(box, ["body"] * 6, {"roof": (1, 0, 0)}, azimuth=0, elevation=0)
+    with pytest.raises(ValueError, match="linear values in"):
+        render_reference(box, ["body"] * 6, {"body": (2, 0, 0)}, azimuth=0, elevation=0)
+    with pytest.raises(ValueError, match="background="):
+        render_reference(box, ["body"] * 6, {}, azimuth=0, elevation=0, background="x")
