@@ -59,6 +59,7 @@ SUN_ELEVATIONS = (12.0, 30.0, 50.0, 72.0)   # coarse sun elevations, degrees
 SKY_STEPS = 11              # sky share grid per channel: 0, 0.1, ..., 1
 TRIM_SIGMA = 2.5            # residual trim, robust standard deviations
 MIN_SIGMA = 0.01            # floor of the robust standard deviation (linear RGB)
+BALANCE_RANGE = (0.7, 1.4)  # white-balance gains allowed per channel
 STAT_WEIGHT = 0.1           # weight of l_stat against l_rgb (the paper's 0.1 / 1)
 LUMA = np.array([0.2126, 0.7152, 0.0722])   # linear-RGB luminance (Rec. 709)
 
@@ -169,6 +170,25 @@ def objective(s: Samples, light: Lighting, albedo: np.ndarray, n_parts: int) -> 
                      for c in range(3)))
 
 
+def balance(fit: LightFit, neutral: dict[int, float]) -> tuple[LightFit, np.ndarray]:
+    """The fit white-balanced on parts known to be neutral grey (``neutral``: part index ->
+    weight, e.g. its pixel count): per-channel gains ``g`` (luminance 1, each within
+    ``BALANCE_RANGE``) make the weighted mean chromaticity of those parts' colours neutral;
+    every colour is divided by ``g`` and the light multiplied by it, so the model's pixels are
+    unchanged (the light's colour, not the paint's, takes the cast). Returns (fit, g); g = 1
+    without a usable neutral part."""
+    rows = [(fit.albedo[p], w) for p, w in neutral.items()
+            if w > 0 and np.all(np.isfinite(fit.albedo[p])) and fit.albedo[p].mean() > 1e-4]
+    if not rows:
+        return fit, np.ones(3)
+    chroma = sum(w * a / a.mean() for a, w in rows) / sum(w for _, w in rows)
+    g = np.clip(chroma / float(LUMA @ chroma), *BALANCE_RANGE)
+    g = g / float(LUMA @ g)
+    light = Lighting(sky=fit.lighting.sky * g, sun=fit.lighting.sun * g,
+                     sun_dir=fit.lighting.sun_dir, ground=fit.lighting.ground)
+    return LightFit(lighting=light, albedo=fit.albedo / g, loss=fit.loss, kept=fit.kept), g
+
+
 # ----------------------------------------------------------------------------- internals
 
 def sun_direction(azimuth: float, elevation: float) -> np.ndarray:
@@ -218,6 +238,7 @@ def _closed_form(B: np.ndarray, C: np.ndarray, y: np.ndarray, part: np.ndarray,
     num = sbr + STAT_WEIGHT * mb * mr
     den = sbb + STAT_WEIGHT * mb * mb
     a = np.divide(num, den, out=np.full_like(num, np.nan), where=den > 1e-12)
+    a = np.maximum(a, 0.0)                  # the constrained optimum of a 1-D convex problem
     a[:, cnt == 0] = np.nan
     return a
 

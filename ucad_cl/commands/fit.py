@@ -159,7 +159,10 @@ def read_image(path: Path):
     try:
         with Image.open(path) as im:
             w, h = im.size
-    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError):
+    except Image.DecompressionBombError:
+        raise ValueError(f"the image is larger than {MAX_PIXELS // 1_000_000} megapixels; "
+                         "scale it down first") from None
+    except (UnidentifiedImageError, OSError, ValueError):
         raise ValueError("cannot read the image (corrupt or not an image)") from None
     if w * h > MAX_PIXELS:
         raise ValueError(f"the image is {w}x{h}: larger than {MAX_PIXELS // 1_000_000} "
