@@ -40,10 +40,10 @@ s * colour over the scored parts; ``body`` alone, and ``parts``: body, wheel (ty
 interior visible with at least ``MIN_TRUE_PIXELS`` true pixels, weighted by those pixels (a part
 the row does not report is scored at its prior colour). Medians and 90th percentiles over
 photos; ``failed``: photos the row gave no colours for (an error, e.g. GrabCut found no vehicle
-in the box), left out of the medians. ``PSNR``: masked PSNR (8-bit sRGB) of the row's re-render against the photo over the
-pixels it fitted (the baseline paints each part flat). ``top-1``: the retrieved mesh is the
-reference's (the ferrari_458 twins count as one). ``s/photo``: wall time of ``fit_photo``
-(median, 90th percentile over photos; each photo is one run).
+in the box), left out of the medians. ``PSNR``: masked PSNR (8-bit sRGB) of the row's re-render
+against the photo over the pixels it fitted (the baseline paints each part flat). ``top-1``:
+the retrieved mesh is the reference's (the ferrari_458 twins count as one). ``s/photo``: wall
+time of ``fit_photo`` (median, 90th percentile over photos; each photo is one run).
 
 Held out: the generated rows are held out from everything learned or tuned. The real rows are
 not held out from the labeller (the shipped labeller is trained with every real model's
@@ -385,7 +385,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true",
                     help="6 real + 6 generated references, a 30-mesh generated library")
     ap.add_argument("--real", type=int, default=None, help="real models (default: all usable)")
-    ap.add_argument("--generated", type=int, default=30, help="generated references")
+    ap.add_argument("--generated", type=int, default=20, help="generated references")
     ap.add_argument("--library", type=int, default=80,
                     help="generated vehicles in the catalogue (with the real library: >= 100)")
     ap.add_argument("--size", type=lambda s: tuple(int(x) for x in s.split("x")),

@@ -1,4 +1,4 @@
-"""Colour science (ucad_cl/colorimetry.py) and the photo-like reference renderer (ucad_cl/refphoto.py).
+"""Colour science (ucad_cl/colorimetry.py) and the photo-like references (ucad_cl/refphoto.py).
 
 References: Sharma, Wu and Dalal (2005)'s 34 CIEDE2000 test pairs; Bruce Lindbloom's sRGB values
 of the ColorChecker patches (Lab D65 -> 8-bit sRGB); OpenCV's own RGB -> Lab.
@@ -220,9 +220,8 @@ def test_flat_front_facing_panel_has_its_known_colour(part):
                            size=(61, 81), light=_uniform_sky(L, ex), **_clean())
     if part == "interior":                              # metallic 0, no coat
         want = L * (0.96 * c + 0.04)
-    else:                                               # metallic 0.5, clear coat 1
-        F0 = 0.02 + 0.5 * c
-        base = 0.5 * 0.96 * c * L + F0 * L
+    else:               # metallic 0.5 under a clear coat: the base's dielectric half reflects
+        base = 0.5 * c * L + 0.5 * c * L                # nothing (resin, not air), its metal c
         want = 0.96 * base + 0.04 * L
     centre = ref.image[28:33, 38:43].reshape(-1, 3).astype(int)
     assert np.abs(centre - linear_to_srgb8(ex * want).astype(int)).max() <= 1

@@ -40,12 +40,15 @@ within 35 deg of the face normal, else the face normal, interpolated at the hit;
   the sun is blocked by a shadow ray.
 * Materials: the part prior of ``ucad_catalog.parts.PART_MATERIALS`` (metallic, roughness, clear
   coat, transmission), with the base colour from ``part_colors`` when given, else the prior's
-  (body, ``other``: the source material's). Base layer: diffuse ``(1 - metallic) (1 - F) c`` plus
-  a specular ``F`` with Schlick's Fresnel ``F = F0 + (1 - F0)(1 - n.v)^5``, ``F0 = 0.04 (1 -
-  metallic) + c metallic``, reflecting the sky blurred by the roughness and a normalised
-  Blinn-Phong sun highlight. Clear coat (body): a layer of Fresnel ``0.04 + 0.96 (1 - n.v)^5`` and
-  roughness 0.03 over the base. Glass (``window``, or a see-through source material): Fresnel
-  reflection of the sky plus the surface behind it (a second ray that ignores glass) times
+  (body, ``other``: the source material's). Base layer: a dielectric share ``1 - metallic``
+  (diffuse ``(1 - Fd) c`` plus a specular ``Fd``, Schlick's ``Fd = 0.04 + 0.96 (1 - n.v)^5``) and
+  a metallic share (specular ``c + (1 - c)(1 - n.v)^5``), the specular reflecting the sky blurred
+  by the roughness and a normalised Blinn-Phong sun highlight. Clear coat (body): a layer of
+  Fresnel ``0.04 + 0.96 (1 - n.v)^5`` and roughness 0.03 over the base; under it the base meets
+  the coat's resin (index ~1.5), not air, so its dielectric reflection and both grazing rises are
+  dropped (a black paint reflects ~4 %, not the 6 % of glTF's layering). Glass (``window``, or a
+  see-through source material): Fresnel reflection of the sky plus the surface behind it (a
+  second ray that ignores glass) times
   ``transmission`` and the glass tint. Lamps are shaded as glossy dielectrics of their colour
   (daylight, lamps off). Energy: with every albedo 1 and a uniform sky, every opaque pixel is
   the sky's radiance (the white furnace test in tests/test_refphoto.py).
@@ -58,8 +61,9 @@ within 35 deg of the face normal, else the face normal, interpolated at the hit;
   Pillow at ``jpeg_quality`` (None: none).
 
 Deterministic: the same arguments and ``seed`` give the same bytes (one NumPy generator drawn in a
-fixed order; Embree returns the nearest hit, ties between coincident faces go to the lower face
-index as the rasterizer's rule, since both index the same faces).
+fixed order; Embree returns the nearest hit and its BVH builders are deterministic). Between
+exactly coincident faces Embree's choice need not be the rasterizer's lower-index rule: the truth
+maps agree with the rasterizer on >= 99 % of pixels, not on every one (tests/test_refphoto.py).
 """
 from __future__ import annotations
 
@@ -527,14 +531,17 @@ def _surface(tracer: _Tracer, mats: _Materials, light: RefLight, rng, p, d, n, f
     sunlit = ndl * lit
     vis = _sky_visibility(tracer, light, rng, start, n, fn)[:, None]
     E = _irradiance(light, n) * vis
-    F0 = 0.04 * (1.0 - metal) + c * metal
-    F = F0 + (1.0 - F0) * x5
-    Fd = 0.04 + 0.96 * x5
+    cc = mats.clearcoat[mat][:, None]
+    # base layer: a dielectric share (F0 0.04) and a metallic share (F0 = c); under a clear coat
+    # the base meets the coat's resin, not air: no dielectric reflection and no grazing rise
+    rise = x5 * (1.0 - cc)
+    F0d = 0.04 * (1.0 - cc)
+    Fd = F0d + (1.0 - F0d) * rise
+    F = (1.0 - metal) * Fd + metal * (c + (1.0 - c) * rise)
     kd = (1.0 - metal) * (1.0 - Fd)
     base = (kd * c * (E + sun * sunlit[:, None])
             + F * (_env(light, r, rough) * vis + sun * _sun_spec(ldir, n, v, rough,
                                                                  sunlit)[:, None]))
-    cc = mats.clearcoat[mat][:, None]
     Fc = cc * (0.04 + 0.96 * x5)
     coat = _env(light, r, np.full(N, 0.03)) * vis + sun * _sun_spec(
         ldir, n, v, np.full(N, 0.03), sunlit)[:, None]
