@@ -165,7 +165,8 @@ def draw_reference(v: Vehicle, index: int, size):
     kw = dict(azimuth=float(rng.uniform(0.0, 360.0)), elevation=float(rng.uniform(2.0, 25.0)),
               fov=float(rng.uniform(35.0, 60.0)), fill=float(rng.uniform(0.7, 0.95)),
               offset=(float(rng.uniform(-0.8, 0.8)), float(rng.uniform(-0.6, 0.6))),
-              noise=float(rng.uniform(0.004, 0.015)), jpeg_quality=int(rng.integers(70, 96)))
+              noise=float(rng.uniform(0.004, 0.015)), jpeg_quality=int(rng.integers(70, 96)),
+              white_balance_error=0.01)
     ref = render_reference(v.mesh, v.parts, colors, size=size, light=light,
                            seed=REF_SEED + index, background="clutter", **kw)
     x0, y0, x1, y1 = ref.box

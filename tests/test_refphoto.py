@@ -294,3 +294,22 @@ def test_bad_arguments_name_the_problem():
         render_reference(box, ["body"] * 6, {"body": (2, 0, 0)}, azimuth=0, elevation=0)
     with pytest.raises(ValueError, match="background="):
         render_reference(box, ["body"] * 6, {}, azimuth=0, elevation=0, background="x")
+
+
+def test_white_balance_makes_a_grey_surface_facing_up_neutral():
+    # a blue sky, no sun: the camera's balance makes the grey top of the box neutral (within
+    # the sky's 4 % specular reflection); without the gains it would be clearly blue
+    from ucad_cl.refphoto import white_balance
+
+    box = _box_mesh()
+    blue = RefLight(sun_dir=(0.0, 1.0, 0.0), sun_color=(0.0, 0.0, 0.0),
+                    sky_zenith=(0.18, 0.27, 0.45), sky_horizon=(0.3, 0.34, 0.4),
+                    ground=(0.1, 0.1, 0.1), exposure=2.0, ao_rays=0)
+    g = white_balance(blue)
+    assert g[0] > 1.2 > 1.0 > g[2]
+    ref = render_reference(box, ["wheel"] * 6, {"wheel": (0.5, 0.5, 0.5)}, azimuth=10.0,
+                           elevation=70.0, size=(80, 80), fill=0.5, light=blue, **_clean())
+    top = ref.image[ref.part_map >= 0].astype(int)
+    centre = ref.image[38:42, 38:42].reshape(-1, 3).astype(int)
+    assert np.abs(centre[:, 0] - centre[:, 2]).max() <= 3
+    assert len(top) > 100

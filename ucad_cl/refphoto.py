@@ -20,7 +20,11 @@ Conventions and units:
   narrower half-field the bounding sphere (radius 0.5) spans, which sets the distance.
 * Colours are linear RGB (sRGB primaries, D65). Light quantities are radiances in one unit: a
   white Lambertian surface (albedo 1) under a uniform sky of radiance L returns L. The photo's
-  linear value is ``exposure * radiance`` (``RefLight.exposure``), then noise, clipping to
+  linear value is ``exposure * gains * radiance`` (``RefLight.exposure``; ``gains`` the camera's
+  white balance: per channel, the luminance of the irradiance of a surface facing up over its
+  channel, so a grey surface facing up is neutral, as a camera's auto white balance makes the
+  light's average colour neutral; times ``exp(N(0, white_balance_error))`` per channel, an
+  imperfect balance; the background image is not balanced again), then noise, clipping to
   [0, 1], the sRGB curve, 8 bits and JPEG.
 * Truth: ``mask`` and ``part_map`` come from one ray through each pixel centre (as the
   rasterizer samples); the colour image averages ``samples`` x ``samples`` rays per pixel
@@ -68,7 +72,7 @@ maps agree with the rasterizer on >= 99 % of pixels, not on every one (tests/tes
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -142,14 +146,14 @@ def render_reference(mesh: Mesh, part_of_material: Sequence[str],
                      fill: float = 0.6, offset: tuple[float, float] = (0.0, 0.0),
                      light: RefLight | None = None, seed: int = 0, background: str = "clutter",
                      noise: float = 0.01, jpeg_quality: int | None = 90,
-                     samples: int = 2) -> Reference:
+                     samples: int = 2, white_balance_error: float = 0.0) -> Reference:
     """A photo-like reference of ``mesh`` (canonical frame), ``part_of_material[m]`` the part of
     material m, ``part_colors`` base colours (linear RGB) of the parts that get one; ``size`` is
     (height, width). See the module docstring for every convention."""
     H, W = int(size[0]), int(size[1])
     light = light or RefLight()
     _check_args(mesh, part_of_material, part_colors, H, W, fov, fill, samples, background,
-                noise, jpeg_quality)
+                noise, jpeg_quality, white_balance_error)
     rng = np.random.default_rng(seed)
     K, w2c, dist = photo_camera(azimuth, elevation, W, H, fov=fov, fill=fill, offset=offset)
     mats = _materials(mesh, part_of_material, part_colors)
@@ -170,6 +174,8 @@ def render_reference(mesh: Mesh, part_of_material: Sequence[str],
                                    bg.reshape(-1, 3)[pix] / light.exposure)
     ground = _ground_shadow(tracer, mesh, light, o, d[~hit])
     radiance[~hit] *= ground[:, None]
+    gains = white_balance(light) * np.exp(rng.normal(0.0, white_balance_error, 3))
+    radiance[hit] *= gains
     lin = light.exposure * radiance.reshape(H * W, samples * samples, 3).mean(axis=1)
     lin = lin.reshape(H, W, 3)
     if noise > 0:
@@ -220,7 +226,9 @@ def draw_car_colors(rng: np.random.Generator) -> dict[str, tuple[float, float, f
 def draw_light(rng: np.random.Generator, *, sun: bool = True) -> RefLight:
     """A plausible daylight: sun 15-65 deg above the horizon at any heading with a warm-to-white
     colour and a strength of 1-3 times the sky's (or no sun: overcast), a blue-to-grey sky, a
-    grey-brown ground, and the exposure that maps a white surface facing up to 0.8-0.95."""
+    grey-brown ground, and the exposure that maps a white surface facing the sun (facing up
+    without sun) to 0.85-1.0 after the white balance (a well-exposed photo: highlights and
+    glints clip, diffuse whites do not)."""
     h, e = rng.uniform(0.0, 2.0 * np.pi), np.radians(rng.uniform(15.0, 65.0))
     sun_dir = (float(np.cos(e) * np.cos(h)), float(np.sin(e)), float(np.cos(e) * np.sin(h)))
     blue = rng.uniform(0.0, 1.0)                                  # 0: overcast grey, 1: blue
@@ -233,11 +241,20 @@ def draw_light(rng: np.random.Generator, *, sun: bool = True) -> RefLight:
     sky_mean = horizon + 0.8 * (zenith - horizon)
     sun_col = sun_col * float(sky_mean.mean()) * rng.uniform(1.0, 3.0) / np.sin(e) if sun \
         else np.zeros(3)
-    up = sky_mean + sun_col * np.sin(e)
-    exposure = rng.uniform(0.8, 0.95) / float(up.max())
     t = lambda v: (float(v[0]), float(v[1]), float(v[2]))
-    return RefLight(sun_dir=sun_dir, sun_color=t(sun_col), sky_zenith=t(zenith),
-                    sky_horizon=t(horizon), ground=t(ground), exposure=float(exposure))
+    out = RefLight(sun_dir=sun_dir, sun_color=t(sun_col), sky_zenith=t(zenith),
+                   sky_horizon=t(horizon), ground=t(ground))
+    brightest = white_balance(out) * (sky_mean + sun_col)
+    return replace(out, exposure=float(rng.uniform(0.85, 1.0) / float(brightest.max())))
+
+
+def white_balance(light: RefLight) -> np.ndarray:
+    """(3,) channel gains that make a grey surface facing up neutral under ``light``: the
+    luminance (Rec. 709) of its irradiance (sky, ground and sun) over each channel."""
+    E = _irradiance(light, np.array([[0.0, 1.0, 0.0]]))[0]
+    E = E + np.asarray(light.sun_color, np.float64) * max(_unit(light.sun_dir)[1], 0.0)
+    E = np.maximum(E, 1e-9)
+    return float(np.dot([0.2126, 0.7152, 0.0722], E)) / E
 
 
 def photo_camera(azimuth: float, elevation: float, width: int, height: int, *,
@@ -317,7 +334,7 @@ def _materials(mesh: Mesh, part_of_material: Sequence[str],
 
 
 def _check_args(mesh, part_of_material, part_colors, H, W, fov, fill, samples, background,
-                noise, jpeg_quality) -> None:
+                noise, jpeg_quality, white_balance_error) -> None:
     if len(part_of_material) != len(mesh.materials):
         raise ValueError(f"{mesh.path}: part_of_material has {len(part_of_material)} entries "
                          f"for {len(mesh.materials)} materials")
@@ -335,6 +352,8 @@ def _check_args(mesh, part_of_material, part_colors, H, W, fov, fill, samples, b
         raise ValueError(f"samples={samples} must be 1..4")
     if background not in ("clutter", "plain"):
         raise ValueError(f"background={background!r} must be 'clutter' or 'plain'")
+    if not white_balance_error >= 0:
+        raise ValueError(f"white_balance_error={white_balance_error} must be >= 0")
     if noise < 0 or (jpeg_quality is not None and not 1 <= jpeg_quality <= 100):
         raise ValueError(f"noise={noise} must be >= 0, jpeg_quality={jpeg_quality} in 1..100")
 
