@@ -137,7 +137,7 @@ class Reference:
     material_colors: np.ndarray  # (M, 3) base colour of every material (linear RGB)
     light: RefLight
     seed: int
-    meta: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)   # white_balance: the channel gains applied
 
 
 def render_reference(mesh: Mesh, part_of_material: Sequence[str],
@@ -191,7 +191,8 @@ def render_reference(mesh: Mesh, part_of_material: Sequence[str],
     return Reference(image=image, box=box, mask=mask, part_map=part_map, K=K, w2c=w2c,
                      azimuth=float(azimuth) % 360.0, elevation=float(elevation),
                      distance=float(dist), fov=float(fov), colors=colors,
-                     material_colors=mats.color.copy(), light=light, seed=int(seed))
+                     material_colors=mats.color.copy(), light=light, seed=int(seed),
+                     meta={"white_balance": [float(g) for g in gains]})
 
 
 def draw_car_colors(rng: np.random.Generator) -> dict[str, tuple[float, float, float]]:
