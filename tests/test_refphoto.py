@@ -169,6 +169,10 @@ def test_mask_and_parts_match_the_rasterizer_at_the_same_camera():
     both = ref.mask & cover
     assert (ref.part_map[both] == part_of_id[views.mat_id[0][both]]).mean() >= 0.98
     assert np.all(ref.part_map[~ref.mask] == -1)
+    # truth colours: the drawn ones, the prior's for the rest; none for 'other' (one per material)
+    assert "other" in pom and "other" not in ref.colors
+    assert ref.colors["body"] == tuple(draw_car_colors(np.random.default_rng(7))["body"])
+    assert ref.colors["chrome"] == (0.549, 0.556, 0.554)
     # off-centre: the vehicle's centre does not project to the image centre
     c = ref.K @ (ref.w2c[:3, 3])
     assert abs(c[0] / c[2] - 100) > 10

@@ -133,7 +133,8 @@ class Reference:
     elevation: float
     distance: float             # canonical units
     fov: float                  # over the narrower image side, degrees
-    colors: dict[str, tuple[float, float, float]]   # part -> base colour used (linear RGB)
+    colors: dict[str, tuple[float, float, float]]   # part -> base colour (linear RGB) of the
+    #                                                 parts of PART_MATERIALS the mesh has
     material_colors: np.ndarray  # (M, 3) base colour of every material (linear RGB)
     light: RefLight
     seed: int
@@ -329,7 +330,8 @@ def _materials(mesh: Mesh, part_of_material: Sequence[str],
         if part == "window" or (clear[m] and part not in ("light",)):
             out.glass[m] = True
             out.transmission[m] = max(out.transmission[m], 1.0 - float(mat.base_color[3]), 0.5)
-        out.part_color.setdefault(part, out.color[m].copy())
+        if prior is not None:              # other / unseen: one colour per material, no truth
+            out.part_color.setdefault(part, out.color[m].copy())
     out.color = np.clip(out.color, 0.0, 1.0)
     return out
 
