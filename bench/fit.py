@@ -100,6 +100,7 @@ class Score:
     top1: float = float("nan")
     colors: dict = field(default_factory=dict)
     mesh: str = ""              # the fitted mesh (library path)
+    per_part: dict = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -158,8 +159,8 @@ def build_catalog(work: Path, synth_lib: Path, tag: str) -> Path:
     return cat
 
 
-def draw_reference(v: Vehicle, index: int, size):
-    rng = np.random.default_rng(REF_SEED + index)
+def draw_reference(v: Vehicle, index: int, size, ref_seed: int = REF_SEED):
+    rng = np.random.default_rng(ref_seed + index)
     colors = draw_car_colors(rng)
     light = draw_light(rng, sun=rng.uniform() < 0.8)
     kw = dict(azimuth=float(rng.uniform(0.0, 360.0)), elevation=float(rng.uniform(2.0, 25.0)),
@@ -168,7 +169,7 @@ def draw_reference(v: Vehicle, index: int, size):
               noise=float(rng.uniform(0.004, 0.015)), jpeg_quality=int(rng.integers(70, 96)),
               white_balance_error=0.01)
     ref = render_reference(v.mesh, v.parts, colors, size=size, light=light,
-                           seed=REF_SEED + index, background="clutter", **kw)
+                           seed=ref_seed + index, background="clutter", **kw)
     x0, y0, x1, y1 = ref.box
     j = rng.uniform(-0.03, 0.03, 4) * np.array([x1 - x0, y1 - y0, x1 - x0, y1 - y0])
     H, W = size
@@ -189,11 +190,12 @@ def true_pixels(ref) -> dict[str, int]:
     return {p: int(np.count_nonzero(ref.part_map == PART_NAMES.index(p))) for p in SCORED}
 
 
-def score_colors(colors: dict, ref, pixels: dict) -> tuple[float, float]:
-    """(body dE, pixel-weighted parts dE) after the best exposure factor (module docstring)."""
+def score_colors(colors: dict, ref, pixels: dict) -> Score:
+    """A Score with the body's dE, the pixel-weighted parts' dE and each scored part's dE after
+    the best exposure factor (module docstring)."""
     scored = [p for p in SCORED if pixels[p] >= MIN_TRUE_PIXELS and p in ref.colors]
     if not scored:
-        return float("nan"), float("nan")
+        return Score()
     fit = np.array([np.asarray(colors.get(p, prior_color(p)), np.float64) for p in scored])
     true_lab = linear_to_lab(np.array([ref.colors[p] for p in scored]))
     w = np.array([pixels[p] for p in scored], np.float64)
@@ -202,7 +204,9 @@ def score_colors(colors: dict, ref, pixels: dict) -> tuple[float, float]:
                      true_lab[None])                                     # (S, P)
     k = int(np.argmin(de @ w))                                           # ties: smaller s
     body = float(de[k, scored.index("body")]) if "body" in scored else float("nan")
-    return body, float(de[k] @ w / w.sum())
+    return Score(body=body, parts=float(de[k] @ w / w.sum()),
+                 per_part={p: float(de[k, i]) for i, p in enumerate(scored)},
+                 colors={p: np.asarray(c, np.float64).tolist() for p, c in colors.items()})
 
 
 def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
@@ -309,28 +313,38 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict) -> dict[str
                 out["baseline"] = Score()
             continue
         sec = time.perf_counter() - t
-        colors = {p: np.asarray(f.color_linear, np.float64) for p, f in res.parts.items()}
-        body, parts = score_colors(colors, ref, pixels)
+        sc = score_colors({p: f.color_linear for p, f in res.parts.items()}, ref, pixels)
         img = res.images
         got = names.get(res.mesh_id, res.mesh_id)
-        top1 = (float(res.mesh_id == mesh_id or TWINS.get(got, got) == TWINS.get(v.name, v.name))
-                if key is None else float("nan"))
-        out[row] = Score(body, parts, psnr(img.render, img.photo, img.part_map >= 0), sec,
-                         top1, {p: c.tolist() for p, c in colors.items()}, got)
+        sc.top1 = (float(res.mesh_id == mesh_id or TWINS.get(got, got) == TWINS.get(v.name, v.name))
+                   if key is None else float("nan"))
+        sc.psnr, sc.seconds, sc.mesh = psnr(img.render, img.photo, img.part_map >= 0), sec, got
+        out[row] = sc
         if row == "end to end":
             bc, bp = flat_baseline(img.photo, img.part_map)
-            b_body, b_parts = score_colors(bc, ref, pixels)
-            out["baseline"] = Score(b_body, b_parts, bp, colors={p: c.tolist()
-                                                                 for p, c in bc.items()})
+            out["baseline"] = score_colors(bc, ref, pixels)
+            out["baseline"].psnr = bp
     t = time.perf_counter()
     oc, op, opm = oracle(ref, v)
-    o_body, o_parts = score_colors(oc, ref, pixels)
-    out["oracle"] = Score(o_body, o_parts, op, time.perf_counter() - t,
-                          colors={p: c.tolist() for p, c in oc.items()})
+    out["oracle"] = score_colors(oc, ref, pixels)
+    out["oracle"].psnr, out["oracle"].seconds = op, time.perf_counter() - t
     bc, bp = flat_baseline(ref.image, opm)
-    b_body, b_parts = score_colors(bc, ref, pixels)
-    out["baseline (true masks)"] = Score(b_body, b_parts, bp)
+    out["baseline (true masks)"] = score_colors(bc, ref, pixels)
+    out["baseline (true masks)"].psnr = bp
     return out
+
+
+def part_table(results: list[tuple[Vehicle, dict]]) -> str:
+    """Median CIEDE2000 of each scored part per row (photos where it is scored)."""
+    lines = ["| median dE per part (photos) | " + " | ".join(SCORED) + " |",
+             "|" + "---|" * (len(SCORED) + 1)]
+    for name in ROWS:
+        cells = []
+        for p in SCORED:
+            x = [r[name].per_part[p] for _, r in results if name in r and p in r[name].per_part]
+            cells.append(f"{_q(x, 50):.2f} ({len(x)})" if x else "-")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
 
 
 def _q(x, q):
@@ -392,6 +406,8 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=lambda s: tuple(int(x) for x in s.split("x")),
                     default=(360, 480), help="photo HxW (default 360x480)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/ucad-fitbench"))
+    ap.add_argument("--ref-seed", type=int, default=REF_SEED,
+                    help=f"reference draws: generator REF_SEED + index (default {REF_SEED})")
     ap.add_argument("--json", type=Path, default=None, help="write per-photo scores here")
     args = ap.parse_args(argv)
     if args.quick:
@@ -422,7 +438,7 @@ def main(argv=None) -> int:
                 print(f"  {v.name}: not accepted in the catalogue, skipped")
                 continue
             t = time.perf_counter()
-            ref, box = draw_reference(v, i, args.size)
+            ref, box = draw_reference(v, i, args.size, args.ref_seed)
             t_ref += time.perf_counter() - t
             r = run_one(ref, box, v, reader, key, names)
             results.append((v, r))
@@ -435,6 +451,7 @@ def main(argv=None) -> int:
           f"{len(accepted)} meshes; total {time.perf_counter() - t0:.0f} s\n")
     for subset in ("all", "real", "generated"):
         print(table(results, subset) + "\n")
+    print(part_table(results) + "\n")
     mg = [r["mesh given"].seconds for _, r in results]
     n_mat = np.median([len([p for p in SCORED if p in r["mesh given"].colors])
                        for _, r in results]) if results else float("nan")
