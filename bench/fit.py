@@ -48,7 +48,9 @@ time of ``fit_photo`` (median, 90th percentile over photos; each photo is one ru
 Held out: the generated rows are held out from everything learned or tuned. The real rows are
 not held out from the labeller (the shipped labeller is trained with every real model's
 materials; ``bench/parts.py`` scores it leave-one-model-out): their end-to-end labels are
-optimistic, the oracle row is not affected.
+optimistic, the oracle row is not affected. ``--segmenter labeller:MODEL.onnx`` builds the
+catalogue with another labeller (e.g. ``scripts/train_labeller.py --no-real`` or
+``--leave-out``) for real rows held out from it.
 """
 from __future__ import annotations
 
@@ -148,13 +150,19 @@ def generated_vehicles(lib: Path, limit: int) -> list[Vehicle]:
     return out
 
 
-def build_catalog(work: Path, synth_lib: Path, tag: str) -> Path:
-    from ucad_cl.build import build
+def build_catalog(work: Path, synth_lib: Path, tag: str, segmenter: str) -> Path:
+    import hashlib
 
+    from ucad_cl.build import build
+    from ucad_cl.jobs import BuildOptions
+
+    if segmenter != "labeller":
+        tag += "_" + hashlib.sha256(segmenter.encode()).hexdigest()[:8]
     cat = work / f"catalog_{tag}"
     t = time.perf_counter()
     for lib in (VEHICLES, synth_lib):
-        build(lib, cat, workers=2, progress=False, log=lambda *a: None)
+        build(lib, cat, BuildOptions(segmenter=segmenter), workers=2, progress=False,
+              log=lambda *a: None)
     print(f"catalogue {cat}: ready in {time.perf_counter() - t:.1f} s")
     return cat
 
@@ -406,6 +414,9 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=lambda s: tuple(int(x) for x in s.split("x")),
                     default=(360, 480), help="photo HxW (default 360x480)")
     ap.add_argument("--work", type=Path, default=Path("/tmp/ucad-fitbench"))
+    ap.add_argument("--segmenter", default="labeller",
+                    help="the catalogue's part labeller (build --segmenter), e.g. "
+                         "labeller:MODEL.onnx trained without the real models")
     ap.add_argument("--ref-seed", type=int, default=REF_SEED,
                     help=f"reference draws: generator REF_SEED + index (default {REF_SEED})")
     ap.add_argument("--json", type=Path, default=None, help="write per-photo scores here")
@@ -419,7 +430,7 @@ def main(argv=None) -> int:
     print(f"machine: {machine()}")
     t0 = time.perf_counter()
     synth_lib = generated_library(args.work, args.library)
-    cat = build_catalog(args.work, synth_lib, f"{args.library}")
+    cat = build_catalog(args.work, synth_lib, f"{args.library}", args.segmenter)
 
     from ucad_catalog.reader import CatalogReader
     from ucad_cl.jobs import content_sha256
@@ -431,7 +442,7 @@ def main(argv=None) -> int:
         metas = reader.meshes()
         accepted = {m.sha256 for m in metas if m.state == "accepted"}
         names = {m.sha256: m.path for m in metas}
-        print(f"catalogue: {len(accepted)} accepted meshes of {len(metas)}")
+        print(f"catalogue: {len(accepted)} accepted meshes of {len(reader.meshes(None))}")
         for i, v in enumerate(vehicles):
             key = content_sha256(v.path)
             if key not in accepted:
