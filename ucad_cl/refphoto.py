@@ -64,8 +64,9 @@ within 35 deg of the face normal, else the face normal, interpolated at the hit;
   noise; ``noise`` is the standard deviation at mid grey), before quantisation; JPEG through
   Pillow at ``jpeg_quality`` (None: none).
 
-Deterministic: the same arguments and ``seed`` give the same bytes (one NumPy generator drawn in a
-fixed order; Embree returns the nearest hit and its BVH builders are deterministic). Between
+Deterministic: the same arguments and ``seed`` give the same bytes on a machine (one NumPy
+generator drawn in a fixed order; Embree returns the nearest hit and its BVH builders are
+deterministic; another CPU's Embree kernels may round a hit distance differently). Between
 exactly coincident faces Embree's choice need not be the rasterizer's lower-index rule: the truth
 maps agree with the rasterizer on >= 99 % of pixels, not on every one (tests/test_refphoto.py).
 """
