@@ -443,14 +443,16 @@ def _rays(K, w2c, W, H, s):
     """Camera centre and unit directions through s x s sub-pixel centres of every pixel,
     pixel-major (the s*s samples of pixel (i, j) are consecutive); s = 1: the pixel centres."""
     sub = (np.arange(s) + 0.5) / s
-    j = (np.arange(W)[:, None] + sub[None, :]).reshape(-1)
-    i = (np.arange(H)[:, None] + sub[None, :]).reshape(-1)
-    jj = np.broadcast_to(j.reshape(1, W, 1, s), (H, W, s, s))
-    ii = np.broadcast_to(i.reshape(H, 1, s, 1), (H, W, s, s))
-    pix = np.stack([jj.reshape(-1), ii.reshape(-1), np.ones(H * W * s * s)], axis=1)
+    u = (np.arange(W)[:, None] + sub[None, :]).reshape(1, W, 1, s)      # x, per (j, sx)
+    v = (np.arange(H)[:, None] + sub[None, :]).reshape(H, 1, s, 1)      # y, per (i, sy)
+    Ki = np.linalg.inv(K)
+    cam = [Ki[r, 0] * u + Ki[r, 1] * v + Ki[r, 2] for r in range(3)]     # K^-1 (u, v, 1)
     R, t = w2c[:3, :3], w2c[:3, 3]
-    d = (pix @ np.linalg.inv(K).T) @ R
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = np.empty((H, W, s, s, 3))
+    for c in range(3):                                                   # R^T K^-1 (u, v, 1)
+        d[..., c] = cam[0] * R[0, c] + cam[1] * R[1, c] + cam[2] * R[2, c]
+    d = d.reshape(-1, 3)
+    d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
     return -R.T @ t, d
 
 
