@@ -21,13 +21,17 @@
    with its own masks (still inside the render's silhouette, which gives the normals).
 5. **Light and colours**: ``ucad_cl.light.fit_light`` (sky, sun, clear-coat Fresnel; closed-form
    base colours; the paper's ``l_rgb + 0.1 l_stat``; trimmed residuals; the scale convention
-   E_up = 1 is documented there). Each part keeps its prior (``ucad_catalog.parts``) metallic,
-   roughness, clear coat and transmission; only the base colour is fitted.
+   E_up = 1 is documented there), then white-balanced on the tyres (``NEUTRAL_PARTS``: the
+   light takes the colour cast that makes them neutral grey). Each part keeps its prior
+   (``ucad_catalog.parts``) metallic, roughness, clear coat and transmission; only the base
+   colour is fitted.
 6. **Status per part**: ``fitted``; ``prior`` when the render shows none of it inside the
    object (the prior's colour is kept: the source colour for car paint and 'other'); ``flagged``
    with a reason when fewer than ``MIN_PIXELS`` pixels are left after erosion (prior colour), or
-   when its shading-corrected pixels form two clusters ``TWO_COLOUR_DE`` CIEDE2000 apart, each
-   holding at least ``TWO_COLOUR_SHARE`` of them (the dominant colour is reported).
+   when its materials, each fitted alone under the light, form two groups ``TWO_COLOUR_CHROMA``
+   apart in chromaticity and ``TWO_COLOUR_DE`` in CIEDE2000, each holding at least
+   ``TWO_COLOUR_SHARE`` of its pixels (``_two_colours``; the colour reported is the fit of all
+   its pixels).
 
 The working frame is the photo cropped to the object's box grown by ``CROP_GROW`` and scaled so
 its longer side is at most ``WORK_SIDE`` pixels (never enlarged); poses are reported for the
@@ -70,7 +74,8 @@ ROT_STEPS = (2.0, 1.0, 0.5)   # pose touch-up steps (degrees of azimuth / elevat
 ROT_RANGE = 6.0             # at most this far from the pose search's answer, degrees
 MIN_PIXELS = 30             # fewer eroded pixels: the part is flagged ("too few pixels")
 SATURATED = 250             # sRGB level at or above which a photo pixel is not used
-TWO_COLOUR_DE = 12.0        # cluster centres at least this CIEDE2000 apart ...
+TWO_COLOUR_CHROMA = 0.08    # material groups at least this far apart in (r, g) chromaticity
+TWO_COLOUR_DE = 12.0        # ... and this far apart in CIEDE2000 ...
 TWO_COLOUR_SHARE = 0.2      # ... each holding at least this share: flagged "two colours"
 NOT_ONE_COLOUR = ("light", "window")   # parts not tested for two colours (red and white
 #                                        lamps; glass shows what is behind it)
@@ -275,6 +280,7 @@ class _Frame:
     view: np.ndarray
     K: np.ndarray
     w2c: np.ndarray
+    mat_map: np.ndarray
 
 
 class _Fit:
@@ -342,31 +348,30 @@ class _Fit:
                                  " it has no part table to fit")
             return meta, [], None
         metas = self.r.meshes()
-        feats, ids, views, az, el = [], [], [], [], []
+        feats, ids, views = [], [], []
         for k, m in enumerate(metas):
             try:
-                f = self.r.features(m.sha256)
+                f = np.asarray(self.r.features(m.sha256), np.float32)
             except (CatalogError, KeyError, OSError):
                 continue
-            for v in self.r.record(m.sha256)["views"]:
-                ids.append(k)
-                views.append(v["index"])
-                az.append(v["azimuth"])
-                el.append(v["elevation"])
-            feats.append(np.asarray(f, np.float32))
+            ids.append(np.full(len(f), k))
+            views.append(np.arange(len(f)))
+            feats.append(f)
         if not feats:
             raise ValueError("the catalogue has no accepted mesh with stored features")
         db = np.concatenate(feats)
         query, _ = query_features(photo, HogExtractor(runtime=self.runtime), box=box,
                                   mask=mask, runtime=self.runtime)
-        matches = search_catalog(query, db, np.asarray(ids), np.asarray(views),
-                                 np.asarray(az), np.asarray(el), top=min(RETRIEVAL_ROWS, len(db)))
+        zeros = np.zeros(len(db))                  # angles are read for the matches only
+        matches = search_catalog(query, db, np.concatenate(ids), np.concatenate(views), zeros,
+                                 zeros, top=min(RETRIEVAL_ROWS, len(db)))
         seen: dict[int, Candidate] = {}
         for mt in matches:
-            if mt.mesh not in seen:
+            if mt.mesh not in seen and len(seen) < CANDIDATES:
                 m = metas[mt.mesh]
-                seen[mt.mesh] = Candidate(m.sha256, str(m.source), mt.view, mt.azimuth,
-                                          mt.elevation, mt.score)
+                v = self.r.views(m.sha256)[mt.view]
+                seen[mt.mesh] = Candidate(m.sha256, str(m.source), mt.view, v.azimuth,
+                                          v.elevation, mt.score)
         cands = list(seen.values())[:CANDIDATES]
         best = metas[matches[0].mesh]
         return best, cands, matches[0].view
@@ -435,8 +440,8 @@ class _Fit:
                              borderValue=(0.0, 0.0, 0.0)).astype(np.float64)
         _, rays = pixel_rays(K_work, pose.w2c, w, h)
         view = -rays
-        return _Frame(part_map=lut[mat], normal=_facing(nrm, view), view=view, K=K_work,
-                      w2c=pose.w2c)
+        return _Frame(part_map=lut[np.minimum(mat, len(lut) - 1)], normal=_facing(nrm, view),
+                      view=view, K=K_work, w2c=pose.w2c, mat_map=mat)
 
 
 def _part_lut(rows) -> np.ndarray:
@@ -512,7 +517,8 @@ def _render_frame(mesh: Mesh, K, w2c, w: int, h: int, lut, runtime) -> _Frame:
     view = -rays
     mat = views.mat_id[0].astype(np.int64)
     part_map = np.where(mat < len(lut), lut[np.minimum(mat, len(lut) - 1)], -1)
-    return _Frame(part_map=part_map, normal=_facing(nrm, view), view=view, K=K, w2c=w2c)
+    return _Frame(part_map=part_map, normal=_facing(nrm, view), view=view, K=K, w2c=w2c,
+                  mat_map=mat)
 
 
 def _rotated(w2c: np.ndarray, d_az: float, d_el: float) -> np.ndarray:
@@ -614,6 +620,7 @@ def _align(frame: _Frame, obj: np.ndarray) -> tuple[_Frame, tuple[int, int]]:
     K[0, 2] += dx
     K[1, 2] += dy
     return _Frame(part_map=_shifted(frame.part_map, dx, dy, -1),
+                  mat_map=_shifted(frame.mat_map, dx, dy, 0),
                   normal=_shifted(frame.normal, dx, dy, 0.0),
                   view=frame.view, K=K, w2c=frame.w2c), (dx, dy)
 
@@ -685,6 +692,7 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
     for k in index:
         sel |= part_map == k
     sel &= unsat
+    mats = frame.mat_map[sel]
     samples = _samples(lin[sel], frame.normal[sel], frame.view[sel], part_map[sel], index,
                        fit_parts, priors)
     lf = fit_light(samples, len(fit_parts))
@@ -703,7 +711,8 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
             kept = on & lf.kept
             r = float(np.sqrt(np.mean((res[kept] @ np.array([0.2126, 0.7152, 0.0722])) ** 2)))
             status = "fitted"
-            reason = _two_colours(samples, B, C, on) if p not in NOT_ONE_COLOUR else ""
+            reason = (_two_colours(samples, B, C, on & lf.kept, mats)
+                      if p not in NOT_ONE_COLOUR else "")
             if reason:
                 status = "flagged"
             parts[p] = PartFit(p, lf.albedo[i], metal, rough, npx, r, status, reason)
@@ -732,28 +741,55 @@ def _samples(rgb, normal, view, pmap, index, fit_parts, priors) -> Samples:
                    metallic=table[part, 0], roughness=table[part, 1])
 
 
-def _two_colours(s: Samples, B: np.ndarray, C: np.ndarray, on: np.ndarray) -> str:
-    """A reason when the part's shading-corrected pixels form two colour clusters (2-means in
-    CIELAB from the median and the farthest pixel), else ''."""
-    ok = on & (B.min(axis=1) > 0.05)
-    if np.count_nonzero(ok) < 2 * MIN_PIXELS:
+def _two_colours(s: Samples, B: np.ndarray, C: np.ndarray, on: np.ndarray,
+                 mats: np.ndarray) -> str:
+    """A reason when the part's materials show two colours, else ''.
+
+    Each material of the part with at least MIN_PIXELS kept pixels gets its own closed-form
+    colour under the fitted light (averaging over a material cancels most per-pixel model
+    error); the colours are reduced to chromaticity (r, g) = (R, G) / (R + G + B), which an
+    error of the light's strength does not change (two greys, e.g. black and white, are not
+    told apart), and split by 2-means (pixel-weighted; from the largest material and the
+    material farthest from it). Flagged when each group holds at least TWO_COLOUR_SHARE of the
+    pixels and the groups are TWO_COLOUR_CHROMA apart in chromaticity and TWO_COLOUR_DE in
+    CIEDE2000 (their pixel-weighted colours)."""
+    ids, cols, wts = [], [], []
+    for m in np.unique(mats[on]):
+        sel = on & (mats == m)
+        n = int(np.count_nonzero(sel))
+        if n < MIN_PIXELS:
+            continue
+        b, c, y = B[sel], C[sel], s.rgb[sel]
+        a = np.maximum((b * (y - c)).sum(axis=0) / np.maximum((b * b).sum(axis=0), 1e-12), 0)
+        if a.sum() <= 1e-6:
+            continue
+        ids.append(int(m))
+        cols.append(a)
+        wts.append(n)
+    if len(cols) < 2:
         return ""
-    alb = np.clip((s.rgb[ok] - C[ok]) / B[ok], 0.0, None)
-    lab = linear_to_lab(alb)
-    c1 = np.median(lab, axis=0)
-    far = np.linalg.norm(lab - c1, axis=1)
-    c2 = lab[int(np.argsort(far, kind="stable")[int(0.95 * (len(far) - 1))])]
+    col, w = np.array(cols), np.array(wts, np.float64)
+    ch = col[:, :2] / col.sum(axis=1, keepdims=True)
+    c1 = ch[int(np.argmax(w))]
+    c2 = ch[int(np.argmax(np.linalg.norm(ch - c1, axis=1)))]
+    a = np.ones(len(ch), bool)
     for _ in range(10):
-        a = np.linalg.norm(lab - c1, axis=1) <= np.linalg.norm(lab - c2, axis=1)
-        if a.all() or not a.any():
+        a = np.linalg.norm(ch - c1, axis=1) <= np.linalg.norm(ch - c2, axis=1)
+        if a.all():
             return ""
-        c1, c2 = lab[a].mean(axis=0), lab[~a].mean(axis=0)
-    share = min(a.mean(), 1.0 - a.mean())
-    de = float(delta_e2000(c1, c2))
-    if share >= TWO_COLOUR_SHARE and de >= TWO_COLOUR_DE:
-        return (f"two colours: clusters of {a.mean():.0%} and {1 - a.mean():.0%} of its pixels "
-                f"{de:.0f} CIEDE2000 apart")
-    return ""
+        c1 = (ch[a] * w[a, None]).sum(0) / w[a].sum()
+        c2 = (ch[~a] * w[~a, None]).sum(0) / w[~a].sum()
+    share = float(w[a].sum() / w.sum())
+    if min(share, 1 - share) < TWO_COLOUR_SHARE or np.linalg.norm(c1 - c2) < TWO_COLOUR_CHROMA:
+        return ""
+    g1 = (col[a] * w[a, None]).sum(0) / w[a].sum()
+    g2 = (col[~a] * w[~a, None]).sum(0) / w[~a].sum()
+    de = float(delta_e2000(linear_to_lab(g1), linear_to_lab(g2)))
+    if de < TWO_COLOUR_DE:
+        return ""
+    return (f"two colours: materials holding {share:.0%} and {1 - share:.0%} of its pixels "
+            f"are {srgb_hex(np.clip(g1, 0, 1))} and {srgb_hex(np.clip(g2, 0, 1))} "
+            f"(CIEDE2000 {de:.0f})")
 
 
 def _render_image(work, frame: _Frame, parts, light, priors) -> np.ndarray:

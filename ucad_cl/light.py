@@ -22,44 +22,52 @@ Light, in the vehicle's canonical frame (+Y up; ``docs/CONVENTIONS.md``):
   sun of irradiance ``sun_c`` from the unit direction ``l`` (no cast shadows: shadowed pixels
   are residuals the trimming removes);
 * ``L_c(r) = sky_c s(r_y) + GROUND (1 - s(r_y))``: the environment seen in the mirror direction
-  ``r`` (a smooth step over ``r_y`` in [-w, w], ``w = 0.05 + roughness / 2``); the sun's own glint
-  is not modelled (saturated pixels are dropped, bright residuals trimmed).
+  ``r`` (a smooth step over ``r_y`` in [-w, w], ``w = 0.05 + ENV_BLUR * roughness``); the sun's
+  glint is not modelled (saturated pixels are dropped, bright residuals trimmed).
 
-**Scale convention.** A single photo cannot separate albedo from light intensity, nor a colour
-cast of every albedo from the light's colour: the light is fixed so that a horizontal surface
-facing up receives ``E_up = sky + sun * max(l_y, 0) = (1, 1, 1)`` (the photo is taken as white
-balanced and exposed for a white up-facing surface). Base colours are therefore relative to the
-photo's exposure (a bright photo gives lighter colours; comparisons use one exposure factor per
-photo, ``bench/fit.py``); ``GROUND = 0.2`` of ``E_up``. With that constraint each channel keeps
-one free parameter, its sky share ``sky_c`` in [0, 1] (``sun_c = (1 - sky_c) / l_y``), and B, C
-are affine in it.
+**Scale convention.** A single photo cannot separate albedo from light intensity: the light is
+fixed so that a horizontal surface facing up receives ``E_up = sky + sun * max(l_y, 0) = 1``
+(before the white balance, below). Base colours are therefore relative to the photo's exposure
+(comparisons use one exposure factor per photo, ``bench/fit.py``); ``GROUND = 0.2`` of
+``E_up``. The light's shape is then one number, the sky share ``g = sky / E_up`` in [0, 1]
+(``sun = (1 - g) / l_y``), the same for the three channels (``SHARED_SKY``); B and C are affine
+in it. **White balance** (``balance``): a photo's colour cast is moved into the light's colour
+by per-channel gains that make parts known to be neutral grey (the fit uses the tyres) come out
+grey; without them the light stays neutral.
 
 **Search.** Sun directions on a grid (``SUN_AZIMUTHS`` x ``SUN_ELEVATIONS``, then a finer grid
-around the best), and for each the sky share of every channel on ``SKY_STEPS`` values refined by
-a parabola; for each candidate light the base colours are solved in closed form (least squares
-of ``l_rgb`` plus the mean term of ``l_stat``) and the candidate is scored by the objective
-``l = l_rgb + 0.1 l_stat`` (``l_rgb``: mean squared pixel difference over all pixels;
-``l_stat``: over parts, squared difference of the mean plus squared difference of the variance
-of the part's pixels, photo vs model, weighted by the part's pixel share). The variance term
-enters the score, not the closed form. **Robustness:** the fit runs twice; the second pass keeps
-only pixels whose RGB residual is within ``TRIM_SIGMA`` robust standard deviations (1.4826
-x MAD, at least ``MIN_SIGMA``) of their part's median residual.
+around the best, elevations within ``SUN_RANGE``), and for each the sky share on ``SKY_STEPS``
+values refined by a parabola; for each candidate light the base colours are solved in closed
+form (least squares of ``l_rgb`` plus the mean term of ``l_stat``, clipped at 0) and the
+candidate is scored by the objective ``l = l_rgb + 0.1 l_stat`` (``l_rgb``: mean squared pixel
+difference over all pixels; ``l_stat``: over parts, squared difference of the mean plus squared
+difference of the variance of the part's pixels, photo vs model, weighted by the part's pixel
+share). The variance term enters the score, not the closed form. Scores come from per-part sums
+of products of the affine terms (``_Moments``), so a candidate costs O(parts), not O(pixels).
+**Robustness:** the fit runs twice; the second pass keeps only pixels whose RGB residual is
+within ``TRIM_SIGMA`` robust standard deviations (1.4826 x the median distance, at least
+``MIN_SIGMA``) of their part's median residual, and searches only the fine grid around the
+first pass's sun.
 **Determinism:** fixed grids, float64 sums in a fixed order; ties go to the earlier grid point.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 F0 = 0.04                   # Fresnel reflectance at normal incidence (clear coat, glass)
 GROUND = 0.2                # ground radiance, share of E_up
 SUN_AZIMUTHS = 12           # coarse sun azimuths (every 30 degrees)
-SUN_ELEVATIONS = (12.0, 30.0, 50.0, 72.0)   # coarse sun elevations, degrees
+SUN_ELEVATIONS = (15.0, 30.0, 45.0, 60.0)   # coarse sun elevations, degrees
+SUN_RANGE = (10.0, 70.0)    # sun elevations searched, degrees (daylight photos)
 SKY_STEPS = 11              # sky share grid per channel: 0, 0.1, ..., 1
 TRIM_SIGMA = 2.5            # residual trim, robust standard deviations
 MIN_SIGMA = 0.01            # floor of the robust standard deviation (linear RGB)
 BALANCE_RANGE = (0.7, 1.4)  # white-balance gains allowed per channel
+E_MAX = 1.2                 # mean diffuse irradiance allowed on the visible surfaces (x E_up)
+ENV_BLUR = 1.0              # mirror-direction step half-width per unit of roughness
+SHARED_SKY = True           # one sky share for the three channels
 STAT_WEIGHT = 0.1           # weight of l_stat against l_rgb (the paper's 0.1 / 1)
 LUMA = np.array([0.2126, 0.7152, 0.0722])   # linear-RGB luminance (Rec. 709)
 
@@ -67,13 +75,16 @@ LUMA = np.array([0.2126, 0.7152, 0.0722])   # linear-RGB luminance (Rec. 709)
 @dataclass
 class Lighting:
     """Estimated light in the canonical vehicle frame (see the module docstring): ``sky`` and
-    ``sun`` (3,) linear RGB with ``sky + sun * max(sun_dir_y, 0) = 1``; ``sun_dir`` (3,) unit
-    vector toward the sun; ``ground`` the ground's radiance."""
+    ``sun`` (3,) linear RGB with ``sky + sun * max(sun_dir_y, 0) = white_balance`` (1 before
+    ``balance``); ``sun_dir`` (3,) unit
+    vector toward the sun; ``ground`` the ground's radiance; ``white_balance`` the per-channel
+    gains ``balance`` moved from the colours into the light (1 without)."""
 
     sky: np.ndarray
     sun: np.ndarray
     sun_dir: np.ndarray
     ground: float = GROUND
+    white_balance: np.ndarray = field(default_factory=lambda: np.ones(3))
 
     def to_json(self) -> dict:
         d = self.sun_dir
@@ -83,7 +94,7 @@ class Lighting:
                 "sky_linear": _r(self.sky), "sun_linear": _r(self.sun),
                 "sun_direction": _r(d), "sun_azimuth": round(az, 2),
                 "sun_elevation": round(el, 2), "ground": round(float(self.ground), 6),
-                "fresnel_f0": F0,
+                "fresnel_f0": F0, "white_balance": _r(self.white_balance),
                 "scale": "E_up = sky + sun * max(sun_y, 0) = 1 per channel; colours are "
                          "relative to the photo's exposure"}
 
@@ -185,7 +196,8 @@ def balance(fit: LightFit, neutral: dict[int, float]) -> tuple[LightFit, np.ndar
     g = np.clip(chroma / float(LUMA @ chroma), *BALANCE_RANGE)
     g = g / float(LUMA @ g)
     light = Lighting(sky=fit.lighting.sky * g, sun=fit.lighting.sun * g,
-                     sun_dir=fit.lighting.sun_dir, ground=fit.lighting.ground)
+                     sun_dir=fit.lighting.sun_dir, ground=fit.lighting.ground,
+                     white_balance=g)
     return LightFit(lighting=light, albedo=fit.albedo / g, loss=fit.loss, kept=fit.kept), g
 
 
@@ -204,7 +216,7 @@ def _affine(s: Samples, sun_dir: np.ndarray):
     ly = max(float(sun_dir[1]), 1e-3)
     ndotv = np.clip(np.einsum("ij,ij->i", n, v), 0.0, 1.0)
     r = 2.0 * ndotv[:, None] * n - v
-    w = 0.05 + 0.5 * s.roughness
+    w = 0.05 + ENV_BLUR * s.roughness
     t = np.clip((r[:, 1] + w) / (2.0 * w), 0.0, 1.0)
     step = t * t * (3.0 - 2.0 * t)                      # sky share of the mirror direction
     ndotl = np.clip(n @ sun_dir, 0.0, None)
@@ -264,17 +276,59 @@ def _loss(pred: np.ndarray, y: np.ndarray, part: np.ndarray, n_parts: int) -> np
     return l_rgb + STAT_WEIGHT * l_stat
 
 
-def _channel_search(B0, B1, C0, C1, y, part, n_parts) -> tuple[float, float]:
+class _Moments:
+    """Per-part sums of the products of B0, B1, C0, C1 and one channel's y, from which l_rgb,
+    l_stat and the closed-form colours of any sky share follow in O(parts) (B = B0 + g B1,
+    C = C0 + g C1 are affine in the sky share g)."""
+
+    def __init__(self, B0, B1, C0, C1, part, n_parts):
+        self.u = [B0[:, 0], B1[:, 0], C0[:, 0], C1[:, 0]]
+        self.part, self.P = part, n_parts
+        self.n = np.bincount(part, minlength=n_parts).astype(np.float64)
+        self.N = float(len(part))
+        self.S = [self._sum(x) for x in self.u]
+        self.SS = {(k, m): self._sum(self.u[k] * self.u[m])
+                   for k in range(4) for m in range(k, 4)}
+
+    def _sum(self, x):
+        return np.bincount(self.part, weights=x, minlength=self.P)
+
+    def channel(self, y):
+        """(T, Y, YY): sums of u_k y, y and y^2 per part for one channel's values y (N,)."""
+        return [self._sum(x * y) for x in self.u], self._sum(y), self._sum(y * y)
+
+    def losses(self, g: np.ndarray, chan) -> np.ndarray:
+        """(G,) l_rgb + 0.1 l_stat at sky shares g (G,), colours in closed form."""
+        T, Y, YY = chan
+        S, SS = self.S, self.SS
+        g = np.asarray(g, np.float64)[:, None]
+        n = np.maximum(self.n, 1.0)
+        sB = S[0] + g * S[1]
+        sBB = SS[0, 0] + 2 * g * SS[0, 1] + g * g * SS[1, 1]
+        sBC = SS[0, 2] + g * (SS[0, 3] + SS[1, 2]) + g * g * SS[1, 3]
+        sC = S[2] + g * S[3]
+        sCC = SS[2, 2] + 2 * g * SS[2, 3] + g * g * SS[3, 3]
+        sBy = T[0] + g * T[1]
+        sCy = T[2] + g * T[3]
+        mb, mr = sB / n, (Y - sC) / n
+        num = (sBy - sBC) / n + STAT_WEIGHT * mb * mr
+        den = sBB / n + STAT_WEIGHT * mb * mb
+        a = np.maximum(np.divide(num, den, out=np.zeros_like(num), where=den > 1e-12), 0.0)
+        sp = a * sB + sC
+        spp = a * a * sBB + 2 * a * sBC + sCC
+        spy = a * sBy + sCy
+        l_rgb = (spp - 2 * spy + YY).sum(axis=1) / self.N
+        mp, my = sp / n, Y / n
+        vp, vy = spp / n - mp * mp, YY / n - my * my
+        l_stat = (((mp - my) ** 2 + (vp - vy) ** 2) * (self.n / self.N)).sum(axis=1)
+        return l_rgb + STAT_WEIGHT * l_stat
+
+
+def _channel_search(mom: _Moments, y) -> tuple[float, float]:
     """(best sky share, its loss) of one channel for one sun direction."""
     grid = np.linspace(0.0, 1.0, SKY_STEPS)
-
-    def losses(g):
-        B = B0.T + g[:, None] * B1.T
-        C = C0.T + g[:, None] * C1.T
-        a = np.nan_to_num(_closed_form(B, C, y, part, n_parts))
-        return _loss(a[:, part] * B + C, y, part, n_parts)
-
-    ls = losses(grid)
+    chan = mom.channel(y)
+    ls = mom.losses(grid, chan)
     k = int(np.argmin(ls))
     best_g, best_l = float(grid[k]), float(ls[k])
     if 0 < k < len(grid) - 1:                       # parabola through the three points
@@ -282,20 +336,56 @@ def _channel_search(B0, B1, C0, C1, y, part, n_parts) -> tuple[float, float]:
         den = l0 - 2.0 * l1 + l2
         if den > 0:
             g = float(grid[k] + 0.5 * (l0 - l2) / den * (grid[1] - grid[0]))
-            lg = float(losses(np.array([g]))[0])
+            lg = float(mom.losses(np.array([g]), chan)[0])
             if lg < best_l:
                 best_g, best_l = g, lg
     return best_g, best_l
 
 
+def _irradiance_cap(s: Samples, d: np.ndarray) -> float:
+    """The smallest sky share g whose mean diffuse irradiance over the samples, E0 + g E1
+    averaged, stays within ``E_MAX`` (0 when every share does; > 1 when none does)."""
+    n = s.normal
+    ly = max(float(d[1]), 1e-3)
+    ndotl = np.clip(n @ d, 0.0, None)
+    e0 = float(np.mean(GROUND * (1.0 - n[:, 1]) / 2.0 + ndotl / ly))
+    e1 = float(np.mean((1.0 + n[:, 1]) / 2.0 - ndotl / ly))
+    if e0 <= E_MAX:
+        return 0.0
+    return (E_MAX - e0) / e1 if e1 < 0 else 2.0
+
+
 def _score_direction(s: Samples, d: np.ndarray, n_parts: int) -> tuple[float, np.ndarray]:
-    B0, B1, C0, C1 = _affine(s, d)
-    sky, total = np.zeros(3), 0.0
-    for c in range(3):
-        g, lc = _channel_search(B0, B1, C0, C1, s.rgb[:, c], s.part, n_parts)
-        sky[c] = g
-        total += lc
-    return total, sky
+    """(loss, sky (3,)) of the best sky share for sun direction ``d``: one share for the three
+    channels (``SHARED_SKY``; the light's colour is set by ``balance``), else one per channel.
+    Shares that light the visible surfaces more than ``E_MAX`` on average are not allowed
+    (loss +inf)."""
+    g_min = _irradiance_cap(s, d)
+    if g_min > 1.0:
+        return float("inf"), np.ones(3)
+    mom = _Moments(*_affine(s, d), s.part, n_parts)
+    if not SHARED_SKY:
+        sky, total = np.zeros(3), 0.0
+        for c in range(3):
+            g, lc = _channel_search(mom, s.rgb[:, c])
+            sky[c] = g
+            total += lc
+        return total, sky
+    chans = [mom.channel(s.rgb[:, c]) for c in range(3)]
+    grid = np.linspace(g_min, 1.0, SKY_STEPS)
+    total = lambda g: sum(mom.losses(g, ch) for ch in chans)
+    ls = total(grid)
+    k = int(np.argmin(ls))
+    best_g, best_l = float(grid[k]), float(ls[k])
+    if 0 < k < len(grid) - 1:                       # parabola through the three points
+        l0, l1, l2 = ls[k - 1], ls[k], ls[k + 1]
+        den = l0 - 2.0 * l1 + l2
+        if den > 0:
+            g = float(grid[k] + 0.5 * (l0 - l2) / den * (grid[1] - grid[0]))
+            lg = float(total(np.array([g]))[0])
+            if lg < best_l:
+                best_g, best_l = g, lg
+    return best_l, np.full(3, best_g)
 
 
 def _search(s: Samples, n_parts: int, around: Lighting | None = None) -> Lighting:
@@ -319,7 +409,7 @@ def _search(s: Samples, n_parts: int, around: Lighting | None = None) -> Lightin
         for de in (-8.0, 0.0, 8.0):
             if daz == 0.0 and de == 0.0:
                 continue
-            az, el = (az0 + daz) % 360.0, float(np.clip(el0 + de, 5.0, 85.0))
+            az, el = (az0 + daz) % 360.0, float(np.clip(el0 + de, *SUN_RANGE))
             loss, sky = _score_direction(s, sun_direction(az, el), n_parts)
             if loss < best[0]:
                 best = (loss, az, el, sky)
