@@ -317,3 +317,23 @@ def test_white_balance_makes_a_grey_surface_facing_up_neutral():
     centre = ref.image[38:42, 38:42].reshape(-1, 3).astype(int)
     assert np.abs(centre[:, 0] - centre[:, 2]).max() <= 3
     assert len(top) > 100
+
+
+def test_antialiased_image_agrees_with_the_centre_sample_truth():
+    # 2 x 2 samples per pixel: inside the mask (away from its edge) every pixel is the vehicle,
+    # outside it the plain background (sRGB 128) exactly, along the edge a mix
+    box = _box_mesh()
+    ref = render_reference(box, ["interior"] * 6, {"interior": (0.9, 0.05, 0.05)},
+                           azimuth=25.0, elevation=20.0, size=(70, 90), fill=0.7,
+                           offset=(0.5, 0.3), light=_uniform_sky(0.5), **_clean())
+    inner = _eroded(ref.mask)
+    outer = _eroded(~ref.mask)
+    assert inner.sum() > 300 and outer.sum() > 1000
+    assert np.all(ref.image[outer] == 128)
+    red = ref.image[..., 0].astype(int) > ref.image[..., 1].astype(int) + 60
+    assert red[inner].mean() > 0.9                  # the red box (grazing faces reflect the sky)
+    assert not red[outer].any()
+    edge = ~inner & ~outer
+    r = ref.image[..., 0]
+    mixed = edge & (r > 133) & (r < np.percentile(r[inner], 10) - 5)
+    assert mixed.sum() > 20                         # antialiased: part box, part background
