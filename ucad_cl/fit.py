@@ -3,7 +3,10 @@
 ``fit_photo(photo, box=... | mask=..., catalog=CAT, mesh=None)`` runs, on a CPU:
 
 1. **Object**: the vehicle's pixels (the given mask, or GrabCut inside the box:
-   ``ucad_cl.foreground``).
+   ``ucad_cl.foreground``). When GrabCut keeps too little of the box (clutter of the vehicle's
+   colours), the box goes to the pose search and the render's silhouette at the pose, inside
+   the box, is the outline (a note says so); a box of uniform pixels (standard deviation under
+   ``UNIFORM_STD`` levels) is refused as holding no vehicle.
 2. **Retrieval** (no ``mesh``): the photo's HOG feature against every stored view of every
    accepted mesh (``pose.search_catalog``); the best row's mesh is fitted, the next distinct
    meshes are reported as ``candidates`` (mesh, view pose, score; lower is better).
@@ -72,6 +75,7 @@ MARGIN = 0.006              # part-boundary erosion, share of the object box's d
 SHIFT = 0.03                # silhouette alignment search, share of the working frame's side
 ROT_STEPS = (2.0, 1.0, 0.5)   # pose touch-up steps (degrees of azimuth / elevation)
 ROT_RANGE = 6.0             # at most this far from the pose search's answer, degrees
+UNIFORM_STD = 4.0           # a box whose pixels vary less (8-bit levels) holds no vehicle
 MIN_PIXELS = 30             # fewer eroded pixels: the part is flagged ("too few pixels")
 SATURATED = 250             # sRGB level at or above which a photo pixel is not used
 TWO_COLOUR_CHROMA = 0.08    # material groups at least this far apart in (r, g) chromaticity
@@ -299,8 +303,13 @@ class _Fit:
         photo = check_image(photo)
         obj = object_mask(photo, box=box, mask=mask)
         if obj.source == "box":
-            raise ValueError(f"no vehicle found inside the box {obj.box}: GrabCut kept "
-                             f"{obj.kept:.0%} of it (all background?)")
+            x0, y0, x1, y1 = obj.box
+            spread = float(photo[y0:y1, x0:x1].reshape(-1, 3).std(axis=0).max())
+            if spread < UNIFORM_STD:
+                raise ValueError(f"no vehicle found inside the box {obj.box}: it is uniform "
+                                 f"(standard deviation {spread:.1f} levels; all background?)")
+            self.notes.append(f"GrabCut kept {obj.kept:.0%} of the box: the vehicle's outline "
+                              "is the render's silhouette at the pose, inside the box")
         self._lap("object")
         meta, candidates, best_view = self._pick_mesh(photo, obj, box, mask, mesh_key)
         self._lap("retrieval")
@@ -318,12 +327,17 @@ class _Fit:
         K_work = _work_K(pose.K, crop, scale)
         lut = _part_lut(rows)
         if mesh is not None:
-            pose = _refine_rotation(mesh, pose, K_work, obj_w, self.runtime)
+            if obj.source != "box":
+                pose = _refine_rotation(mesh, pose, K_work, obj_w, self.runtime)
             frame = _render_frame(mesh, K_work, pose.w2c, work.shape[1], work.shape[0], lut,
                                   self.runtime)
         else:
             frame = self._stored_frame(meta.sha256, pose, K_work, work.shape, lut)
-        frame, shift = _align(frame, obj_w)
+        if obj.source == "box":                 # the silhouette is the outline (see notes)
+            shift = (0, 0)
+            obj_w = obj_w & (frame.part_map >= 0)
+        else:
+            frame, shift = _align(frame, obj_w)
         pose.K = pose.K.copy()
         pose.K[:2, 2] += np.array(shift, np.float64) / scale
         self._lap("render")
