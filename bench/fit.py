@@ -368,6 +368,20 @@ def part_table(results: list[tuple[Vehicle, dict]]) -> str:
     return "\n".join(lines)
 
 
+def save_reference(out: Path, index: int, v: Vehicle, ref, box, mesh_id: str) -> dict:
+    """Write the reference photo (PNG of the JPEG-decoded pixels) and return its truth row."""
+    import cv2
+
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"{index:03d}_" + "".join(c if c.isalnum() else "_" for c in v.name)[:40]
+    cv2.imwrite(str(out / f"{stem}.png"), np.ascontiguousarray(ref.image[..., ::-1]))
+    return {"photo": f"{stem}.png", "box": [float(b) for b in box], "vehicle": v.name,
+            "source": v.source, "mesh_id": mesh_id, "colors_linear": ref.colors,
+            "part_pixels": true_pixels(ref), "azimuth": ref.azimuth, "elevation": ref.elevation,
+            "K": ref.K.tolist(), "w2c": ref.w2c.tolist(), "light": ref.light.__dict__,
+            "white_balance": ref.meta.get("white_balance")}
+
+
 def _q(x, q):
     x = np.asarray([a for a in x if np.isfinite(a)], np.float64)
     return float(np.percentile(x, q)) if x.size else float("nan")
@@ -434,6 +448,9 @@ def main(argv=None) -> int:
                     help=f"reference draws: generator REF_SEED + index (default {REF_SEED})")
     ap.add_argument("--runs", type=int, default=1,
                     help="fit each photo this many times; its seconds are their median")
+    ap.add_argument("--save", type=Path, default=None, metavar="DIR",
+                    help="also write the references: DIR/NNN_name.png, DIR/photos.csv (the fit "
+                         "CLI's --photos list, no mesh: retrieval) and DIR/truth.json")
     ap.add_argument("--json", type=Path, default=None, help="write per-photo scores here")
     args = ap.parse_args(argv)
     if args.quick:
@@ -454,6 +471,7 @@ def main(argv=None) -> int:
 
     vehicles = real_vehicles(args.real) + generated_vehicles(synth_lib, args.generated)
     results = []
+    saved: list[dict] = []
     t_ref = 0.0
     with CatalogReader(cat) as reader:
         metas = reader.meshes()
@@ -468,6 +486,8 @@ def main(argv=None) -> int:
             t = time.perf_counter()
             ref, box = draw_reference(v, i, args.size, args.ref_seed)
             t_ref += time.perf_counter() - t
+            if args.save:
+                saved.append(save_reference(args.save, i, v, ref, box, key))
             r = run_one(ref, box, v, reader, key, names, args.runs)
             results.append((v, r))
             e = r["end to end"]
@@ -486,6 +506,13 @@ def main(argv=None) -> int:
           f"RTX 3090 (300 epochs, Adam); ours: {_q([s.seconds for s in mg], 50):.2f} s per photo "
           f"with the mesh given, all parts at once (median {_q([s.fitted for s in mg], 50):.0f} "
           f"parts fitted), {_q(per_part, 50):.2f} s per part, on the CPU above")
+    if args.save:
+        with open(args.save / "photos.csv", "w", encoding="utf-8") as f:
+            f.write("path,x0,y0,x1,y1\n")
+            for t in saved:
+                f.write(f"{t['photo']},{','.join(f'{b:.2f}' for b in t['box'])}\n")
+        (args.save / "truth.json").write_text(json.dumps(saved, indent=1))
+        print(f"references, photos.csv and truth.json in {args.save}")
     if args.json:
         args.json.write_text(json.dumps(
             [{"vehicle": v.name, "source": v.source,
