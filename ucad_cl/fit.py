@@ -63,7 +63,7 @@ from .ingest import IngestError, load_mesh
 from .jobs import content_sha256
 from .light import Lighting, Samples, balance, fit_light, predict, shading
 from .orient import in_frame
-from .pose import PoseRing, estimate_pose, query_features, search_catalog
+from .pose import CatalogMatch, PoseRing, estimate_pose, query_features, search_catalog
 from .render import render_views
 from .runtime import Runtime
 from .segment import OnnxSegmenter
@@ -374,21 +374,22 @@ class _Fit:
         if not feats:
             raise ValueError("the catalogue has no accepted mesh with stored features")
         db = np.concatenate(feats)
-        query, _ = query_features(photo, HogExtractor(runtime=self.runtime), box=box,
-                                  mask=mask, runtime=self.runtime)
+        given = {"mask": obj.mask} if obj.source != "box" else {"box": box}
+        query, _ = query_features(photo, HogExtractor(runtime=self.runtime),
+                                  runtime=self.runtime, **given)
         zeros = np.zeros(len(db))                  # angles are read for the matches only
         matches = search_catalog(query, db, np.concatenate(ids), np.concatenate(views), zeros,
                                  zeros, top=min(RETRIEVAL_ROWS, len(db)))
-        seen: dict[int, Candidate] = {}
+        first: dict[int, CatalogMatch] = {}       # mesh -> its best row
         for mt in matches:
-            if mt.mesh not in seen and len(seen) < CANDIDATES:
-                m = metas[mt.mesh]
-                v = self.r.views(m.sha256)[mt.view]
-                seen[mt.mesh] = Candidate(m.sha256, str(m.source), mt.view, v.azimuth,
-                                          v.elevation, mt.score)
-        cands = list(seen.values())[:CANDIDATES]
-        best = metas[matches[0].mesh]
-        return best, cands, matches[0].view
+            first.setdefault(mt.mesh, mt)
+        cands = []
+        for k, mt in list(first.items())[:CANDIDATES]:
+            m = metas[k]
+            v = self.r.views(m.sha256)[mt.view]
+            cands.append(Candidate(m.sha256, str(m.source), mt.view, v.azimuth, v.elevation,
+                                   mt.score))
+        return metas[matches[0].mesh], cands, matches[0].view
 
     def _load(self, meta) -> Mesh | None:
         """The mesh in the catalogue's frame, or None (with a note) when its file is gone or
