@@ -337,3 +337,23 @@ def test_antialiased_image_agrees_with_the_centre_sample_truth():
     r = ref.image[..., 0]
     mixed = edge & (r > 133) & (r < np.percentile(r[inner], 10) - 5)
     assert mixed.sum() > 20                         # antialiased: part box, part background
+
+
+def test_skyline_shows_in_sharp_reflections_only():
+    # buildings on the horizon: a chrome box (roughness 0.05) seen level mirrors them, a rough
+    # interior-trim box (roughness 0.75: fully blurred) does not change at all
+    from dataclasses import replace
+
+    box = _box_mesh()
+    sky = replace(_uniform_sky(0.5), ao_rays=0)
+    city = replace(sky, skyline=tuple((20.0, 0.1, 0.1, 0.1) for _ in range(12)))
+    kw = dict(azimuth=30.0, elevation=3.0, size=(60, 80), fill=0.8, **_clean())
+    for part, changes in (("chrome", True), ("interior", False)):
+        a = render_reference(box, [part] * 6, {}, light=sky, **kw)
+        b = render_reference(box, [part] * 6, {}, light=city, **kw)
+        diff = np.abs(a.image.astype(int) - b.image.astype(int)).max(-1)
+        assert not diff[_eroded(~a.mask)].any()             # the background is not the sky
+        assert (diff[a.mask] > 20).mean() > 0.2 if changes else not diff.any()
+    light = draw_light(np.random.default_rng(5), skyline=True)
+    plain = draw_light(np.random.default_rng(5))
+    assert len(light.skyline) == 24 and replace(light, skyline=()) == plain

@@ -36,7 +36,9 @@ Shading (all per sample; normals: each corner takes its area-weighted vertex nor
 within 35 deg of the face normal, else the face normal, interpolated at the hit; two-sided):
 
 * Light: a sky whose radiance goes from ``sky_horizon`` (at the horizon) to ``sky_zenith`` as
-  sqrt(y) of the direction, a uniform ``ground`` radiance below the horizon, and a sun (direction
+  sqrt(y) of the direction, optionally buildings on the horizon (``skyline``: seen in sharp
+  reflections; the irradiance ignores them), a uniform ``ground`` radiance below the horizon,
+  and a sun (direction
   ``sun_dir`` toward the sun, ``sun_color`` = the radiance a white Lambertian surface facing it
   returns from the sun alone). Sky irradiance of a normal n: mix(ground, sky mean,
   (1 + n_y) / 2) (exact for a sky and ground each uniform), times the share of
@@ -119,6 +121,10 @@ class RefLight:
     ground: tuple[float, float, float] = (0.12, 0.11, 0.10)
     exposure: float = 0.8
     ao_rays: int = 4            # occlusion rays per sample (0: no occlusion)
+    # buildings on the horizon, seen in reflections: one (height in degrees, r, g, b radiance)
+    # per equal azimuth sector, sector k from k * 360 / len degrees (the camera azimuth
+    # convention, canonical frame); () none
+    skyline: tuple = ()
 
 
 @dataclass
@@ -226,12 +232,15 @@ def draw_car_colors(rng: np.random.Generator) -> dict[str, tuple[float, float, f
     return {k: (float(v[0]), float(v[1]), float(v[2])) for k, v in out.items()}
 
 
-def draw_light(rng: np.random.Generator, *, sun: bool = True) -> RefLight:
+def draw_light(rng: np.random.Generator, *, sun: bool = True,
+               skyline: bool = False) -> RefLight:
     """A plausible daylight: sun 15-65 deg above the horizon at any heading with a warm-to-white
     colour and a strength of 1-3 times the sky's (or no sun: overcast), a blue-to-grey sky, a
     grey-brown ground, and the exposure that maps a white surface facing the sun (facing up
     without sun) to 0.85-1.0 after the white balance (a well-exposed photo: highlights and
-    glints clip, diffuse whites do not)."""
+    glints clip, diffuse whites do not). ``skyline``: 24 sectors of buildings 0-25 deg high
+    (a third of them gaps), 0.25-0.9 of the horizon's radiance with a random tint, drawn after
+    everything else (the other draws do not change)."""
     h, e = rng.uniform(0.0, 2.0 * np.pi), np.radians(rng.uniform(15.0, 65.0))
     sun_dir = (float(np.cos(e) * np.cos(h)), float(np.sin(e)), float(np.cos(e) * np.sin(h)))
     blue = rng.uniform(0.0, 1.0)                                  # 0: overcast grey, 1: blue
@@ -248,7 +257,14 @@ def draw_light(rng: np.random.Generator, *, sun: bool = True) -> RefLight:
     out = RefLight(sun_dir=sun_dir, sun_color=t(sun_col), sky_zenith=t(zenith),
                    sky_horizon=t(horizon), ground=t(ground))
     brightest = white_balance(out) * (sky_mean + sun_col)
-    return replace(out, exposure=float(rng.uniform(0.85, 1.0) / float(brightest.max())))
+    out = replace(out, exposure=float(rng.uniform(0.85, 1.0) / float(brightest.max())))
+    if skyline:
+        n = 24
+        height = np.where(rng.uniform(size=n) < 1.0 / 3.0, 0.0, rng.uniform(3.0, 25.0, n))
+        col = horizon[None, :] * rng.uniform(0.25, 0.9, (n, 1)) * rng.uniform(0.85, 1.15, (n, 3))
+        out = replace(out, skyline=tuple((float(hh), *(float(x) for x in c))
+                                         for hh, c in zip(height, col)))
+    return out
 
 
 def white_balance(light: RefLight) -> np.ndarray:
@@ -464,6 +480,13 @@ def _sky(light: RefLight, dirs: np.ndarray) -> np.ndarray:
                                                    light.ground))
     y = dirs[:, 1:2]
     sky = h + (z - h) * np.sqrt(np.clip(y, 0.0, 1.0))
+    if light.skyline:
+        table = np.asarray(light.skyline, np.float64)                   # (S, 4)
+        az = np.degrees(np.arctan2(-dirs[:, 2], dirs[:, 0])) % 360.0
+        k = np.minimum((az * len(table) / 360.0).astype(np.int64), len(table) - 1)
+        elev = np.degrees(np.arcsin(np.clip(y[:, 0], -1.0, 1.0)))
+        building = (elev < table[k, 0])[:, None]
+        sky = np.where(building, table[k, 1:], sky)
     return np.where(y >= 0, sky, g)
 
 
