@@ -61,7 +61,7 @@ from .features import HogExtractor
 from .foreground import ObjectMask, check_image, mask_box, object_mask
 from .ingest import IngestError, load_mesh
 from .jobs import content_sha256
-from .light import Lighting, Samples, balance, fit_light, predict, shading
+from .light import LUMA, Lighting, Samples, balance, fit_light, predict, shading
 from .orient import in_frame
 from .pose import CatalogMatch, PoseRing, estimate_pose, query_features, search_catalog
 from .render import render_views
@@ -83,7 +83,9 @@ TWO_COLOUR_DE = 12.0        # ... and this far apart in CIEDE2000 ...
 TWO_COLOUR_SHARE = 0.2      # ... each holding at least this share: flagged "two colours"
 NOT_ONE_COLOUR = ("light", "window")   # parts not tested for two colours (red and white
 #                                        lamps; glass shows what is behind it)
-NEUTRAL_PARTS = ("wheel",)  # white balance: tyres are taken as neutral grey
+NEUTRAL_PARTS = ("wheel",)  # white balance: tyres are taken as neutral grey ...
+TYRE_LUMA = 0.2             # ... when their fitted luminance is at most this (tyres are dark;
+#                             a light "tyre" means its mask landed on something else)
 CANDIDATES = 5              # distinct meshes listed by retrieval
 RETRIEVAL_ROWS = 64         # stored views ranked before collapsing to distinct meshes
 
@@ -712,7 +714,7 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
                        fit_parts, priors)
     lf = fit_light(samples, len(fit_parts))
     neutral = {i: float(np.count_nonzero(samples.part == i)) for i, p in enumerate(fit_parts)
-               if p in NEUTRAL_PARTS}
+               if p in NEUTRAL_PARTS and float(LUMA @ np.nan_to_num(lf.albedo[i])) <= TYRE_LUMA}
     lf, gain = balance(lf, neutral)
     B, C = shading(samples, lf.lighting)
     res = (samples.rgb - predict(samples, lf.lighting, lf.albedo))

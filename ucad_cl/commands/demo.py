@@ -68,8 +68,8 @@ DEMO_COLORS = {"body": (0.55, 0.05, 0.04), "wheel": (0.03, 0.03, 0.03),
 
 def demo_fit(reader, accepted, out: Path):
     """4/4: a photo-like reference (``ucad_cl.refphoto``: Embree, clutter, noise, JPEG) of the
-    first accepted vehicle in DEMO_COLORS, fitted from its box with retrieval
-    (``ucad-index fit``); returns DIR/<stem> of the outputs, or None when it fails."""
+    first accepted vehicle in DEMO_COLORS, fitted from its box with that mesh given
+    (``ucad-index fit --mesh``); returns DIR/<stem> of the outputs, or None when it fails."""
     import cv2
 
     from ..fit import fit_photo
@@ -88,12 +88,12 @@ def demo_fit(reader, accepted, out: Path):
         out.mkdir(parents=True, exist_ok=True)
         photo = out / "reference.jpg"
         cv2.imwrite(str(photo), ref.image[:, :, ::-1])
-        res = fit_photo(ref.image, box=ref.box, catalog=reader)
+        res = fit_photo(ref.image, box=ref.box, catalog=reader, mesh=m.sha256)
     except (IngestError, ValueError) as exc:
         print(f"   fit skipped: {exc}")
         return None
     base = write_outputs(res, out, "reference")
     print(f"   ucad-index fit {photo} --box {' '.join(map(str, ref.box))} --catalog "
-          f"{reader.root} --out {out}")
+          f"{reader.root} --mesh {m.sha256[:12]} --out {out}")
     report(res, base)
     return base
