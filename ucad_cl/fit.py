@@ -69,6 +69,7 @@ from .runtime import Runtime
 from .segment import OnnxSegmenter
 from .shade import face_normals
 
+RING_SIDE = 192             # pose refinement render size, pixels
 WORK_SIDE = 384             # longer side of the working frame, pixels
 CROP_GROW = 0.1             # the object's box grown by this share of its size on every side
 MARGIN = 0.006              # part-boundary erosion, share of the object box's diagonal
@@ -252,7 +253,9 @@ def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
 
 def catalog_ring(reader: CatalogReader, key: str) -> PoseRing:
     """A ``PoseRing`` of a catalogued mesh from its stored views and HOG features (coarse
-    stage of ``estimate_pose`` without rendering); ValueError when it has no features."""
+    stage of ``estimate_pose`` without rendering), its cameras scaled to at most RING_SIDE
+    pixels (the size the refinement renders at; HOG crops are resized, so the stored features
+    stay comparable); ValueError when it has no features."""
     try:
         feats = reader.features(key)
     except (CatalogError, KeyError, OSError):
@@ -265,10 +268,13 @@ def catalog_ring(reader: CatalogReader, key: str) -> PoseRing:
     el = np.array([v["elevation"] for v in views], np.float64)
     dist = float(np.linalg.norm(w2c[0, :3, :3].T @ w2c[0, :3, 3]))
     W, H = int(round(2 * K[0, 2])), int(round(2 * K[1, 2]))
+    f = min(1.0, RING_SIDE / max(W, H))            # pose refinement renders at this size
+    K = np.diag([f, f, 1.0]) @ K
+    W, H = max(1, int(round(W * f))), max(1, int(round(H * f)))
     ring = CameraRing(K=K, w2c=w2c, width=W, height=H, azimuth=az, elevation=el,
                       distance=dist, near=0.01 * dist)
     n_az = int(np.sum(el == el[0]))
-    sides = np.array([float(v["stats"].get("box_side", 0.0)) for v in views])
+    sides = f * np.array([float(v["stats"].get("box_side", 0.0)) for v in views])
     return PoseRing(ring=ring, feats=np.asarray(feats, np.float32), sides=sides,
                     extractor=HogExtractor(), azimuth_step=360.0 / max(n_az, 1))
 
