@@ -8,8 +8,10 @@
    the box, is the outline (a note says so); a box of uniform pixels (standard deviation under
    ``UNIFORM_STD`` levels) is refused as holding no vehicle.
 2. **Retrieval** (no ``mesh``): the photo's HOG feature against every stored view of every
-   accepted mesh (``pose.search_catalog``); the best row's mesh is fitted, the next distinct
-   meshes are reported as ``candidates`` (mesh, view pose, score; lower is better).
+   accepted mesh: the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
+   (the stored rows are unit vectors), then ``pose.search_catalog``'s exact float64 ranking of
+   those; the best row's mesh is fitted, the next distinct meshes are reported as
+   ``candidates`` (mesh, view pose, score; lower is better).
 3. **Pose**: ``pose.estimate_pose`` with the mesh re-read from the recorded library (as
    ``export-glb`` does: refused when the file moved or changed), its coarse ring taken from the
    catalogue's stored features; when the file is gone, the nearest stored view of that mesh is
@@ -88,6 +90,7 @@ NEUTRAL_PARTS = ("wheel",)  # white balance: tyres are taken as neutral grey ...
 TYRE_LUMA = 0.2             # ... when their fitted luminance is at most this (tyres are dark;
 #                             a light "tyre" means its mask landed on something else)
 CANDIDATES = 5              # distinct meshes listed by retrieval
+PRESELECT_ROWS = 2048       # retrieval: rows kept by float32 dot products for the exact rank
 RETRIEVAL_ROWS = 64         # stored views ranked before collapsing to distinct meshes
 
 
@@ -385,9 +388,15 @@ class _Fit:
         given = {"mask": obj.mask} if obj.source != "box" else {"box": box}
         query, _ = query_features(photo, HogExtractor(runtime=self.runtime),
                                   runtime=self.runtime, **given)
+        mesh_of, view_of = np.concatenate(ids), np.concatenate(views)
+        if len(db) > PRESELECT_ROWS:               # float32 dot products pick the rows that
+            q = query / max(float(np.linalg.norm(query)), 1e-30)    # the exact search ranks
+            near = np.sort(np.argpartition(-(db @ q.astype(np.float32)), PRESELECT_ROWS)
+                           [:PRESELECT_ROWS])
+            db, mesh_of, view_of = db[near], mesh_of[near], view_of[near]
         zeros = np.zeros(len(db))                  # angles are read for the matches only
-        matches = search_catalog(query, db, np.concatenate(ids), np.concatenate(views), zeros,
-                                 zeros, top=min(RETRIEVAL_ROWS, len(db)))
+        matches = search_catalog(query, db, mesh_of, view_of, zeros, zeros,
+                                 top=min(RETRIEVAL_ROWS, len(db)))
         first: dict[int, CatalogMatch] = {}       # mesh -> its best row
         for mt in matches:
             first.setdefault(mt.mesh, mt)
