@@ -164,6 +164,23 @@ def test_two_colour_part_is_flagged(catalogue):
     assert res.parts["body"].status == "fitted", res.parts["body"]
 
 
+def test_retrieval_preselection_keeps_the_answer(catalogue, monkeypatch):
+    """Over PRESELECT_ROWS stored rows, retrieval keeps the rows of largest float32 dot
+    product before the exact rank: with 16 of the 60 rows kept it finds the same mesh and
+    candidates as the exact search of all of them."""
+    import ucad_cl.fit as fit
+    from ucad_cl.refphoto import render_reference
+
+    m, mesh, rows = _mesh(catalogue, 3)
+    ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=50.0, elevation=12.0,
+                           seed=4, background="plain")
+    exact = fit.fit_photo(ref.image, mask=ref.mask, catalog=catalogue)
+    monkeypatch.setattr(fit, "PRESELECT_ROWS", 16)
+    pre = fit.fit_photo(ref.image, mask=ref.mask, catalog=catalogue)
+    assert pre.mesh_id == exact.mesh_id == m.sha256
+    assert [c.mesh_id for c in pre.candidates][:2] == [c.mesh_id for c in exact.candidates][:2]
+
+
 def test_retrieval_finds_the_mesh_and_cli_writes_outputs(catalogue, tmp_path, capsys):
     """Without --mesh the catalogue-wide search picks the right one of five meshes; the CLI
     writes the JSON (the interface's field names), the GLB with fitted colours and the PNG."""
