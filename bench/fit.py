@@ -108,6 +108,7 @@ class Score:
     mesh: str = ""              # the fitted mesh (library path)
     per_part: dict = field(default_factory=dict)
     fitted: int = 0             # parts whose colour the fit fitted (status fitted, two colours)
+    stages: dict = field(default_factory=dict)   # fit_photo's seconds per stage
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -340,6 +341,7 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
         sc.top1 = (float(res.mesh_id == mesh_id or TWINS.get(got, got) == TWINS.get(v.name, v.name))
                    if key is None else float("nan"))
         sc.psnr, sc.seconds, sc.mesh = psnr(img.render, img.photo, img.part_map >= 0), sec, got
+        sc.stages = dict(res.seconds)
         sc.fitted = sum(1 for f in res.parts.values()
                         if f.status == "fitted" or f.reason.startswith("two colours"))
         out[row] = sc
@@ -502,6 +504,12 @@ def main(argv=None) -> int:
     for subset in ("all", "real", "generated"):
         print(table(results, subset) + "\n")
     print(part_table(results) + "\n")
+    for row in ("end to end", "mesh given"):
+        st = [r[row].stages for _, r in results if r[row].stages]
+        keys = sorted({k for d in st for k in d},
+                      key=lambda k: -_q([d.get(k, 0.0) for d in st], 50))
+        print(f"{row}: median seconds per stage: " + ", ".join(
+            f"{k} {_q([d.get(k, 0.0) for d in st], 50):.3f}" for k in keys))
     mg = [r["mesh given"] for _, r in results if np.isfinite(r["mesh given"].parts)]
     per_part = [s.seconds / s.fitted for s in mg if s.fitted]
     print(f"paper (UrbanCAD supplement 8.5): ~{PAPER_S_PER_MATERIAL:.0f} s per material on an "
