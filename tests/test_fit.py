@@ -330,3 +330,45 @@ def test_photo_list_with_progress(photo, catalogue, tmp_path, capsys):
     captured = capsys.readouterr()
     assert rc == 1 and "1 fitted, 1 failed" in captured.out
     assert "missing.png: no such file" in captured.err
+
+
+def _red_segmenter(tmp_path: Path) -> str:
+    """onnx:MODEL:CONFIG of a 1x1 convolution: class 1 (body) where 10 R - 5 G - 5 B > 1."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    w = np.array([[0, 0, 0], [10, -5, -5]], np.float32).reshape(2, 3, 1, 1)
+    b = np.array([1, 0], np.float32)
+    graph = helper.make_graph(
+        [helper.make_node("Conv", ["image", "w", "b"], ["logits"])], "red_seg",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, ["N", 3, "H", "W"])],
+        [helper.make_tensor_value_info("logits", TensorProto.FLOAT, ["N", 2, "H", "W"])],
+        initializer=[numpy_helper.from_array(w, "w"), numpy_helper.from_array(b, "b")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    onnx.save(model, str(tmp_path / "seg.onnx"))
+    (tmp_path / "seg.json").write_text(json.dumps({"classes": {"0": "other", "1": "body"},
+                                                   "input_size": [64, 96]}))
+    return f"onnx:{tmp_path / 'seg.onnx'}:{tmp_path / 'seg.json'}"
+
+
+def test_onnx_photo_segmenter_replaces_the_rendered_masks(photo, catalogue, tmp_path, capsys):
+    """--segmenter onnx:...: the part masks come from the model run on the photo (here: red
+    pixels are body), inside the render's silhouette; parts the model does not name show no
+    pixel (status prior)."""
+    from ucad_cl.cli import main
+
+    path, box, m = photo
+    spec = _red_segmenter(tmp_path)
+    out = tmp_path / "o"
+    assert main(["fit", str(path), "--box", *map(str, box), "--catalog", str(catalogue),
+                 "--mesh", m.sha256[:12], "--segmenter", spec, "--out", str(out)]) == 0
+    doc = json.loads((out / "car.json").read_text())
+    assert doc["parts"]["body"]["status"] == "fitted" and doc["parts"]["body"]["pixels"] > 100
+    assert doc["parts"]["wheel"]["status"] == "prior"
+    c = doc["parts"]["body"]["color_linear"]
+    assert c[0] > 3 * max(c[1], c[2])                 # the red paint (COLORS["body"])
+    assert main(["fit", str(path), "--box", *map(str, box), "--catalog", str(catalogue),
+                 "--segmenter", "onnx:nowhere.onnx:x.json", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
