@@ -38,7 +38,7 @@ Rows (every reference is fitted by each):
 
 Metrics: CIEDE2000 (``ucad_cl.colorimetry``) between fitted and true base colour, after one
 exposure factor per photo and row (a single image cannot tell albedo from light intensity): the
-factor s (a grid over 2^-3..2^3, step 2^(1/64)) minimising the pixel-weighted mean CIEDE2000 of
+factor s (a grid over 2^-6..2^6, step 2^(1/64)) minimising the pixel-weighted mean CIEDE2000 of
 s * colour over the scored parts; ``body`` alone, and ``parts``: body, wheel (tyres), rim, plate,
 interior visible with at least ``MIN_TRUE_PIXELS`` true pixels, weighted by those pixels (a part
 the row does not report is scored at its prior colour). Medians and 90th percentiles over
@@ -109,6 +109,7 @@ class Score:
     per_part: dict = field(default_factory=dict)
     fitted: int = 0             # parts whose colour the fit fitted (status fitted, two colours)
     stages: dict = field(default_factory=dict)   # fit_photo's seconds per stage
+    exposure: float = float("nan")  # the exposure factor the scores were taken at
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -213,12 +214,12 @@ def score_colors(colors: dict, ref, pixels: dict) -> Score:
     fit = np.array([np.asarray(colors.get(p, prior_color(p)), np.float64) for p in scored])
     true_lab = linear_to_lab(np.array([ref.colors[p] for p in scored]))
     w = np.array([pixels[p] for p in scored], np.float64)
-    s = 2.0 ** (np.arange(-192, 193) / 64.0)                             # 2^-3 .. 2^3
+    s = 2.0 ** (np.arange(-384, 385) / 64.0)                             # 2^-6 .. 2^6
     de = delta_e2000(linear_to_lab(np.clip(s[:, None, None] * fit[None], 0.0, None)),
                      true_lab[None])                                     # (S, P)
     k = int(np.argmin(de @ w))                                           # ties: smaller s
     body = float(de[k, scored.index("body")]) if "body" in scored else float("nan")
-    return Score(body=body, parts=float(de[k] @ w / w.sum()),
+    return Score(body=body, parts=float(de[k] @ w / w.sum()), exposure=float(s[k]),
                  per_part={p: float(de[k, i]) for i, p in enumerate(scored)},
                  colors={p: np.asarray(c, np.float64).tolist() for p, c in colors.items()})
 
@@ -504,6 +505,10 @@ def main(argv=None) -> int:
     for subset in ("all", "real", "generated"):
         print(table(results, subset) + "\n")
     print(part_table(results) + "\n")
+    edge = sum(1 for _, r in results for x in r.values()
+               if np.isfinite(x.exposure) and not 2 ** -5.9 < x.exposure < 2 ** 5.9)
+    if edge:
+        print(f"note: {edge} scores took the exposure factor at the end of its range 2^-6..2^6")
     for row in ("end to end", "mesh given"):
         st = [r[row].stages for _, r in results if r[row].stages]
         keys = sorted({k for d in st for k in d},
