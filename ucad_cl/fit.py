@@ -89,6 +89,7 @@ NOT_ONE_COLOUR = ("light", "window")   # parts not tested for two colours (red a
 NEUTRAL_PARTS = ("wheel",)  # white balance: tyres are taken as neutral grey ...
 TYRE_LUMA = 0.2             # ... when their fitted luminance is at most this (tyres are dark;
 #                             a light "tyre" means its mask landed on something else)
+RERANK_POSE = 2             # retrieval: the first meshes posed; the best pose score wins
 CANDIDATES = 5              # distinct meshes listed by retrieval
 PRESELECT_ROWS = 2048       # retrieval: rows kept by float32 dot products for the exact rank
 RETRIEVAL_ROWS = 64         # stored views ranked before collapsing to distinct meshes
@@ -324,14 +325,28 @@ class _Fit:
         self._lap("object")
         meta, candidates, best_view = self._pick_mesh(photo, obj, box, mask, mesh_key)
         self._lap("retrieval")
-        rows = self.r.parts(meta.sha256)
-        mesh = self._load(meta)
+        mesh, note = self._load(meta)
         self._lap("load")
         crop, scale = _work_crop(photo.shape[:2], obj)
+        pose = None
         if mesh is not None:
-            pose = self._refined_pose(photo, mesh, meta.sha256, box, mask)
-        else:
+            pose, score = self._refined_pose(photo, mesh, meta.sha256, box, mask)
+            for c in candidates[1:RERANK_POSE]:     # the next meshes, posed alike
+                other = self.r.mesh(c.mesh_id)
+                m2, _ = self._load(other)
+                if m2 is None:
+                    continue
+                p2, s2 = self._refined_pose(photo, m2, other.sha256, box, mask)
+                if s2 < score:
+                    meta, mesh, pose, score = other, m2, p2, s2
+            if candidates and candidates[0].mesh_id != meta.sha256:
+                candidates = ([c for c in candidates if c.mesh_id == meta.sha256]
+                              + [c for c in candidates if c.mesh_id != meta.sha256])
+        if note:
+            self.notes.append(note)
+        if pose is None:
             pose = self._stored_pose(meta.sha256, best_view, obj, photo, box, mask)
+        rows = self.r.parts(meta.sha256)
         self._lap("pose")
         work = _to_work(photo, crop, scale)
         obj_w = _to_work(obj.mask.astype(np.uint8), crop, scale, nearest=True) > 0
@@ -408,38 +423,35 @@ class _Fit:
                                    mt.score))
         return metas[matches[0].mesh], cands, matches[0].view
 
-    def _load(self, meta) -> Mesh | None:
-        """The mesh in the catalogue's frame, or None (with a note) when its file is gone or
-        changed."""
+    def _load(self, meta) -> tuple[Mesh | None, str]:
+        """(the mesh in the catalogue's frame, ''), or (None, why) when its file is gone,
+        changed or unreadable."""
         src = meta.source
         if not src.is_file():
-            self.notes.append(f"the mesh file is not at {src} (it moved or was deleted): "
-                              "fitted on the nearest stored view, no GLB")
-            return None
+            return None, (f"the mesh file is not at {src} (it moved or was deleted): fitted on "
+                          "the nearest stored view, no GLB")
         if content_sha256(src) != meta.sha256:
-            self.notes.append(f"{src} changed since it was catalogued: fitted on the nearest "
-                              "stored view, no GLB")
-            return None
+            return None, (f"{src} changed since it was catalogued: fitted on the nearest stored "
+                          "view, no GLB")
         try:
             mesh = in_frame(load_mesh(src, orientation=None), meta.file_to_norm)
         except (IngestError, ValueError) as exc:
-            self.notes.append(f"{src} cannot be read ({exc}): fitted on the nearest stored view")
-            return None
+            return None, f"{src} cannot be read ({exc}): fitted on the nearest stored view"
         if len(mesh.materials) != meta.n_materials:
-            self.notes.append(f"{src}: {len(mesh.materials)} materials, the catalogue has "
-                              f"{meta.n_materials}: fitted on the nearest stored view")
-            return None
-        return mesh
+            return None, (f"{src}: {len(mesh.materials)} materials, the catalogue has "
+                          f"{meta.n_materials}: fitted on the nearest stored view")
+        return mesh, ""
 
     # -- pose
-    def _refined_pose(self, photo, mesh, sha, box, mask) -> FitPose:
+    def _refined_pose(self, photo, mesh, sha, box, mask) -> tuple[FitPose, float]:
+        """The pose search's best pose and its score (lower is better)."""
         ring = catalog_ring(self.r, sha)
         est = estimate_pose(photo, mesh, box=box, mask=mask, coarse=ring, top=1,
                             runtime=self.runtime)
         c = est.best
         assert c.K is not None and c.w2c is not None
         return FitPose(c.azimuth, c.elevation, np.asarray(c.K, np.float64),
-                       np.asarray(c.w2c, np.float64), "refined")
+                       np.asarray(c.w2c, np.float64), "refined"), float(c.score)
 
     def _stored_pose(self, sha, view, obj, photo, box, mask) -> FitPose:
         """The nearest stored view (by HOG) placed onto the object's box."""
