@@ -34,8 +34,9 @@ def register(sub) -> None:
     p.add_argument("--catalog", required=True, type=Path, metavar="PATH")
     p.add_argument("--low-confidence", type=int, nargs="?", const=10, default=None, metavar="N",
                    help="also list the N (default 10) materials with the lowest label "
-                        "confidence first (unseen ones, then the labeller's probability), with "
-                        "a --labels-file line to fix each (docs/LABELS.md)")
+                        "confidence first (unseen ones, then by the labeller's probability of "
+                        "the part: never-visible materials usually come first), with a "
+                        "--labels-file line to fix each (docs/LABELS.md)")
     p.set_defaults(func=run_show)
 
     p = sub.add_parser("export", help="export the catalogue as Parquet or JSON lines",
