@@ -10,15 +10,18 @@
 2. **Retrieval** (no ``mesh``): the photo's HOG feature against every stored view of every
    accepted mesh: the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
    (the stored rows are unit vectors), then ``pose.search_catalog``'s exact float64 ranking of
-   those; the best row's mesh is fitted, the next distinct meshes are reported as
-   ``candidates`` (mesh, view pose, score; lower is better).
+   those; the first ``RERANK_POSE`` distinct meshes are posed (step 3) and the best pose score
+   wins; the first ``CANDIDATES`` distinct meshes are reported as ``candidates`` (mesh, view
+   pose, feature score; lower is better).
 3. **Pose**: ``pose.estimate_pose`` with the mesh re-read from the recorded library (as
    ``export-glb`` does: refused when the file moved or changed), its coarse ring taken from the
-   catalogue's stored features; when the file is gone, the nearest stored view of that mesh is
-   used as is, scaled and shifted onto the object's box (``pose.source = "stored view"``, and a
-   note says so). Then the render's silhouette is shifted by whole pixels (at most
-   ``SHIFT`` of the working side) to best overlap the photo's object (IoU; ties: the smaller
-   shift, then row-major order), and the shift is folded into ``K``.
+   catalogue's stored features (``catalog_ring``, refinement renders at most ``RING_SIDE``
+   pixels); when the file is gone, the nearest stored view of that mesh is used as is, scaled
+   and shifted onto the object's box (``pose.source = "stored view"``, and a note says so).
+   Then azimuth and elevation are touched up by ``ROT_STEPS`` (at most ``ROT_RANGE``) for the
+   best silhouette IoU, the render's silhouette is shifted by whole pixels (at most ``SHIFT``
+   of the working side) to best overlap the photo's object (IoU; ties: the smaller shift, then
+   row-major order), and the shift is folded into ``K``.
 4. **Part masks**: the render's part map (the catalogue's material -> part table) inside the
    photo's object, each part eroded by ``margin = max(1, round(MARGIN * d))`` pixels (``d`` the
    diagonal of the object's box in the working frame) so that a slightly wrong pose or outline
