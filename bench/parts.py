@@ -80,10 +80,12 @@ def numpy_histogram(mat_id, masks, n_ids):
 
 
 class Score:
-    """Materials right / all, pixel-weighted, unseen count and a confusion matrix."""
+    """Materials right / all, pixel-weighted, unseen count, never-visible materials (labelled
+    from geometry, decision 'never-visible': counted and right apart, ``nv`` / ``nv_ok``) and a
+    confusion matrix."""
 
     def __init__(self):
-        self.ok = self.n = self.unseen = 0
+        self.ok = self.n = self.unseen = self.nv = self.nv_ok = 0
         self.px_ok = self.px = 0.0
         self.conf = np.zeros((len(PART_NAMES), len(COLS)), np.int64)
 
@@ -92,6 +94,9 @@ class Score:
         self.n += 1
         self.ok += right
         self.unseen += row.part == "unseen"
+        if getattr(row, "decision", "") == "never-visible":
+            self.nv += 1
+            self.nv_ok += right
         self.px += row.pixels
         self.px_ok += row.pixels * right
         self.conf[PART_NAMES.index(truth), COLS.index(truth if right else row.part)] += 1
@@ -99,8 +104,18 @@ class Score:
 
     def __iadd__(self, o):
         self.ok += o.ok; self.n += o.n; self.unseen += o.unseen  # noqa: E702
+        self.nv += o.nv; self.nv_ok += o.nv_ok  # noqa: E702
         self.px_ok += o.px_ok; self.px += o.px; self.conf += o.conf  # noqa: E702
         return self
+
+    def line(self) -> str:
+        """Materials right (all, and the seen ones: all but the never-visible), pixel-weighted,
+        never-visible right, unseen."""
+        seen = self.n - self.nv
+        return (f"materials right {self.ok:4d}/{self.n:<4d} = {self.acc:6.1%}   seen "
+                f"{self.ok - self.nv_ok:4d}/{seen:<4d} = {(self.ok - self.nv_ok) / max(seen, 1):6.1%}"
+                f"   pixel-weighted {self.pix:6.1%}   never-visible {self.nv_ok}/{self.nv}"
+                f"   unseen {self.unseen}")
 
     @property
     def acc(self):
@@ -178,8 +193,7 @@ def accuracy_table(args):
               f"({time.perf_counter() - t1:.0f} s)", flush=True)
     print(f"\n{'ALL (pooled materials / pixel-weighted)':44s}")
     for k, sc in tot.items():
-        print(f"  {k:14s} materials right {sc.ok:4d}/{sc.n:<4d} = {sc.acc:6.1%}   "
-              f"pixel-weighted {sc.pix:6.1%}   unseen {sc.unseen}")
+        print(f"  {k:14s} {sc.line()}")
     print_confusion("Confusion, labeller, names hidden, leave-one-model-out",
                     tot["lab_hidden"].conf)
     print_confusion("Confusion, labeller, names kept, leave-one-model-out", tot["lab_named"].conf)
@@ -196,7 +210,10 @@ def member_rows(args) -> list:
 
 def load_synth_rows(args, seed: int):
     """The recipe's generated training rows of run ``seed``, cached in ``--cache`` (keyed by
-    count, seed, the recipe and the source of the feature and generator modules)."""
+    count, seed, the recipe and the source of the feature and generator modules). Vehicle i of
+    a run does not depend on the run's count, so a cache of more vehicles gives the rows of
+    the first ``args.vehicles`` (e.g. ``--vehicles 500`` per fold from the shipped recipe's
+    1000)."""
     from ucad_cl import labeller_train as T
 
     import hashlib
@@ -212,6 +229,11 @@ def load_synth_rows(args, seed: int):
     if cache.exists():
         z = np.load(cache, allow_pickle=True)
         return T.Rows(z["X"], z["y"], z["w"], z["group"])
+    for big in sorted(Path(args.cache).glob(f"synth_*_{seed}_{key}.npz")):
+        if int(big.name.split("_")[1]) > args.vehicles:
+            z = np.load(big, allow_pickle=True)
+            keep = np.array([int(str(g).split(":")[1]) < args.vehicles for g in z["group"]])
+            return T.Rows(z["X"][keep], z["y"][keep], z["w"][keep], z["group"][keep])
     rows = T.synth_rows(args.vehicles, seed)
     cache.parent.mkdir(parents=True, exist_ok=True)
     np.savez(cache, X=rows.X, y=rows.y, w=rows.w, group=rows.group)
@@ -259,69 +281,119 @@ def real_tables(models, args) -> dict[str, dict]:
     return out
 
 
-def fast_verdicts(t: dict, prob: np.ndarray, min_pixels: int = 4) -> tuple[Score, list]:
+def fast_verdicts(t: dict, prob: np.ndarray, min_pixels: int = 4,
+                  hidden: np.ndarray | None = None) -> tuple[Score, list]:
     """Material verdicts of the labeller's probabilities without masks: argmax part (ties ->
-    PART_NAMES order), 'unseen' under ``min_pixels`` pixels unless seen behind glass (then its
-    behind-glass pixels weigh it), as ``classify_parts`` decides on self-painted masks (each
-    material's pixels all lie in its own argmax part, so every view scores it 1). Left out: the
-    mirror-pair unification of ``classify_parts``."""
+    PART_NAMES order); under ``min_pixels`` pixels its behind-glass pixels weigh it, and with
+    fewer there too it takes ``hidden`` (the geometric part, ``labeller.never_visible_part``;
+    default the argmax) as 'never-visible' (weight 0), as ``classify_parts``
+    decides on self-painted masks (each material's pixels all lie in its own argmax part, so
+    every view scores it 1). Left out: the mirror-pair unification of ``classify_parts``."""
     from types import SimpleNamespace
 
     sc, wrong = Score(), []
     for m, y in enumerate(t["y"]):
         if y < 0:
             continue
-        part = PART_NAMES[int(np.argmax(prob[m]))]
+        part, decision = PART_NAMES[int(np.argmax(prob[m]))], "seen"
         px = int(t["pixels"][m])
         if px < min_pixels:
             px = int(t["behind"][m])
             if px < min_pixels:
-                part, px = "unseen", 0
+                px, decision = 0, "never-visible"
+                if hidden is not None:
+                    part = PART_NAMES[int(hidden[m])]
         alts = [PART_NAMES[k] for k in np.flatnonzero(t["alt"][m])]
-        if not sc.add(PART_NAMES[y], alts, SimpleNamespace(part=part, pixels=px)):
+        if not sc.add(PART_NAMES[y], alts, SimpleNamespace(part=part, pixels=px,
+                                                           decision=decision)):
             wrong.append((m, part))
     return sc, wrong
 
 
+def manifest_facts() -> dict[str, dict]:
+    """{file: {"group": source repository, "added": date or None}} from the shared manifest."""
+    ms = json.loads((VEHICLES / "manifest.json").read_text(encoding="utf-8"))["models"]
+    return {m["file"]: {"group": m.get("source_repo") or m["file"], "added": m.get("added")}
+            for m in ms}
+
+
+def folds_of(files, groups: str) -> list[list[str]]:
+    """The leave-out folds: one model each (``groups="model"``), or (``"repo"``) every model of
+    one source repository (the manifest's ``source_repo``) together, so no fold trains on a
+    sibling of a scored model (same author, exporter, naming and materials); folds in order of
+    their first model in ``files``."""
+    if groups == "model":
+        return [[f] for f in files]
+    facts = manifest_facts()
+    out: dict[str, list[str]] = {}
+    for f in files:
+        out.setdefault(facts[f]["group"], []).append(f)
+    return list(out.values())
+
+
 def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
-    """Leave-one-model-out over cached feature rows (``real_tables``): for every real model,
-    fit each member on its generated rows + the other real models' named rows (``fit(rows per
-    member)``, default ``labeller_train.fit_members`` with the recipe's seed), predict its
-    names-kept and names-hidden rows, and score with ``fast_verdicts``. Returns {"named": Score,
-    "hidden": Score, "per_model": {file: {...}}}."""
+    """Leave-out over cached feature rows (``real_tables``): for every fold (``folds_of``,
+    ``args.groups``: one model, or one source repository), fit each member on its generated
+    rows + the named rows of the real models outside the fold (only those without the
+    manifest's ``added`` date with ``args.train_real == "original"``: the training set of the
+    model shipped before them) (``fit(rows per member)``, default
+    ``labeller_train.fit_members`` with the recipe's seed), predict the fold's names-kept and
+    names-hidden rows, and score with ``fast_verdicts``. Returns {"named": Score, "hidden":
+    Score, "per_model": {file: {...}}}."""
     from ucad_cl import labeller_train as T
 
     models = T.load_real_models(VEHICLES, frame=args.frame) if tables is None else None
     tables = tables if tables is not None else real_tables(models, args)
     synth = synth if synth is not None else member_rows(args)
     fit = fit or (lambda rows: T.fit_members(rows, args.seed))
+    facts = manifest_facts()
+    trainable = [f for f in tables
+                 if getattr(args, "train_real", "all") == "all" or not facts[f]["added"]]
     real = {f: T.Rows(t["Xn"][t["y"] >= 0], t["y"][t["y"] >= 0],
                       np.full(int((t["y"] >= 0).sum()), T.REAL_WEIGHT),
                       np.array([f"real:{f}"] * int((t["y"] >= 0).sum()), object))
-            for f, t in tables.items()}
+            for f, t in tables.items() if f in trainable}
     tot = {"named": Score(), "hidden": Score()}
     per = {}
     scored = [f for f in tables if not args.folds or f in args.folds]
-    for f in scored:
+    for fold in folds_of(scored, getattr(args, "groups", "model")):
         t0 = time.perf_counter()
-        others = [r for g, r in real.items() if g != f]
+        others = [r for g, r in real.items() if g not in fold]
         clf = fit([T.Rows.concat([s] + others) for s in synth])
-        t = tables[f]
-        res = {}
-        for tag, X in (("named", t["Xn"]), ("hidden", t["Xh"])):
-            prob = T.predict(clf, X)
-            sc, wrong = fast_verdicts(t, prob)
-            tot[tag] += sc
-            res[tag] = (sc, wrong, prob)
-        per[f] = res
-        if log:
-            log(f"{f:44s} {res['named'][0].n:4d} | {res['named'][0].acc:6.0%} "
-                f"{res['named'][0].pix:6.0%} | {res['hidden'][0].acc:6.0%} "
-                f"{res['hidden'][0].pix:6.0%} | "
-                + "; ".join(f"{t['names'][m]}:{p}/{PART_NAMES[t['y'][m]]}"
-                            for m, p in res["hidden"][1][:6])
-                + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+        for f in fold:
+            per[f] = _score_fold_model(T, clf, tables[f], tot, args.ablate)
+            if log:
+                _log_model(log, f, per[f], tables[f], time.perf_counter() - t0)
     return {"named": tot["named"], "hidden": tot["hidden"], "per_model": per, "tables": tables}
+
+
+def _score_fold_model(T, clf, t, tot, ablate=(), probs=None) -> dict:
+    """Score one model's names-kept and names-hidden rows: probabilities of ``clf`` (a fitted
+    ensemble, a ``LabellerModel``, or None with ``probs`` = {tag: saved raw probabilities}),
+    then the labeller's rules as ``label_materials`` applies them (``wheel_assembly``, and
+    ``never_visible_part`` for materials no view sees) unless ``ablate`` names them ("wheel",
+    "hidden": the argmax as is). Returns {tag: (Score, wrong, raw probabilities)}."""
+    from ucad_cl.labeller import never_visible_part, wheel_assembly
+
+    res = {}
+    for tag, X in (("named", t["Xn"]), ("hidden", t["Xh"])):
+        raw = (probs[tag] if probs is not None else
+               clf.predict(X) if hasattr(clf, "session") else T.predict(clf, X))
+        prob = raw if "wheel" in ablate else wheel_assembly(raw, X)
+        sc, wrong = fast_verdicts(t, prob, hidden=None if "hidden" in ablate
+                                  else never_visible_part(X))
+        tot[tag] += sc
+        res[tag] = (sc, wrong, raw)
+    return res
+
+
+def _log_model(log, f, res, t, seconds):
+    log(f"{f:44s} {res['named'][0].n:4d} | {res['named'][0].acc:6.0%} "
+        f"{res['named'][0].pix:6.0%} | {res['hidden'][0].acc:6.0%} "
+        f"{res['hidden'][0].pix:6.0%} | "
+        + "; ".join(f"{t['names'][m]}:{p}/{PART_NAMES[t['y'][m]]}"
+                    for m, p in res["hidden"][1][:6])
+        + f" ({seconds:.0f} s)", flush=True)
 
 
 def fast_table(args):
@@ -330,18 +402,79 @@ def fast_table(args):
     (the generated draw alone moves a single model's totals by a few materials)."""
     if args.seeds > 1:
         return seeds_table(args)
-    print(f"\n## Labeller, fast leave-one-model-out over cached feature rows (frame "
+    if args.shipped:
+        return shipped_table(args)
+    if args.probs:
+        return rescore_table(args)
+    how = ("leave-one-model-out" if args.groups == "model" else
+           "grouped leave-out (the models of one source repository left out together)")
+    print(f"\n## Labeller, fast {how} over cached feature rows (frame "
           f"{args.frame}; {args.members} members of {args.vehicles} generated vehicles, seeds "
-          f"{args.seed}..{args.seed + args.members - 1}, + the other real models; per-material "
-          "argmax, no masks)")
+          f"{args.seed}..{args.seed + args.members - 1}, + the real models outside the fold"
+          f"{' that the manifest does not mark added' if args.train_real == 'original' else ''}"
+          "; per-material argmax, no masks)")
     print(f"{'model':44s} {'mats':>4s} | {'named':>13s} | {'hidden':>13s} | wrong (names hidden)")
     res = fast_lomo(args, log=lambda *a, **k: print(*a, **k))
+    print_totals(res)
+    if args.save_probs:
+        np.savez_compressed(args.save_probs, **{f"{tag}:{f}": r[tag][2]
+                                                for f, r in res["per_model"].items()
+                                                for tag in ("named", "hidden")})
+        print(f"held-out probabilities per model written to {args.save_probs}")
+
+
+def print_totals(res) -> None:
     for k in ("named", "hidden"):
         sc = res[k]
-        print(f"  names {k:7s} materials right {sc.ok:4d}/{sc.n:<4d} = {sc.acc:6.1%}   "
-              f"pixel-weighted {sc.pix:6.1%}   unseen {sc.unseen}")
-    print_confusion("Confusion, labeller, names hidden, fast leave-one-model-out",
-                    res["hidden"].conf)
+        print(f"  names {k:7s} {sc.line()}")
+    for k in ("hidden", "named"):
+        print_confusion(f"Confusion, labeller, names {k}, fast leave-out", res[k].conf)
+
+
+def rescore_table(args):
+    """``--fast --probs FILE``: the held-out probabilities a ``--save-probs`` run wrote, scored
+    again with the labeller's current rules (less ``--ablate``'s): a rule's contribution
+    without refitting a fold."""
+    from ucad_cl import labeller_train as T
+
+    saved = np.load(args.probs, allow_pickle=True)
+    tables = real_tables(T.load_real_models(VEHICLES, frame=args.frame), args)
+    print(f"\n## Held-out probabilities of {args.probs} rescored (rules ablated: "
+          f"{', '.join(args.ablate) or 'none'})")
+    print(f"{'model':44s} {'mats':>4s} | {'named':>13s} | {'hidden':>13s} | wrong (names hidden)")
+    tot = {"named": Score(), "hidden": Score()}
+    for f, t in tables.items():
+        if f"hidden:{f}" not in saved.files:
+            continue
+        probs = {tag: saved[f"{tag}:{f}"] for tag in ("named", "hidden")}
+        _log_model(print, f, _score_fold_model(T, None, t, tot, args.ablate, probs), t, 0.0)
+    print_totals(tot)
+
+
+def shipped_table(args):
+    """``--fast --shipped MODEL``: a trained model (not retrained) on the cached rows of every
+    real model; held out only for the models it was not trained on (for the model shipped
+    before the manifest's ``added`` models, those), so totals are given for those apart."""
+    from ucad_cl import labeller_train as T
+    from ucad_cl.labeller import LabellerModel
+
+    model = LabellerModel(args.shipped)
+    tables = real_tables(T.load_real_models(VEHICLES, frame=args.frame), args)
+    facts = manifest_facts()
+    print(f"\n## {args.shipped}, not retrained, on every real model (fast path)")
+    print(f"{'model':44s} {'mats':>4s} | {'named':>13s} | {'hidden':>13s} | wrong (names hidden)")
+    tot = {"named": Score(), "hidden": Score()}
+    new = {"named": Score(), "hidden": Score()}
+    for f, t in tables.items():
+        res = _score_fold_model(T, model, t, tot, args.ablate)
+        if facts[f]["added"]:
+            for k in new:
+                new[k] += res[k][0]
+        _log_model(print, f, res, t, 0.0)
+    print("all models (those without 'added' were trained on: not held out)")
+    print_totals(tot)
+    print("models the manifest marks added (held out for a model trained before them)")
+    print_totals(new)
 
 
 def seeds_table(args):
@@ -395,8 +528,7 @@ def generated_table(args, synth, real):
     print(f"\n## Generated vehicles of seed run {test_seed} (never used for training), "
           f"{args.generated} vehicles, realism traits as in the training recipe")
     for k, sc in tot.items():
-        print(f"  {k:14s} materials right {sc.ok:5d}/{sc.n:<5d} = {sc.acc:6.1%}   "
-              f"pixel-weighted {sc.pix:6.1%}   unseen {sc.unseen}")
+        print(f"  {k:14s} {sc.line()}")
     print_confusion("Confusion, labeller, generated held-out, names hidden",
                     tot["lab_hidden"].conf)
 
@@ -473,6 +605,24 @@ def main():
     ap.add_argument("--frame", choices=("auto", "manifest"), default="auto",
                     help="how the real models reach the vehicle frame: the orientation stage "
                          "(auto, what the pipeline does; default) or their manifest up/front")
+    ap.add_argument("--groups", choices=("repo", "model"), default="repo",
+                    help="with --fast: leave out the models of one source repository together "
+                         "(repo, default: the manifest's source_repo) or one model at a time")
+    ap.add_argument("--train-real", choices=("all", "original"), default="all",
+                    help="with --fast: real training rows from every model outside the fold "
+                         "(all) or only from those the manifest does not mark 'added' (the "
+                         "training set of the model shipped before them)")
+    ap.add_argument("--probs", default=None, metavar="FILE.npz",
+                    help="with --fast: rescore the held-out probabilities a --save-probs run "
+                         "wrote with the current rules (no fitting)")
+    ap.add_argument("--ablate", type=lambda s: [x for x in s.split(",") if x], default=[],
+                    help="with --fast: leave out labeller rules: wheel (tyre/rim by radial "
+                         "position), hidden (never-visible part from geometry)")
+    ap.add_argument("--save-probs", default=None, metavar="FILE.npz",
+                    help="with --fast: write each model's held-out probabilities ('named:FILE', "
+                         "'hidden:FILE'), to score rules on them without refitting")
+    ap.add_argument("--shipped", default=None, metavar="MODEL.onnx",
+                    help="with --fast: score this trained model, not retrained, on every model")
     ap.add_argument("--fast", action="store_true",
                     help="leave-one-model-out from cached feature rows, per-material argmax "
                          "(no masks, no prior columns; minutes instead of the full path)")

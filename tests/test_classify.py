@@ -433,3 +433,21 @@ def test_classify_rejects_bad_masks(runtime):
         classify_parts(mesh, views, PartMasks(["body"], good.masks, good.confidence + 2), runtime=runtime)
     with pytest.raises(ValueError, match="material id 1 in the views"):
         classify_parts(flat_mesh(0), views, good, runtime=runtime)
+
+
+def test_never_visible_material_takes_the_labellers_part_with_its_own_flag(runtime):
+    from ucad_cl.labeller import MaterialLabels
+    mat = np.zeros((2, 10, 10), np.uint16)
+    mat[:, :, :4] = 1
+    mat[:, :, 4:7] = 2                          # material 2 (index 2) never drawn
+    pm = part_masks(2, 10, 10, {"body": mat == 1, "window": mat == 2})
+    prob = np.array([[0.8, 0.1, 0, 0, 0, 0, 0, 0.1, 0], [0.1, 0.9, 0, 0, 0, 0, 0, 0, 0],
+                     [0.1, 0, 0, 0, 0, 0, 0, 0.6, 0.3]], np.float32)
+    pm.labels = MaterialLabels(prob=prob, part=prob.argmax(axis=1), behind_pixels=np.zeros(3))
+    rows = classify_parts(flat_mesh(3), flat_views(mat), pm, runtime=runtime).rows
+    assert [(r.part, r.decision) for r in rows] == [
+        ("body", "best-view"), ("window", "best-view"), ("interior", "never-visible")]
+    assert (rows[2].pixels, rows[2].view, rows[2].prob) == (0, -1, pytest.approx(0.6))
+    pm.labels = None                            # no labeller: it stays unseen
+    assert classify_parts(flat_mesh(3), flat_views(mat), pm, runtime=runtime).rows[2].part == \
+        "unseen"

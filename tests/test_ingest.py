@@ -275,6 +275,68 @@ def test_ngons_are_triangulated(tmp_path):
     assert area.sum() == pytest.approx(shoelace + 1.0, rel=1e-12)
 
 
+def _gltf_with_wireframe(path, glb: bool):
+    """One mesh: tetra A ('paint'), a LINES and a POINTS primitive ('wire', a wireframe helper
+    on A's vertices), tetra B ('glass', 3 units along x), a LINE_STRIP ('wire'); as .gltf with a
+    data: URI buffer or as .glb. Returns the two tetras' file-frame vertices and faces."""
+    import base64
+    import struct
+    va = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    vb = va + np.float32([3, 0, 0])
+    ia = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint32)
+    il = np.array([0, 1, 1, 2, 2, 3], np.uint32)
+    blobs = [va.tobytes(), ia.tobytes(), il.tobytes(), vb.tobytes()]
+    offsets = np.cumsum([0] + [len(b) for b in blobs]).tolist()
+    buf = b"".join(blobs)
+
+    def acc(view, n, ctype, typ, **kw):
+        return dict(bufferView=view, componentType=ctype, count=n, type=typ, **kw)
+    buffer = {"byteLength": len(buf)}
+    if not glb:
+        buffer["uri"] = "data:application/octet-stream;base64," + base64.b64encode(buf).decode()
+    doc = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+           "nodes": [{"mesh": 0, "name": "car"}], "buffers": [buffer],
+           "bufferViews": [{"buffer": 0, "byteOffset": offsets[i], "byteLength": len(b)}
+                           for i, b in enumerate(blobs)],
+           "accessors": [acc(0, 4, 5126, "VEC3", min=[0, 0, 0], max=[1, 1, 1]),
+                         acc(1, 12, 5125, "SCALAR"), acc(2, 6, 5125, "SCALAR"),
+                         acc(3, 4, 5126, "VEC3", min=[3, 0, 0], max=[4, 1, 1])],
+           "materials": [{"name": "paint"}, {"name": "wire"}, {"name": "glass"}],
+           "meshes": [{"primitives": [
+               {"attributes": {"POSITION": 0}, "indices": 1, "material": 0},
+               {"attributes": {"POSITION": 0}, "indices": 2, "material": 1, "mode": 1},
+               {"attributes": {"POSITION": 0}, "material": 1, "mode": 0},
+               {"attributes": {"POSITION": 3}, "indices": 1, "material": 2},
+               {"attributes": {"POSITION": 3}, "material": 1, "mode": 3}]}]}
+    text = json.dumps(doc).encode()
+    if glb:
+        text += b" " * (-len(text) % 4)
+        body = struct.pack("<II", len(text), 0x4E4F534A) + text
+        body += struct.pack("<II", len(buf), 0x004E4942) + buf
+        path.write_bytes(struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body)
+    else:
+        path.write_text(text.decode())
+    return np.concatenate([va, vb]).astype(np.float64), np.concatenate([ia, ia + 4])
+
+
+@pytest.mark.parametrize("suffix", [".gltf", ".glb"])
+def test_lines_and_points_primitives_are_skipped_with_a_note(tmp_path, suffix):
+    path = tmp_path / f"wire{suffix}"
+    vertices, faces = _gltf_with_wireframe(path, glb=suffix == ".glb")
+    mesh = load_mesh(path)
+    # the two tetras' triangles, in file order, with their own materials; 'wire' draws nothing
+    assert [m.name for m in mesh.materials] == ["paint", "glass"]
+    np.testing.assert_array_equal(mesh.face_material, [0] * 4 + [1] * 4)
+    file_xyz = np.c_[mesh.vertices, np.ones(len(mesh.vertices))] @ np.linalg.inv(
+        mesh.file_to_norm).T
+    np.testing.assert_allclose(file_xyz[mesh.faces.astype(np.int64), :3], vertices[faces],
+                               atol=1e-12)
+    assert mesh.report.notes == ["skipped non-triangle primitives (1 points, 1 lines, "
+                                 "1 line strip): not drawn, not labelled"]
+    # the same through the worker-side loader the build uses
+    assert load_mesh_isolated(path, orientation="file").report.notes == mesh.report.notes
+
+
 def test_obj_alpha_from_d_and_tr(tmp_path):
     (tmp_path / "m.mtl").write_text("newmtl glassy\nKd 0.1 0.2 0.3\nd 0.25\n"
                                     "newmtl tinted\nKd 1 1 1\nTr 0.6\n")

@@ -246,6 +246,12 @@ def test_shipped_model_record_and_size():
     assert rec["recipe"]["seed"] == 2026 and rec["recipe"]["vehicles"] >= 100
     assert rec["metrics"]["heldout_generated_material_accuracy"] >= 0.97
     assert len(rec["check"]["X"]) >= 5
+    # trained on every real model of ../shared (the manifest's, less the Draco duplicate of
+    # ferrari_458_nodraco.glb that labeller_train.load_real_models skips)
+    manifest = ROOT.parent / "shared" / "data" / "vehicles" / "manifest.json"
+    if manifest.exists():
+        models = json.loads(manifest.read_text())["models"]
+        assert rec["recipe"]["real_models"] == len(models) - 1 and not rec["recipe"]["leave_out"]
 
 
 def test_model_loads_and_predicts_in_a_fresh_environment(tmp_path):
@@ -360,7 +366,10 @@ def test_labeller_segmenter_behind_glass_unseen_and_prob(car_views):
     rows = {r.name: r for r in table.rows}
     assert rows["seat"].decision == "behind-glass" and rows["seat"].pixels > 0
     assert rows["seat"].part in PART_NAMES
-    assert rows["hidden"].part == "unseen" and rows["hidden"].decision == "unseen"
+    # no pixel in the views nor behind glass: the labeller's part from geometry, own flag
+    hidden = rows["hidden"]
+    assert (hidden.decision, hidden.pixels, hidden.view) == ("never-visible", 0, -1)
+    assert hidden.part == PART_NAMES[int(masks.labels.part[hidden.material])]
     for r in table.rows:
         if r.part != "unseen":
             assert 0.0 < r.prob <= 1.0
@@ -572,3 +581,29 @@ def test_grey_trim_trait():
         assert a == 1 and abs(r - g) < 1e-6 and 0.04 < g < 0.71
         greys.add(round(g, 3))
     assert len(greys) == 3                                         # the grey is drawn per vehicle
+
+
+def test_wheel_assembly_and_never_visible_rules():
+    """Tyre against rim by radial position; the part of a material no view sees, from
+    geometry: rim in a wheel, other under the floor, else interior."""
+    from ucad_cl.labeller import never_visible_part, wheel_assembly
+
+    X = np.zeros((5, len(FEATURE_NAMES)), np.float32)
+    X[:3, COL["rho_tyre"]] = 0.9                       # 0, 1, 2 in a wheel; 3, 4 not
+    X[:, COL["rho_mean"]] = [1.0, 0.7, 0.9, 0.2, 0.5]
+    X[:, COL["h_mean"]] = [0.1, 0.1, 0.1, 0.15, 0.5]
+    X[4, COL["z_under"]] = 0.0
+    W, R = PART_NAMES.index("wheel"), PART_NAMES.index("rim")
+    prob = np.full((5, len(PART_NAMES)), 0.01, np.float32)
+    prob[:, W] = 0.9
+    prob[:, R] = 0.03
+    out = wheel_assembly(prob, X)
+    # 0 is the outermost: stays; 1 lies 0.3 inside it: rim (probabilities swapped); 2 only
+    # 0.1 inside: stays; 3 and 4 are outside any wheel: untouched
+    assert list(out.argmax(axis=1)) == [W, R, W, W, W]
+    assert out[1, R] == pytest.approx(0.9) and out[1, W] == pytest.approx(0.03)
+    np.testing.assert_array_equal(np.delete(out, 1, axis=0), np.delete(prob, 1, axis=0))
+    # one wheel material alone is never changed
+    np.testing.assert_array_equal(wheel_assembly(prob[[1, 3]], X[[1, 3]]), prob[[1, 3]])
+    assert [PART_NAMES[p] for p in never_visible_part(X)] == ["rim", "rim", "rim", "other",
+                                                              "interior"]

@@ -84,7 +84,7 @@ class CatalogEntry:
             for r in table.rows:
                 mat = by_index.get(int(r.material))
                 props = {k: v for k, v in vars(mat).items() if k != "name"} if mat else {}
-                for k in ("prob", "split"):            # the labeller's, when it labelled
+                for k in ("prob", "split", "was"):     # the labeller's, a curator's override
                     if getattr(r, k, None) is not None:
                         props[k] = getattr(r, k)
                 mats.append(MaterialRow(int(r.material), r.name, r.part, float(r.score),

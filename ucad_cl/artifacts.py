@@ -273,10 +273,12 @@ class MaterialPart:
     score: float                  # |material ∩ part| / |material| in the deciding view
     iou: float                    # plain IoU in the deciding view
     view: int                     # deciding view (-1 when none)
-    decision: str                 # 'best-view' | 'vote' | 'merged-body' | 'symmetric' | 'unseen' | ...
+    decision: str                 # 'best-view' | 'vote' | 'merged-body' | 'symmetric' | 'unseen' |
+    #                               'override' (a curator's, ucad_cl.curation) | ...
     pixels: int = 0               # visible pixels over all views
     prob: float | None = None     # the labeller's probability of ``part`` (None: no labeller)
     split: list | None = None     # shared material: parts per group of connected components
+    was: dict | None = None       # a curator's override: what was decided before (ucad_cl.curation)
 
 
 @dataclass

@@ -74,6 +74,7 @@ from ucad_catalog.store import Catalog
 
 from . import reasons
 from .engines import run_local, run_ray
+from .curation import LabelOverrides, mesh_options_hash
 from .ingest import SUPPORTED_SUFFIXES
 from .jobs import CODE_VERSION, BuildOptions, BuildStopped, MeshRef, environment_code
 from .segment import check_segmenter_spec
@@ -336,18 +337,19 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     try:
         try:
             cat = Catalog.open(catalog, create=True)
-            summary.run_id = cat.begin_run({**options.to_dict(), "code": CODE_VERSION}, engine)
-            todo = _plan(cat, refs, root, retry, summary)
+            summary.run_id = cat.begin_run(options.run_record(), engine)
+            labels = LabelOverrides.from_items(options.label_overrides)
+            todo = _plan(cat, refs, root, retry, summary, labels)
             log(f"{len(refs)} meshes found, {summary.skipped} unchanged (skipped), "
                 f"{len(todo)} to process with the {engine} engine")
             sink = _Sink(cat, summary, Path(catalog) / "logs" / f"run-{summary.run_id:05d}.log",
-                         len(todo), root)
+                         len(todo), root, labels)
             sink.log.write(f"run {summary.run_id} engine={engine} workers={workers} "
                            f"found={len(refs)} skipped={summary.skipped} todo={len(todo)} "
                            f"memory_limit_mb={memory_limit_mb:.0f} retry={list(retry)} "
                            f"options={options.to_dict()}")
             shutil.rmtree(staging, ignore_errors=True)   # a killed run's leftovers (we hold the lock)
-            known = (str(catalog), cat.run_options_hash, retry)
+            known = (str(catalog), cat.run_options_hash, retry, options.label_overrides)
             if engine == "local":
                 run_local(todo, options, sink.commit, sink.skip, workers=workers,
                           timeout=timeout, recycle_after=recycle_after, progress=progress,
@@ -400,13 +402,15 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
     return summary
 
 
-def _plan(cat, refs: list[MeshRef], root: str, retry: tuple, summary: BuildSummary) -> list:
+def _plan(cat, refs: list[MeshRef], root: str, retry: tuple, summary: BuildSummary,
+          labels: LabelOverrides) -> list:
     """(MeshRef, force) for every file to hand to a worker; unchanged ones are counted skipped.
 
     Unchanged = same (size, mtime) as the last commit of the path (relative to the library
-    ``root``), content recorded with this run's options hash, and not a rejection whose reason
-    is being retried (``force``)."""
-    ohash = cat.run_options_hash
+    ``root``), content recorded with this run's options hash (with the mesh's label fixes in
+    ``labels``: ``curation.mesh_options_hash``), and not a rejection whose reason is being
+    retried (``force``)."""
+    run_hash = cat.run_options_hash
     todo = []
     for ref in refs:
         rec = cat.file_record(relative_path(ref.path, root), root)
@@ -414,7 +418,8 @@ def _plan(cat, refs: list[MeshRef], root: str, retry: tuple, summary: BuildSumma
             todo.append((ref, False))               # new or changed: a worker decides
             continue
         verdict = cat.mesh_verdict(rec[0])          # unchanged file: no need to re-hash
-        if verdict is None or verdict[2] != ohash:
+        if verdict is None or verdict[2] != mesh_options_hash(run_hash,
+                                                              labels.for_mesh(ref.path, rec[0])):
             todo.append((ref, False))
         elif verdict[0] == "rejected" and verdict[1] in retry:
             todo.append((ref, True))
@@ -427,14 +432,19 @@ class _Sink:
     """Where the engines' results go: commits to the catalogue (an environment fault becomes
     ``BuildStopped`` naming the mesh), the summary's counts, and the run log."""
 
-    def __init__(self, cat, summary: BuildSummary, log_path: Path, todo: int, root: str):
+    def __init__(self, cat, summary: BuildSummary, log_path: Path, todo: int, root: str,
+                 labels: LabelOverrides):
         self.cat, self.summary, self.todo, self.root = cat, summary, todo, root
+        self.labels = labels
         self.log = RunLog(log_path)
         summary.log_path = str(log_path)
         self.worker_skips = 0                      # paths whose content was already catalogued
 
     def commit(self, entry) -> None:
         s = self.summary
+        fixes = self.labels.for_mesh(entry.path, entry.sha256)   # the path as discovered
+        if fixes:
+            entry.options_hash = mesh_options_hash(self.cat.run_options_hash, fixes)
         entry.library_root, entry.path = self.root, relative_path(entry.path, self.root)
         try:
             self.cat.commit_mesh(entry, move_files=True)

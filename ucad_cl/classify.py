@@ -32,7 +32,11 @@ visible in view v:
   the more confident decision of the two; the one that changed gets ``'symmetric'``.
 * Masks from a per-material labeller (``masks.labels``, see ``ucad_cl.labeller``): a material
   with fewer than ``min_pixels`` pixels in the views but at least that many in the layer behind
-  glass takes the labeller's part (``'behind-glass'``, pixels = that layer's); every row reports
+  glass takes the labeller's part (``'behind-glass'``, pixels = that layer's); one with neither
+  takes a part from its geometry (``'never-visible'``: inside a wheel -> rim, under the floor
+  -> other, else interior; pixels 0), so only the other segmenters leave ``'unseen'``
+  rows; in a mirror pair it ranks as unseen (the seen twin's label wins, the flag stays);
+  every row reports
   the labeller's probability of its final part (``prob``) and a shared material's split into
   component groups (``split``).
 
@@ -81,6 +85,7 @@ def classify_parts(mesh: Mesh, views: ViewSet, masks: PartMasks, *, threshold: f
     labels = getattr(masks, "labels", None)
     if labels is not None:
         _behind_glass(rows, labels, min_pixels)
+        _never_visible(rows, labels)
     total = max(int(hist[:, 1:, 0].sum()), 1)
     _merge_leftovers(rows, views.mat_id, merge_max_fraction * total, priors or {})
     if symmetry:
@@ -102,6 +107,18 @@ def _behind_glass(rows, labels, min_pixels) -> None:
         if r.decision == "unseen" and behind >= max(min_pixels, 1):
             r.part = PART_NAMES[int(labels.part[r.material])]
             r.decision, r.pixels = "behind-glass", behind
+
+
+def _never_visible(rows, labels) -> None:
+    """Materials still unseen (no pixel in the views nor behind glass) take their part from
+    geometry (``labels.hidden_part``, ``labeller.never_visible_part``: inside a wheel -> rim,
+    under the floor -> other, else interior; the labeller's argmax when absent): decision
+    'never-visible', pixels 0."""
+    hidden = labels.part if getattr(labels, "hidden_part", None) is None else labels.hidden_part
+    for r in rows:
+        if r.decision == "unseen":
+            r.part = PART_NAMES[int(hidden[r.material])]
+            r.decision = "never-visible"
 
 
 def part_histogram(mat_id: np.ndarray | Sequence[np.ndarray], masks: np.ndarray | None = None,
@@ -456,11 +473,13 @@ def _unify_pair(rows, a, b) -> None:
     ra, rb = rows[a], rows[b]
     if ra.part == rb.part:
         return
-    rank = {"unseen": 0, "below-threshold": 1}
+    rank = {"unseen": 0, "never-visible": 0, "below-threshold": 1}
     ka = (rank.get(ra.decision, 2), ra.strength)
     kb = (rank.get(rb.decision, 2), rb.strength)
     src, dst = (ra, rb) if ka >= kb else (rb, ra)          # equal -> lower index (a) wins
-    dst.part, dst.decision = src.part, "symmetric"
+    dst.part = src.part
+    if dst.decision != "never-visible":                    # that flag stays: no pixel at all
+        dst.decision = "symmetric"
 
 
 def _sample(idx: np.ndarray, k: int) -> np.ndarray:

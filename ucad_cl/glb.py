@@ -46,10 +46,13 @@ _TRIANGLES = 4
 
 def write_glb(path: str | os.PathLike, mesh: Mesh, parts, *, frame: str = "file",
               part_materials: bool = False, donor: dict | None = None,
-              mesh_id: str = "") -> Path:
+              mesh_id: str = "", fitted: dict | None = None) -> Path:
     """Write ``mesh`` with the part decisions ``parts`` (rows with ``index``, ``name``, ``part``,
     ``score``, ``iou``, ``decision``, ``props``: ``CatalogReader.parts``) to ``path`` (GLB).
-    ValueError when the table does not describe the mesh's materials."""
+    ``fitted``: {part: {"color_linear": [r, g, b], ...}} from ``ucad-index fit``: each material
+    of such a part takes its part's prior with that base colour, and the fit's fields in
+    ``extras.ucad.fit`` (implies ``part_materials``). ValueError when the table does not
+    describe the mesh's materials."""
     if frame not in FRAMES:
         raise ValueError(f"frame must be one of {FRAMES}, got {frame!r}")
     rows = {int(r.index): r for r in parts}
@@ -70,7 +73,7 @@ def write_glb(path: str | os.PathLike, mesh: Mesh, parts, *, frame: str = "file"
     used_ext: set[str] = set()
     for k, src in enumerate(mesh.materials):
         row = rows[k]
-        mat = _material(src.name, row, part_materials, donor)
+        mat = _material(src.name, row, part_materials or bool(fitted), donor, fitted)
         used_ext |= set(mat.get("extensions", {}))
         materials.append(mat)
         faces = np.asarray(mesh.faces)[np.asarray(mesh.face_material) == k]
@@ -94,7 +97,8 @@ def write_glb(path: str | os.PathLike, mesh: Mesh, parts, *, frame: str = "file"
         "scenes": [{"name": name, "nodes": [0], "extras": {"ucad": {
             "mesh_id": mesh_id or mesh.sha256, "frame": frame,
             "file_to_norm": np.asarray(mesh.file_to_norm, np.float64).tolist(),
-            "part_materials": bool(part_materials), "transfer": bool(donor)}}}],
+            "part_materials": bool(part_materials or fitted), "transfer": bool(donor),
+            "fit": bool(fitted)}}}],
         "nodes": [node],
         "meshes": [{"name": name, "primitives": primitives}],
         "materials": materials,
@@ -130,13 +134,24 @@ def donor_materials(parts) -> dict[str, dict]:
 
 # ----------------------------------------------------------------------------- materials
 
-def _material(name: str, row, part_materials: bool, donor: dict | None) -> dict:
+def _material(name: str, row, part_materials: bool, donor: dict | None,
+              fitted: dict | None = None) -> dict:
     """glTF material for one catalogued material (see the module docstring for the rules)."""
     extras = {"part": row.part, "score": float(row.score), "iou": float(row.iou),
               "decision": row.decision, "index": int(row.index),
               "material_id": int(row.index) + 1}
     props = dict(row.props)
-    if donor and row.part in donor:
+    if fitted and row.part in fitted:
+        fit = fitted[row.part]
+        color = [min(max(float(c), 0.0), 1.0) for c in fit["color_linear"]] + [1.0]
+        if row.part in PART_MATERIALS:
+            mat = _prior(name, row.part, {**props, "base_color": color})
+            mat["pbrMetallicRoughness"]["baseColorFactor"] = color
+            extras["prior"] = PART_MATERIALS[row.part]["label"]
+        else:
+            mat = _from_props(name, {**props, "base_color": color})
+        extras["fit"] = {k: v for k, v in fit.items() if k != "color_srgb"}
+    elif donor and row.part in donor:
         props = dict(donor[row.part])
         extras["transferred_from"] = props.pop("_name", "")
         mat = _from_props(name, props)

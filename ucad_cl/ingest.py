@@ -174,7 +174,7 @@ def load_mesh(path: str | os.PathLike, *, clean: bool = True,
     scene = _trimesh_scene(path, source, budgets)
     report.notes.extend(source.notes)
     vertices, faces, face_material, face_node, node_names, materials = _flatten(
-        path, scene, gltf, draco, budgets)
+        path, scene, gltf, draco, budgets, report.notes)
     del scene
     if faces.shape[0] == 0:
         raise IngestError(path, "empty", "no triangles in the file" + _notes(report))
@@ -802,12 +802,18 @@ def _trimesh_scene(path: Path, src: _Source, budgets: Budgets):
 # ----------------------------------------------------------------------------- flattening
 
 def _flatten(path: Path, scene, gltf: dict | None, draco: bool = False,
-             budgets: Budgets = Budgets()):
+             budgets: Budgets = Budgets(), notes: list[str] | None = None):
     """Draw every (node, geometry) pair: float64 vertices, faces, face material/node, materials.
     The running triangle / vertex / instance totals are checked against ``budgets`` before each
-    draw (the header checks cannot see everything, e.g. OBJ polygons or trimesh's instancing)."""
+    draw (the header checks cannot see everything, e.g. OBJ polygons or trimesh's instancing).
+    Geometries without triangles (glTF POINTS, LINES, LINE_LOOP, LINE_STRIP primitives, OBJ
+    lines: wireframe helpers) are skipped; one line in ``notes`` counts them by kind."""
     import trimesh
     geometries = scene.geometry
+    if notes is not None:
+        skipped = _skipped_primitives(gltf, geometries)
+        if skipped:
+            notes.append(skipped)
     n_tris = n_verts = 0
     prim_material = _gltf_primitive_materials(gltf, geometries) if gltf is not None else None
 
@@ -876,6 +882,36 @@ def _flatten(path: Path, scene, gltf: dict | None, draco: bool = False,
             np.concatenate(fnode), node_names, materials)
 
 
+_PRIMITIVE_KINDS = {0: "points", 1: "lines", 2: "line loop", 3: "line strip", 6: "triangle fan"}
+
+
+def _skipped_primitives(gltf: dict | None, geometries) -> str:
+    """A note counting the primitives (glTF: by mode, as declared) or geometries (other formats:
+    by trimesh class) that give no triangles and are skipped; '' when there are none. Kinds are
+    listed in glTF mode order."""
+    import trimesh
+    counts: dict[str, int] = {}
+    if gltf is not None:
+        meshes = gltf.get("meshes", [])
+        for m in meshes if isinstance(meshes, list) else []:
+            prims = m.get("primitives", []) if isinstance(m, dict) else []
+            for p in prims if isinstance(prims, list) else []:
+                mode = p.get("mode", _GL_TRIANGLES) if isinstance(p, dict) else _GL_TRIANGLES
+                if mode in _PRIMITIVE_KINDS:
+                    counts[_PRIMITIVE_KINDS[mode]] = counts.get(_PRIMITIVE_KINDS[mode], 0) + 1
+        order = list(_PRIMITIVE_KINDS.values())
+    else:
+        for geom in geometries.values():
+            if not isinstance(geom, trimesh.Trimesh):
+                kind = "points" if isinstance(geom, trimesh.PointCloud) else "lines"
+                counts[kind] = counts.get(kind, 0) + 1
+        order = ["points", "lines"]
+    if not counts:
+        return ""
+    what = ", ".join(f"{counts[k]} {k}" for k in order if k in counts)
+    return f"skipped non-triangle primitives ({what}): not drawn, not labelled"
+
+
 def _gltf_primitive_materials(gltf: dict, geometries) -> dict | None:
     """Map trimesh geometry name -> glTF material index (-1 = none), or None if unmatched.
 
@@ -893,7 +929,8 @@ def _gltf_primitive_materials(gltf: dict, geometries) -> dict | None:
         index = prim.get("material", -1)
         if not isinstance(index, int) or index >= len(table):
             return None
-        mat = getattr(geometries[name].visual, "material", None)
+        # points and lines (trimesh's PointCloud / Path3D) may have no visual at all
+        mat = getattr(getattr(geometries[name], "visual", None), "material", None)
         expected = table[index].get("name") if index >= 0 else None
         if index >= 0 and mat is not None and expected is not None and mat.name != expected:
             return None

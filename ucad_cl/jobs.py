@@ -19,13 +19,14 @@ from ucad_catalog.entry import CatalogEntry
 from . import reasons
 from .artifacts import Verdict
 from .ingest import Budgets, IngestError, mesh_identity, unreadable_identity
+from .curation import LabelOverrides, mesh_options_hash
 from .orient import parse_mode
 
 if TYPE_CHECKING:
     from .build import BuildSummary
 
 
-CODE_VERSION = "15"       # bump when a change alters results: it enters the options hash
+CODE_VERSION = "16"       # bump when a change alters results: it enters the options hash
 
 
 @dataclass(frozen=True)
@@ -49,16 +50,31 @@ class BuildOptions:
     orientation: str = "auto"           # 'auto' | 'file' | 'UP,FRONT' (ucad_cl.orient)
     orientation_overrides: tuple = ()   # ((path or sha256, 'UP,FRONT' | 'auto' | 'file'), ...)
     reject_uncertain_orientation: bool = False   # reject instead of flag (uncertain_orientation)
+    # curators' fixes ((path or sha256, material, part), ...): per-mesh, outside the run's hash
+    label_overrides: tuple = ()
 
     def __post_init__(self):
         parse_mode(self.orientation)                      # a bad mode fails here
         object.__setattr__(self, "orientation_overrides",
                            tuple((str(k), str(v)) for k, v in self.orientation_overrides))
+        object.__setattr__(self, "label_overrides",
+                           LabelOverrides.from_items(self.label_overrides).as_items())
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["elevations"] = list(self.elevations)
         d["orientation_overrides"] = [list(kv) for kv in self.orientation_overrides]
+        d["label_overrides"] = [list(kv) for kv in self.label_overrides]
+        return d
+
+    def run_record(self) -> dict:
+        """What a run records and hashes (``Catalog.begin_run``): ``to_dict`` and the code
+        version, the label overrides left out of the hash (a mesh's own fixes enter its own
+        options hash, ``curation.mesh_options_hash``: editing the file re-processes only the
+        meshes whose fixes changed); their count is kept under the unhashed ``runtime`` key."""
+        d = {**self.to_dict(), "code": CODE_VERSION}
+        d.pop("label_overrides")
+        d["runtime"] = {"label_overrides": len(self.label_overrides)}
         return d
 
     def hash(self) -> str:
@@ -128,25 +144,28 @@ class Skipped:
 
 
 class KnownContent:
-    """Read-only question to the catalogue, asked by workers: is content ``sha`` already
-    catalogued with options hash ``ohash`` (and not with a reason being retried)? No lock; any
-    error answers "no" (the mesh is then simply processed)."""
+    """Read-only question to the catalogue, asked by workers: is content ``sha`` (at ``path``)
+    already catalogued with its options hash (the run's ``ohash``, or with the mesh's label
+    fixes from ``label_overrides`` triples, ``curation.mesh_options_hash``) and not with a
+    reason being retried? No lock; any error answers "no" (the mesh is then simply processed)."""
 
     def __init__(self, catalog: str | os.PathLike | None, ohash: str | None,
-                 retry: Iterable[str] = ()):
+                 retry: Iterable[str] = (), label_overrides: tuple = ()):
         self._db = Path(catalog) / "catalog.sqlite" if catalog else None
         self._ohash, self._retry = ohash, set(retry)
+        self._labels = LabelOverrides.from_items(label_overrides)
         self._conn = None
 
-    def __call__(self, sha: str) -> bool:
+    def __call__(self, sha: str, path: str | os.PathLike | None = None) -> bool:
         if self._db is None or not self._ohash:
             return False
+        ohash = mesh_options_hash(self._ohash, self._labels.for_mesh(path, sha))
         try:
             if self._conn is None:
                 self._conn = sqlite3.connect(f"{self._db.resolve().as_uri()}?mode=ro", uri=True,
                                              timeout=5.0, check_same_thread=False)
             row = self._conn.execute("SELECT state, reason FROM meshes WHERE sha256=? AND "
-                                     "options_hash=?", (sha, self._ohash)).fetchone()
+                                     "options_hash=?", (sha, ohash)).fetchone()
         except sqlite3.Error:
             return False
         return row is not None and not (row[0] == "rejected" and row[1] in self._retry)

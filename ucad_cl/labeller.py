@@ -67,8 +67,18 @@ into groups: inside a wheel (rim if their mean rho < 0.8, else wheel) and elsewh
 material's label); reported when at least two groups each hold >= ``SPLIT_MIN_SHARE`` of the
 material's area, with each group's area share, face count and component boxes.
 
+Rules after the trees (``wheel_assembly``, ``never_visible_part``): tyre against rim by radial
+position inside a wheel assembly, and the part of a material no view sees from geometry alone
+(inside a wheel -> rim, under the floor -> other, else interior; ``classify``'s
+``'never-visible'``).
+
 Determinism: NumPy reductions in a fixed order, tie rules stated at each argmax; the ONNX tree
 model is evaluated exactly (thresholds compare float32 features).
+
+Why one module of over 800 lines: the feature columns (``FEATURE_NAMES``), the code that
+computes them, the model that reads them and the rules that read them after it change together
+(a column renamed or moved breaks all four, and the shipped model's record is checked against
+these names), so they live in one file; the training recipe is ``labeller_train``.
 """
 from __future__ import annotations
 
@@ -90,6 +100,8 @@ BEHIND_SIZE = 96           # at most this many pixels on its longer side
 ADJ_VIEWS = 12             # views used for image adjacency (every k-th view)
 ADJ_SIZE = 128             # ... sampled at every s-th pixel so the longer side is <= this
 SPLIT_MIN_SHARE = 0.05     # a component group must hold this share of the material's area
+WHEEL_ZONE = 0.5           # share of area within a wheel's radius: the material is in a wheel
+RIM_GAP = 0.15             # mean rho this far inside a wheel's outermost material: the rim
 WELD = 2.0 ** -17          # vertex welding grid (canonical units) for components
 
 
@@ -145,12 +157,14 @@ class MaterialLabels:
     """The labeller's answer. prob: (M, P) float32 over ``PART_NAMES`` (rows sum to 1);
     part: (M,) int index of the chosen part (argmax, ties -> PART_NAMES order); behind_pixels:
     (M,) pixels seen only through glass; splits: {material: [{part, area_share, faces, boxes}]}
-    for shared materials that the geometry separates."""
+    for shared materials that the geometry separates; hidden_part: (M,) the part a material
+    takes when no view sees it (``never_visible_part``; None: the argmax ``part``)."""
 
     prob: np.ndarray
     part: np.ndarray
     behind_pixels: np.ndarray
     splits: dict = field(default_factory=dict)
+    hidden_part: np.ndarray | None = None     # (M,) part index if no view sees it (geometry)
 
     def probability(self, m: int) -> float:
         return float(self.prob[m, self.part[m]])
@@ -165,10 +179,43 @@ def label_materials(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     table = material_table(mesh, views, use_names=use_names, runtime=runtime)
     if not isinstance(model, LabellerModel):
         model = LabellerModel(model or MODEL_PATH)
-    prob = model.predict(table.X)
+    prob = wheel_assembly(model.predict(table.X), table.X)
     part = np.argmax(prob, axis=1)                                 # ties -> PART_NAMES order
     return MaterialLabels(prob=prob, part=part, behind_pixels=table.behind_pixels,
-                          splits=split_shared(mesh, table, part))
+                          splits=split_shared(mesh, table, part),
+                          hidden_part=never_visible_part(table.X))
+
+
+def wheel_assembly(prob: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Tyre against rim by radial position in a wheel assembly: when two or more materials with
+    ``WHEEL_ZONE`` of their area inside a wheel's radius (rho < 1.1, ``rho_hub`` + ``rho_rim``
+    + ``rho_tyre``) are labelled wheel, the outermost (largest mean rho; ties -> the lower
+    material index) stays wheel and each one whose mean rho lies ``RIM_GAP`` or more inside
+    it becomes rim (its wheel and rim probabilities swapped). Returns a new array."""
+    col = {n: i for i, n in enumerate(FEATURE_NAMES)}
+    w, r = PART_NAMES.index("wheel"), PART_NAMES.index("rim")
+    zone = X[:, col["rho_hub"]] + X[:, col["rho_rim"]] + X[:, col["rho_tyre"]]
+    cand = np.flatnonzero((np.argmax(prob, axis=1) == w) & (zone >= WHEEL_ZONE))
+    out = np.array(prob, copy=True)
+    if cand.size < 2:
+        return out
+    rho = X[cand, col["rho_mean"]]
+    outer = rho.max()                                 # argmax: the first (lower index) on ties
+    for m in cand[rho <= outer - RIM_GAP]:
+        out[m, [w, r]] = out[m, [r, w]]
+    return out
+
+
+def never_visible_part(X: np.ndarray) -> np.ndarray:
+    """(M,) part index for materials that no view sees, from geometry alone: ``rim`` inside a
+    wheel (``WHEEL_ZONE``), ``other`` under the floor (more than half its area facing down in
+    the lowest 0.3 of the height, ``z_under``, or its mean height under 0.2: axles, tanks,
+    exhausts, frame rails), else ``interior`` (inside the body or the cabin)."""
+    col = {n: i for i, n in enumerate(FEATURE_NAMES)}
+    zone = X[:, col["rho_hub"]] + X[:, col["rho_rim"]] + X[:, col["rho_tyre"]]
+    under = (X[:, col["z_under"]] > 0.5) | (X[:, col["h_mean"]] < 0.2)
+    return np.where(zone >= WHEEL_ZONE, PART_NAMES.index("rim"),
+                    np.where(under, PART_NAMES.index("other"), PART_NAMES.index("interior")))
 
 
 # ---------------------------------------------------------------------------------------------

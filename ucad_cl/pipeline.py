@@ -6,8 +6,9 @@ rejections are ``ucad_cl.jobs`` (no stage imports, so the driver stays small).
 ``Pipeline(options).identify(ref)`` -> content key (or a rejection when the file cannot be read);
 ``.load_entry(ref, sha)`` -> the mesh (ingest, under the worker's limits) or a rejection;
 ``.process_entry(ref, mesh, seconds, staging)`` -> ingest -> [decimate] -> filter -> render ->
-filter by views -> edges -> segment -> classify -> features -> ``CatalogEntry``. Artifacts go to
-``staging`` (EXR) or stay bytes; their kinds are ``ucad_catalog._db.ARTIFACT_KINDS``.
+filter by views -> edges -> segment -> classify (+ curators' label overrides) -> features ->
+``CatalogEntry``. Artifacts go to ``staging`` (EXR) or stay bytes; their kinds are
+``ucad_catalog._db.ARTIFACT_KINDS``.
 
 The loader is a seam: ``Pipeline(options, loader=...)`` replaces ``ingest.load_mesh`` (a picklable
 module-level function ``loader(path, *, budgets, orientation) -> Mesh``; the pipeline orients
@@ -30,6 +31,7 @@ from ucad_catalog.exr import write_viewset_exr
 from .artifacts import Verdict
 from .cameras import make_ring
 from .classify import classify_parts
+from .curation import LabelOverrides, apply_label_overrides
 from .decimate import decimate
 from .edges import material_edges
 from .features import HogExtractor, view_features
@@ -57,6 +59,7 @@ class Pipeline:
         self.loader = loader or load_mesh
         self.budgets = options.budgets()
         self.overrides = OrientationOverrides(dict(options.orientation_overrides))
+        self.labels = LabelOverrides.from_items(options.label_overrides)
         self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
                               fov_deg=options.fov_deg, size=options.size)
         self.segmenter = segmenter_from_spec(options.segmenter, runtime)
@@ -152,6 +155,10 @@ class Pipeline:
         lap("segment")
         table = classify_parts(mesh, views, masks, threshold=o.threshold, priors=name_priors(mesh),
                                runtime=self.runtime)
+        fixes = self.labels.for_mesh(ref.path, mesh.sha256)
+        if fixes:                                   # curators' corrections win (curation.py)
+            table, missing = apply_label_overrides(table, mesh, fixes)
+            notes = "; ".join(n for n in [notes, *missing] if n)
         lap("classify")
         if self.extractor is not None:
             images = shade_views(mesh, views, background=(128, 128, 128), runtime=self.runtime)

@@ -76,6 +76,13 @@ def register(sub) -> None:
                         "run log still records everything")
     add_camera_args(p)
     add_orientation_args(p)
+    p.add_argument("--labels-file", type=Path, default=None, metavar="FILE",
+                   help="curators' label corrections: JSON {\"PATH or SHA256\": {\"MATERIAL\": "
+                        "\"PART\"}} or text lines 'PATH_OR_SHA256 MATERIAL PART' (MATERIAL: "
+                        "the name, quoted if it has spaces, or #N for material index N; paths "
+                        "relative to FILE). Applied after labelling (decision 'override'); "
+                        "editing the file re-processes only the meshes whose fixes changed "
+                        "(docs/LABELS.md)")
     p.add_argument("--reject-uncertain-orientation", action="store_true",
                    help="reject meshes whose estimated orientation has a confidence under 0.5 "
                         "(reason uncertain_orientation); by default they are accepted and "
@@ -85,8 +92,10 @@ def register(sub) -> None:
 
 def options_from_args(args):
     from ..build import BuildOptions
+    from ..curation import LabelOverrides
     mode, overrides = orientation_from_args(args)
-    return BuildOptions(orientation=args.orientation,
+    labels = LabelOverrides.read(args.labels_file) if args.labels_file else LabelOverrides()
+    return BuildOptions(orientation=args.orientation, label_overrides=labels.as_items(),
                         orientation_overrides=overrides.as_items() if overrides else (),
                         reject_uncertain_orientation=args.reject_uncertain_orientation,
                         azimuth_step=args.azimuth_step, elevations=tuple(args.elevations),

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ucad_catalog.reader import RECENT_RUNS
 
-from .common import format_rows, match_meshes, open_reader
+from .common import format_low_confidence, format_rows, match_meshes, open_reader
 
 
 def register(sub) -> None:
@@ -32,6 +32,11 @@ def register(sub) -> None:
     p.add_argument("id", metavar="ID", help="mesh id or id prefix (>= 8 hex digits), path or "
                                             "file name")
     p.add_argument("--catalog", required=True, type=Path, metavar="PATH")
+    p.add_argument("--low-confidence", type=int, nargs="?", const=10, default=None, metavar="N",
+                   help="also list the N (default 10) materials with the lowest label "
+                        "confidence first (unseen ones, then by the labeller's probability of "
+                        "the part: never-visible materials usually come first), with a "
+                        "--labels-file line to fix each (docs/LABELS.md)")
     p.set_defaults(func=run_show)
 
     p = sub.add_parser("export", help="export the catalogue as Parquet or JSON lines",
@@ -120,6 +125,8 @@ def run_show(args) -> int:
                 print(f"  {kind:<13} {r.artifact_path(m.sha256, kind)}")
             except (CatalogError, KeyError):
                 pass
+        if args.low_confidence is not None:
+            print(format_low_confidence(m.sha256, parts, args.low_confidence, indent="  "))
     return 0
 
 

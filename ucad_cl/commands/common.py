@@ -39,6 +39,44 @@ def format_rows(rows, indent: str = "") -> str:
     return "\n".join(lines)
 
 
+def label_confidence(r) -> float:
+    """How sure the recorded label of a catalogue row is, in [0, 1]: 0 for an unseen material,
+    else the labeller's probability of its part (``props['prob']``), else its score (segmenters
+    without a labeller); a curator's override is 1."""
+    if r.decision == "override":
+        return 1.0
+    if r.part == "unseen":
+        return 0.0
+    prob = (r.props or {}).get("prob")
+    return float(prob) if prob is not None else float(r.score)
+
+
+def format_low_confidence(sha256: str, rows, n: int, indent: str = "") -> str:
+    """The ``n`` materials whose labels are least sure (``label_confidence`` ascending; ties:
+    more visible pixels first, then material index), curators' overrides left out, each with a
+    line for ``build --labels-file`` that a person edits to the right part (the material by
+    name, or ``#index`` when its name is shared or reads as an index; PART stands for the part
+    of an unseen material, which the file refuses until it is edited)."""
+    import shlex
+
+    names = [r.name for r in rows]
+
+    def key(r) -> str:
+        plain = names.count(r.name) == 1 and not (r.name[:1] == "#" and r.name[1:].isdigit())
+        return shlex.quote(r.name) if plain else f"#{r.index}"
+
+    todo = sorted((r for r in rows if r.decision != "override"),
+                  key=lambda r: (label_confidence(r), -r.pixels, r.index))[:max(n, 0)]
+    lines = [f"{indent}lowest label confidence first ({len(todo)} of {len(rows)} materials; "
+             "fix one with a --labels-file line):",
+             f"{indent}  {'conf':>5s} {'material':32s} {'part':9s} {'pixels':>8s}  "
+             "labels-file line"]
+    for r in todo:
+        lines.append(f"{indent}  {label_confidence(r):5.2f} {r.name[:32]:32s} {r.part:9s} "
+                     f"{r.pixels:8d}  {sha256} {key(r)} {'PART' if r.part == 'unseen' else r.part}")
+    return "\n".join(lines)
+
+
 def _prob_split(r):
     """(prob, split) of a ``MaterialPart`` (fields) or a catalogue row (its ``props``)."""
     if hasattr(r, "prob"):

@@ -19,7 +19,7 @@ from .common import format_rows, match_meshes, open_reader
 from .render import add_camera_args, add_orientation_args, orientation_from_args, ring_from_args
 
 COLUMNS = ("material", "name", "part", "score", "iou", "view", "decision", "pixels", "prob",
-           "split")
+           "split", "was")
 
 
 def register(sub) -> None:
@@ -51,7 +51,8 @@ def write_table(table, stem: Path) -> None:
     with open(f"{stem}.parts.csv", "w", newline="", encoding="utf-8") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
         w.writeheader()
-        w.writerows([{**r, "split": json.dumps(r["split"]) if r["split"] else ""} for r in rows])
+        w.writerows([{**r, **{k: json.dumps(r[k]) if r[k] else "" for k in ("split", "was")}}
+                     for r in rows])
     Path(f"{stem}.parts.json").write_text(json.dumps(rows, indent=1, ensure_ascii=False),
                                           encoding="utf-8")
 

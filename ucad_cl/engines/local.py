@@ -101,7 +101,7 @@ def _worker_main(wid: int, task_q, conn, state, options_dict: dict, threads: int
         try:
             sha, entry = pipe.identify(ref)
             result_q.put(("identity", wid, i, sha))
-            if entry is None and not force and is_known(sha):
+            if entry is None and not force and is_known(sha, ref.path):
                 return (i, ref, None, 0.0, Skipped(sha))
             if entry is None:
                 mesh, secs, entry = pipe.load_entry(ref, sha)

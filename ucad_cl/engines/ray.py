@@ -275,7 +275,7 @@ def _process_one(ref, force: bool, options, staging: str, token: str,
     sha, entry = pipe.identify(ref)
     if entry is not None:
         return entry
-    if shared and not force and KnownContent(*known)(sha):
+    if shared and not force and KnownContent(*known)(sha, ref.path):
         return Skipped(sha)
     mesh, secs, entry = pipe.load_entry(ref, sha)
     if entry is not None:

@@ -1,0 +1,256 @@
+"""``ucad-index fit PHOTO (--box X0 Y0 X1 Y1 | --mask MASK) --catalog CAT [--mesh MESH] --out DIR``:
+fit the part materials of a catalogued vehicle to a photo (``ucad_cl.fit``; docs/FIT.md).
+
+Writes DIR/<stem>.json (mesh, pose, lighting, parts, materials, candidates, seconds),
+DIR/<stem>.glb (the model with every material replaced by its part's fitted material; not
+written when the mesh file moved) and DIR/<stem>.png (photo | fitted render | part masks over
+the photo | error map). ``--photos LIST.csv`` (columns path,x0,y0,x1,y1[,mesh]; paths relative
+to the list's folder) fits many photos with a progress bar. Bad input: one line on stderr, exit
+status 2 (1 when some photos of a list failed).
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+MAX_PIXELS = 50_000_000     # larger photos are refused before they are decoded
+
+DESCRIPTION = """\
+Fit each part's material of a catalogued vehicle to a photo of it: the model and pose are
+found in the catalogue (or MESH is given), the part masks come from the render at that pose
+inside the photo's vehicle, and a light model (sky, sun, clear-coat reflection) is estimated
+jointly with one base colour per part; metallic, roughness, clear coat and transmission stay
+the part prior's (ucad_catalog/parts.py). See docs/FIT.md.
+
+examples:
+  ucad-index fit street.jpg --box 120 80 460 300 --catalog cat --out fits
+  ucad-index fit street.jpg --mask car.png --catalog cat --mesh 3f2a9c01 --out fits
+  ucad-index fit --photos photos.csv --catalog cat --out fits
+"""
+
+
+def register(sub) -> None:
+    import argparse
+
+    p = sub.add_parser("fit", help="fit a catalogued vehicle's part materials to a photo",
+                       description=DESCRIPTION,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("photo", type=Path, nargs="?", default=None,
+                   help="reference photo (PNG/JPEG; grayscale and 16-bit are converted)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
+                   help="vehicle box in pixels (x1, y1 exclusive); GrabCut finds the vehicle")
+    g.add_argument("--mask", type=Path, help="vehicle mask image, same size (non-zero = vehicle)")
+    p.add_argument("--photos", type=Path, default=None, metavar="LIST.csv",
+                   help="fit every row of this CSV (path,x0,y0,x1,y1[,mesh])")
+    p.add_argument("--catalog", required=True, type=Path, metavar="CAT")
+    p.add_argument("--mesh", default=None, metavar="MESH",
+                   help="the catalogued mesh (id, id prefix, path or file name); default: "
+                        "retrieval over the whole catalogue")
+    p.add_argument("--segmenter", default=None, metavar="onnx:MODEL:CONFIG.json",
+                   help="part masks from this ONNX image segmenter instead of the render")
+    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ucad_catalog import CatalogError
+    from ucad_catalog.reader import CatalogReader
+
+    if (args.photo is None) == (args.photos is None):
+        print("error: give PHOTO (with --box or --mask) or --photos LIST.csv", file=sys.stderr)
+        return 2
+    if args.photo is not None and args.box is None and args.mask is None:
+        print("error: give --box X0 Y0 X1 Y1 or --mask MASK.png", file=sys.stderr)
+        return 2
+    segmenter = None
+    if args.segmenter:
+        from ..fit import OnnxPhotoSegmenter
+        try:
+            segmenter = OnnxPhotoSegmenter.from_spec(args.segmenter)
+        except (ValueError, OSError) as exc:
+            print(f"error: --segmenter {args.segmenter}: {exc}", file=sys.stderr)
+            return 2
+    try:
+        reader = CatalogReader(args.catalog)
+    except CatalogError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    with reader:
+        if args.photo is not None:
+            try:
+                res, out = fit_one(reader, args.photo, args.box, args.mask, args.mesh,
+                                   args.out, segmenter)
+            except ValueError as exc:
+                print(f"{args.photo}: {exc}", file=sys.stderr)
+                return 2
+            report(res, out)
+            return 0
+        return run_list(reader, args, segmenter)
+
+
+def run_list(reader, args, segmenter) -> int:
+    from tqdm import tqdm
+
+    try:
+        jobs = read_list(args.photos)
+    except (ValueError, OSError) as exc:
+        print(f"{args.photos}: {exc}", file=sys.stderr)
+        return 2
+    failed = 0
+    for path, box, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
+        try:
+            res, out = fit_one(reader, path, box, None, mesh or args.mesh, args.out, segmenter)
+            tqdm.write(f"ok    {path} -> {out}.json ({res.mesh_path})")
+        except ValueError as exc:
+            failed += 1
+            tqdm.write(f"FAIL  {path}: {exc}", file=sys.stderr)
+    print(f"{len(jobs) - failed} fitted, {failed} failed; outputs in {args.out}")
+    return 1 if failed else 0
+
+
+def read_list(path: Path) -> list:
+    """[(photo path, box, mesh or None)] of a CSV with columns path,x0,y0,x1,y1[,mesh]."""
+    import csv
+
+    rows = []
+    with open(path, newline="", encoding="utf-8") as f:
+        for k, row in enumerate(csv.reader(f)):
+            if not row or row[0].strip().startswith("#"):
+                continue
+            if k == 0 and row[0].strip().lower() == "path":
+                continue
+            if len(row) not in (5, 6):
+                raise ValueError(f"line {k + 1}: expected path,x0,y0,x1,y1[,mesh], got "
+                                 f"{len(row)} columns")
+            try:
+                box = [float(v) for v in row[1:5]]
+            except ValueError:
+                raise ValueError(f"line {k + 1}: the box must be 4 numbers") from None
+            p = Path(row[0].strip())
+            rows.append((p if p.is_absolute() else path.parent / p, box,
+                         row[5].strip() if len(row) == 6 and row[5].strip() else None))
+    if not rows:
+        raise ValueError("no photo listed")
+    return rows
+
+
+def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter):
+    """Fit one photo and write its three outputs; ValueError with one line on bad input."""
+    from ..fit import fit_photo
+
+    image = read_image(photo)
+    mask = read_mask(mask_path, image.shape[:2]) if mask_path is not None else None
+    res = fit_photo(image, box=box, mask=mask, catalog=reader, mesh=mesh, segmenter=segmenter)
+    out = write_outputs(res, out_dir, photo.stem)
+    return res, out
+
+
+def read_image(path: Path):
+    """(H, W, 3) uint8 RGB: grayscale and 16-bit images converted, alpha dropped; ValueError
+    for a missing, corrupt or huge file."""
+    import cv2
+    import numpy as np
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise ValueError("no such file")
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+    except Image.DecompressionBombError:
+        raise ValueError(f"the image is larger than {MAX_PIXELS // 1_000_000} megapixels; "
+                         "scale it down first") from None
+    except (UnidentifiedImageError, OSError, ValueError):
+        raise ValueError("cannot read the image (corrupt or not an image)") from None
+    if w * h > MAX_PIXELS:
+        raise ValueError(f"the image is {w}x{h}: larger than {MAX_PIXELS // 1_000_000} "
+                         "megapixels; scale it down first")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise ValueError("cannot read the image (corrupt or not an image)")
+    if img.dtype == np.uint16:
+        img = ((img.astype(np.uint32) + 128) // 257).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise ValueError(f"unsupported pixel type {img.dtype}")
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    elif img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    elif img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    else:
+        raise ValueError(f"unsupported channel count {img.shape[2]}")
+    return np.ascontiguousarray(img)
+
+
+def read_mask(path: Path, shape):
+    img = read_image(path)
+    if img.shape[:2] != tuple(shape):
+        raise ValueError(f"mask {path} is {img.shape[1]}x{img.shape[0]}, the photo "
+                         f"{shape[1]}x{shape[0]}")
+    return img.max(axis=2) > 0
+
+
+def write_outputs(res, out_dir: Path, stem: str) -> Path:
+    """DIR/<stem>.json, .png and (with the mesh) .glb; returns DIR/<stem>."""
+    import cv2
+
+    from ..glb import write_glb
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    base = out_dir / stem
+    doc = res.to_json()
+    glb = None
+    if res.mesh is not None:
+        glb = write_glb(base.with_suffix(".glb"), res.mesh, res.part_rows,
+                        mesh_id=res.mesh_id, fitted=doc["parts"])
+    doc["glb"] = str(glb) if glb else None
+    base.with_suffix(".json").write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    cv2.imwrite(str(base.with_suffix(".png")), overview(res)[:, :, ::-1])
+    return base
+
+
+def overview(res, height: int = 256):
+    """(h, 4w, 3) uint8 RGB: photo | fitted render | part masks over the photo | error map
+    (|photo - render| in 8-bit sRGB levels, x4, inside the vehicle), in the working frame."""
+    import cv2
+    import numpy as np
+
+    from ..segment import material_colors
+
+    im = res.images
+    photo, render = im.photo, im.render
+    parts = photo.copy()
+    cols = material_colors(16)
+    sel = im.part_map >= 0
+    parts[sel] = (0.4 * photo[sel] + 0.6 * cols[im.part_map[sel] + 1]).astype(np.uint8)
+    err = np.abs(photo.astype(np.int32) - render.astype(np.int32)).max(axis=2)
+    emap = cv2.applyColorMap(np.clip(err * 4, 0, 255).astype(np.uint8), cv2.COLORMAP_JET)
+    emap = emap[:, :, ::-1].copy()
+    emap[~im.object] = 0
+    row = np.concatenate([photo, render, parts, emap], axis=1)
+    h, w = row.shape[:2]
+    if h > height:
+        row = cv2.resize(row, (int(round(w * height / h)), height),
+                         interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(row)
+
+
+def report(res, out: Path) -> None:
+    print(f"mesh {res.mesh_id[:12]} {res.mesh_path}")
+    print(f"pose azimuth {res.pose.azimuth:.1f} elevation {res.pose.elevation:.1f} "
+          f"({res.pose.source})")
+    for c in res.candidates[1:]:
+        print(f"  next: {c.mesh_id[:12]} {Path(c.mesh_path).name} view {c.view} "
+              f"score {c.score:.4f}")
+    for note in res.notes:
+        print(f"note: {note}")
+    doc = res.to_json()
+    for p, f in doc["parts"].items():
+        extra = f"  ({f['reason']})" if f.get("reason") else ""
+        print(f"  {p:9s} {f['color_srgb']} {f['status']:8s} {f['pixels']:7d} px{extra}")
+    print(f"seconds: {sum(res.seconds.values()):.2f} "
+          + " ".join(f"{k} {v:.2f}" for k, v in res.seconds.items()))
+    print(f"wrote {out}.json, {out}.png" + (f", {out}.glb" if res.mesh is not None else ""))

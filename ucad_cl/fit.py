@@ -1,0 +1,864 @@
+"""The fit: one photo of a vehicle -> the catalogued model's part materials (UrbanCAD's optimiser).
+
+``fit_photo(photo, box=... | mask=..., catalog=CAT, mesh=None)`` runs, on a CPU:
+
+1. **Object**: the vehicle's pixels (the given mask, or GrabCut inside the box:
+   ``ucad_cl.foreground``). When GrabCut keeps too little of the box (clutter of the vehicle's
+   colours), the box goes to the pose search and the render's silhouette at the pose, inside
+   the box, is the outline (a note says so); a box of uniform pixels (standard deviation under
+   ``UNIFORM_STD`` levels) is refused as holding no vehicle.
+2. **Retrieval** (no ``mesh``): the photo's HOG feature against every stored view of every
+   accepted mesh: the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
+   (the stored rows are unit vectors), then ``pose.search_catalog``'s exact float64 ranking of
+   those; the first ``RERANK_POSE`` distinct meshes are posed (step 3) and the best pose score
+   wins; the first ``CANDIDATES`` distinct meshes are reported as ``candidates`` (mesh, view
+   pose, feature score; lower is better).
+3. **Pose**: ``pose.estimate_pose`` with the mesh re-read from the recorded library (as
+   ``export-glb`` does: refused when the file moved or changed), its coarse ring taken from the
+   catalogue's stored features (``catalog_ring``, refinement renders at most ``RING_SIDE``
+   pixels); when the file is gone, the nearest stored view of that mesh is used as is, scaled
+   and shifted onto the object's box (``pose.source = "stored view"``, and a note says so).
+   Then azimuth and elevation are touched up by ``ROT_STEPS`` (at most ``ROT_RANGE``) for the
+   best silhouette IoU, the render's silhouette is shifted by whole pixels (at most ``SHIFT``
+   of the working side) to best overlap the photo's object (IoU; ties: the smaller shift, then
+   row-major order), and the shift is folded into ``K``.
+4. **Part masks**: the render's part map (the catalogue's material -> part table) inside the
+   photo's object, each part eroded by ``margin = max(1, round(MARGIN * d))`` pixels (``d`` the
+   diagonal of the object's box in the working frame) so that a slightly wrong pose or outline
+   does not mix neighbouring parts; a ``segmenter`` (``PhotoSegmenter``) replaces the part map
+   with its own masks (still inside the render's silhouette, which gives the normals).
+5. **Light and colours**: ``ucad_cl.light.fit_light`` (sky, sun, clear-coat Fresnel; closed-form
+   base colours; the paper's ``l_rgb + 0.1 l_stat``; trimmed residuals; the scale convention
+   E_up = 1 is documented there), then white-balanced on the tyres (``NEUTRAL_PARTS``: the
+   light takes the colour cast that makes them neutral grey). Each part keeps its prior
+   (``ucad_catalog.parts``) metallic, roughness, clear coat and transmission; only the base
+   colour is fitted.
+6. **Status per part**: ``fitted``; ``prior`` when the render shows none of it inside the
+   object (the prior's colour is kept: the source colour for car paint and 'other'); ``flagged``
+   with a reason when fewer than ``MIN_PIXELS`` pixels are left after erosion (prior colour), or
+   when its materials, each fitted alone under the light, form two groups ``TWO_COLOUR_CHROMA``
+   apart in chromaticity and ``TWO_COLOUR_DE`` in CIEDE2000, each holding at least
+   ``TWO_COLOUR_SHARE`` of its pixels (``_two_colours``; the colour reported is the fit of all
+   its pixels).
+
+The working frame is the photo cropped to the object's box grown by ``CROP_GROW`` and scaled so
+its longer side is at most ``WORK_SIDE`` pixels (never enlarged); poses are reported for the
+full photo (``K``, ``w2c``: docs/CONVENTIONS.md). Deterministic: GrabCut is reseeded, grids and
+tie rules are fixed, so the same inputs give the same numbers.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from ucad_catalog import CatalogError
+from ucad_catalog.parts import PART_MATERIALS, PART_NAMES
+from ucad_catalog.reader import CatalogReader
+
+from .artifacts import CameraRing, Mesh
+from .cameras import pixel_rays
+from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
+from .features import HogExtractor
+from .foreground import ObjectMask, check_image, mask_box, object_mask
+from .ingest import IngestError, load_mesh
+from .jobs import content_sha256
+from .light import LUMA, Lighting, Samples, balance, fit_light, predict, shading
+from .orient import in_frame
+from .pose import CatalogMatch, PoseRing, estimate_pose, query_features, search_catalog
+from .render import render_views
+from .runtime import Runtime
+from .segment import OnnxSegmenter
+from .shade import face_normals
+
+RING_SIDE = 192             # pose refinement render size, pixels
+WORK_SIDE = 384             # longer side of the working frame, pixels
+CROP_GROW = 0.1             # the object's box grown by this share of its size on every side
+MARGIN = 0.006              # part-boundary erosion, share of the object box's diagonal
+SHIFT = 0.03                # silhouette alignment search, share of the working frame's side
+ROT_STEPS = (2.0, 1.0, 0.5)   # pose touch-up steps (degrees of azimuth / elevation)
+ROT_RANGE = 6.0             # at most this far from the pose search's answer, degrees
+UNIFORM_STD = 4.0           # a box whose pixels vary less (8-bit levels) holds no vehicle
+MIN_PIXELS = 30             # fewer eroded pixels: the part is flagged ("too few pixels")
+SATURATED = 250             # sRGB level at or above which a photo pixel is not used
+TWO_COLOUR_CHROMA = 0.08    # material groups at least this far apart in (r, g) chromaticity
+TWO_COLOUR_DE = 12.0        # ... and this far apart in CIEDE2000 ...
+TWO_COLOUR_SHARE = 0.2      # ... each holding at least this share: flagged "two colours"
+NOT_ONE_COLOUR = ("light", "window")   # parts not tested for two colours (red and white
+#                                        lamps; glass shows what is behind it)
+NEUTRAL_PARTS = ("wheel",)  # white balance: tyres are taken as neutral grey ...
+TYRE_LUMA = 0.2             # ... when their fitted luminance is at most this (tyres are dark;
+#                             a light "tyre" means its mask landed on something else)
+RERANK_POSE = 2             # retrieval: the first meshes posed; the best pose score wins
+CANDIDATES = 5              # distinct meshes listed by retrieval
+PRESELECT_ROWS = 2048       # retrieval: rows kept by float32 dot products for the exact rank
+RETRIEVAL_ROWS = 64         # stored views ranked before collapsing to distinct meshes
+
+
+class PhotoSegmenter(Protocol):
+    """Part masks of a photo: ``segment_photo(image (H, W, 3) uint8 RGB) -> {part: (H, W)
+    bool}`` (parts of ``PART_NAMES``), e.g. an ONNX model (``OnnxPhotoSegmenter``)."""
+
+    def segment_photo(self, image: np.ndarray) -> dict[str, np.ndarray]: ...
+
+
+class OnnxPhotoSegmenter:
+    """A user ONNX segmenter run on the photo (the paper's Grounded SAM step): the model, config
+    (``classes`` {index: part}, ``input_size`` [H, W]) and output contract of
+    ``ucad_cl.segment.OnnxSegmenter`` (an (N, H, W) integer class map or (N, C, H, W) logits),
+    fed the working-frame photo as float RGB in [0, 1], NCHW."""
+
+    def __init__(self, model: OnnxSegmenter):
+        self.model = model
+
+    @classmethod
+    def from_spec(cls, spec: str) -> "OnnxPhotoSegmenter":
+        """From ``onnx:MODEL:CONFIG.json``; ValueError for another spelling."""
+        kind, _, arg = str(spec).partition(":")
+        model, _, config = arg.partition(":")
+        if kind != "onnx" or not model or not config:
+            raise ValueError("expected onnx:MODEL:CONFIG.json")
+        return cls(OnnxSegmenter(model, config))
+
+    def segment_photo(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        import cv2
+
+        m = self.model
+        H, W = image.shape[:2]
+        h, w = m.input_size
+        x = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+        x = np.ascontiguousarray(x.transpose(2, 0, 1)[None], np.float32) / np.float32(255)
+        y = np.asarray(m.session.run(None, {m.input_name: x})[0])
+        if y.ndim == 4 and np.issubdtype(y.dtype, np.floating):
+            cls = y[0].argmax(axis=0)
+        elif y.ndim == 3 and np.issubdtype(y.dtype, np.integer):
+            cls = y[0]
+        else:
+            raise ValueError(f"{m.model_path}: output must be (N, H, W) classes or (N, C, H, W) "
+                             f"logits, got {y.dtype} {y.shape}")
+        full = cv2.resize(cls.astype(np.int32), (W, H), interpolation=cv2.INTER_NEAREST)
+        return {part: full == k for k, part in sorted(m.classes.items()) if part in PART_NAMES}
+
+
+@dataclass
+class FitPose:
+    """The photo's camera: azimuth / elevation (degrees, canonical frame), K (3, 3) and w2c
+    (4, 4) of the full photo; source 'refined' (pose search with the mesh) or 'stored view'."""
+
+    azimuth: float
+    elevation: float
+    K: np.ndarray
+    w2c: np.ndarray
+    source: str = "refined"
+
+
+@dataclass
+class PartFit:
+    """One part's fitted material. color_linear (3,) linear RGB (relative to the photo's
+    exposure, ``ucad_cl.light``); pixels: eroded mask pixels used; residual: RMS luminance
+    residual (linear) of the kept pixels; status 'fitted' | 'prior' | 'flagged' (+ reason)."""
+
+    part: str
+    color_linear: np.ndarray
+    metallic: float
+    roughness: float
+    pixels: int
+    residual: float
+    status: str
+    reason: str = ""
+
+
+@dataclass
+class Candidate:
+    """A retrieved mesh: its best stored view (pose of the view) and feature distance."""
+
+    mesh_id: str
+    mesh_path: str
+    view: int
+    azimuth: float
+    elevation: float
+    score: float
+
+
+@dataclass
+class FitImages:
+    """Working-frame images for the overview PNG (all (h, w, ...)): photo uint8 RGB, render
+    uint8 RGB (fitted model under the estimated light, grey outside the silhouette), part_map
+    int (index into PART_NAMES, -1 none) of the eroded masks, object mask bool."""
+
+    photo: np.ndarray
+    render: np.ndarray
+    part_map: np.ndarray
+    object: np.ndarray
+
+
+@dataclass
+class FitResult:
+    """What ``fit_photo`` found; ``to_json`` gives the interface of docs/FIT.md."""
+
+    mesh_id: str
+    mesh_path: str
+    pose: FitPose
+    lighting: Lighting
+    parts: dict[str, PartFit]
+    materials: list[dict]
+    candidates: list[Candidate]
+    seconds: dict[str, float]
+    notes: list[str] = field(default_factory=list)
+    images: FitImages | None = field(default=None, repr=False)
+    mesh: Mesh | None = field(default=None, repr=False)
+    part_rows: list = field(default_factory=list, repr=False)
+    object_source: str = ""
+    loss: float = 0.0
+
+    def to_json(self) -> dict:
+        """JSON-ready dict; floats rounded (6 digits, seconds 3), keys in a fixed order."""
+        return {
+            "mesh_id": self.mesh_id, "mesh_path": self.mesh_path,
+            "pose": {"azimuth": round(self.pose.azimuth, 4),
+                     "elevation": round(self.pose.elevation, 4),
+                     "K": _rl(self.pose.K), "w2c": _rl(self.pose.w2c),
+                     "source": self.pose.source},
+            "lighting": self.lighting.to_json(),
+            "parts": {p: {"color_linear": _rl(f.color_linear),
+                          "color_srgb": srgb_hex(np.clip(f.color_linear, 0.0, 1.0)),
+                          "metallic": f.metallic, "roughness": f.roughness,
+                          "pixels": f.pixels, "residual": round(f.residual, 6),
+                          "status": f.status, **({"reason": f.reason} if f.reason else {})}
+                      for p, f in self.parts.items()},
+            "materials": self.materials,
+            "candidates": [{"mesh_id": c.mesh_id, "mesh_path": c.mesh_path, "view": c.view,
+                            "azimuth": round(c.azimuth, 4), "elevation": round(c.elevation, 4),
+                            "score": round(c.score, 6)} for c in self.candidates],
+            "object": self.object_source,
+            "loss": round(self.loss, 8),
+            "notes": self.notes,
+            "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
+        }
+
+
+def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
+              catalog: str | Path | CatalogReader, mesh: str | None = None,
+              segmenter: PhotoSegmenter | None = None,
+              runtime: Runtime | None = None) -> FitResult:
+    """Fit the part materials of the catalogued vehicle in ``photo`` ((H, W, 3) uint8 RGB),
+    given by ``box`` (x0, y0, x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W) bool), against
+    ``catalog`` (a path or an open reader); ``mesh`` (id, id prefix, path or file name) skips
+    retrieval. ValueError with a one-line message for bad input (see the module docstring)."""
+    if isinstance(catalog, CatalogReader):
+        return _Fit(catalog, runtime).run(photo, box, mask, mesh, segmenter)
+    try:
+        reader = CatalogReader(catalog)
+    except CatalogError as exc:
+        raise ValueError(str(exc)) from None
+    with reader:
+        return _Fit(reader, runtime).run(photo, box, mask, mesh, segmenter)
+
+
+def catalog_ring(reader: CatalogReader, key: str) -> PoseRing:
+    """A ``PoseRing`` of a catalogued mesh from its stored views and HOG features (coarse
+    stage of ``estimate_pose`` without rendering), its cameras scaled to at most RING_SIDE
+    pixels (the size the refinement renders at; HOG crops are resized, so the stored features
+    stay comparable); ValueError when it has no features."""
+    try:
+        feats = reader.features(key)
+    except (CatalogError, KeyError, OSError):
+        raise ValueError(f"mesh {key[:12]} has no stored features (built with --no-features)"
+                         ) from None
+    views = reader.record(key)["views"]
+    K = np.asarray(views[0]["K"], np.float64)
+    w2c = np.stack([np.asarray(v["w2c"], np.float64) for v in views])
+    az = np.array([v["azimuth"] for v in views], np.float64)
+    el = np.array([v["elevation"] for v in views], np.float64)
+    dist = float(np.linalg.norm(w2c[0, :3, :3].T @ w2c[0, :3, 3]))
+    W, H = int(round(2 * K[0, 2])), int(round(2 * K[1, 2]))
+    f = min(1.0, RING_SIDE / max(W, H))            # pose refinement renders at this size
+    K = np.diag([f, f, 1.0]) @ K
+    W, H = max(1, int(round(W * f))), max(1, int(round(H * f)))
+    ring = CameraRing(K=K, w2c=w2c, width=W, height=H, azimuth=az, elevation=el,
+                      distance=dist, near=0.01 * dist)
+    n_az = int(np.sum(el == el[0]))
+    sides = f * np.array([float(v["stats"].get("box_side", 0.0)) for v in views])
+    return PoseRing(ring=ring, feats=np.asarray(feats, np.float32), sides=sides,
+                    extractor=HogExtractor(), azimuth_step=360.0 / max(n_az, 1))
+
+
+# ----------------------------------------------------------------------------- the steps
+
+@dataclass
+class _Frame:
+    """Geometry of the matched pose in the working frame: part_map (h, w) int (index into
+    PART_NAMES, -1 background or unseen), normal / view (h, w, 3) canonical unit vectors
+    (normals face the camera), K (3, 3) and w2c (4, 4) of the working frame."""
+
+    part_map: np.ndarray
+    normal: np.ndarray
+    view: np.ndarray
+    K: np.ndarray
+    w2c: np.ndarray
+    mat_map: np.ndarray
+
+
+class _Fit:
+    def __init__(self, reader: CatalogReader, runtime: Runtime | None):
+        self.r, self.runtime = reader, runtime
+        self.seconds: dict[str, float] = {}
+        self.notes: list[str] = []
+        self._t = time.perf_counter()
+
+    def _lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self._t
+        self._t = now
+
+    def run(self, photo, box, mask, mesh_key, segmenter) -> FitResult:
+        photo = check_image(photo)
+        obj = object_mask(photo, box=box, mask=mask)
+        if obj.source == "box":
+            x0, y0, x1, y1 = obj.box
+            spread = float(photo[y0:y1, x0:x1].reshape(-1, 3).std(axis=0).max())
+            if spread < UNIFORM_STD:
+                raise ValueError(f"no vehicle found inside the box {obj.box}: it is uniform "
+                                 f"(standard deviation {spread:.1f} levels; all background?)")
+            self.notes.append(f"GrabCut kept {obj.kept:.0%} of the box: the vehicle's outline "
+                              "is the render's silhouette at the pose, inside the box")
+        self._lap("object")
+        meta, candidates, best_view = self._pick_mesh(photo, obj, box, mask, mesh_key)
+        self._lap("retrieval")
+        mesh, note = self._load(meta)
+        self._lap("load")
+        crop, scale = _work_crop(photo.shape[:2], obj)
+        pose = None
+        if mesh is not None:
+            pose, score = self._refined_pose(photo, mesh, meta.sha256, box, mask)
+            for c in candidates[1:RERANK_POSE]:     # the next meshes, posed alike
+                other = self.r.mesh(c.mesh_id)
+                m2, _ = self._load(other)
+                if m2 is None:
+                    continue
+                p2, s2 = self._refined_pose(photo, m2, other.sha256, box, mask)
+                if s2 < score:
+                    meta, mesh, pose, score = other, m2, p2, s2
+            if candidates and candidates[0].mesh_id != meta.sha256:
+                candidates = ([c for c in candidates if c.mesh_id == meta.sha256]
+                              + [c for c in candidates if c.mesh_id != meta.sha256])
+        if note:
+            self.notes.append(note)
+        if pose is None:
+            pose = self._stored_pose(meta.sha256, best_view, obj, photo, box, mask)
+        rows = self.r.parts(meta.sha256)
+        self._lap("pose")
+        work = _to_work(photo, crop, scale)
+        obj_w = _to_work(obj.mask.astype(np.uint8), crop, scale, nearest=True) > 0
+        K_work = _work_K(pose.K, crop, scale)
+        lut = _part_lut(rows)
+        if mesh is not None:
+            if obj.source != "box":
+                pose = _refine_rotation(mesh, pose, K_work, obj_w, self.runtime)
+            frame = _render_frame(mesh, K_work, pose.w2c, work.shape[1], work.shape[0], lut,
+                                  self.runtime)
+        else:
+            frame = self._stored_frame(meta.sha256, pose, K_work, work.shape, lut)
+        if obj.source == "box":                 # the silhouette is the outline (see notes)
+            shift = (0, 0)
+            obj_w = obj_w & (frame.part_map >= 0)
+        else:
+            frame, shift = _align(frame, obj_w)
+        pose.K = pose.K.copy()
+        pose.K[:2, 2] += np.array(shift, np.float64) / scale
+        self._lap("render")
+        seg = segmenter.segment_photo(work) if segmenter is not None else None
+        parts, light, loss, images, materials = _fit_parts(work, obj_w, frame, rows, seg)
+        self._lap("fit")
+        return FitResult(mesh_id=meta.sha256, mesh_path=str(meta.source), pose=pose,
+                         lighting=light, parts=parts, materials=materials,
+                         candidates=candidates, seconds=dict(self.seconds), notes=self.notes,
+                         images=images, mesh=mesh, part_rows=rows, object_source=obj.source,
+                         loss=loss)
+
+    # -- which mesh
+    def _pick_mesh(self, photo, obj: ObjectMask, box, mask, key):
+        if key is not None:
+            try:
+                meta = self.r.mesh(str(key))
+            except CatalogError as exc:
+                raise ValueError(f"{exc}") from None
+            if meta.state != "accepted":
+                raise ValueError(f"mesh {key} is {meta.state} in the catalogue ({meta.reason});"
+                                 " it has no part table to fit")
+            return meta, [], None
+        metas = self.r.meshes()
+        feats, ids, views = [], [], []
+        for k, m in enumerate(metas):
+            try:
+                f = np.asarray(self.r.features(m.sha256), np.float32)
+            except (CatalogError, KeyError, OSError):
+                continue
+            ids.append(np.full(len(f), k))
+            views.append(np.arange(len(f)))
+            feats.append(f)
+        if not feats:
+            raise ValueError("the catalogue has no accepted mesh with stored features")
+        db = np.concatenate(feats)
+        given = {"mask": obj.mask} if obj.source != "box" else {"box": box}
+        query, _ = query_features(photo, HogExtractor(runtime=self.runtime),
+                                  runtime=self.runtime, **given)
+        mesh_of, view_of = np.concatenate(ids), np.concatenate(views)
+        if len(db) > PRESELECT_ROWS:               # float32 dot products pick the rows that
+            q = query / max(float(np.linalg.norm(query)), 1e-30)    # the exact search ranks
+            near = np.sort(np.argpartition(-(db @ q.astype(np.float32)), PRESELECT_ROWS)
+                           [:PRESELECT_ROWS])
+            db, mesh_of, view_of = db[near], mesh_of[near], view_of[near]
+        zeros = np.zeros(len(db))                  # angles are read for the matches only
+        matches = search_catalog(query, db, mesh_of, view_of, zeros, zeros,
+                                 top=min(RETRIEVAL_ROWS, len(db)))
+        first: dict[int, CatalogMatch] = {}       # mesh -> its best row
+        for mt in matches:
+            first.setdefault(mt.mesh, mt)
+        cands = []
+        for k, mt in list(first.items())[:CANDIDATES]:
+            m = metas[k]
+            v = self.r.views(m.sha256)[mt.view]
+            cands.append(Candidate(m.sha256, str(m.source), mt.view, v.azimuth, v.elevation,
+                                   mt.score))
+        return metas[matches[0].mesh], cands, matches[0].view
+
+    def _load(self, meta) -> tuple[Mesh | None, str]:
+        """(the mesh in the catalogue's frame, ''), or (None, why) when its file is gone,
+        changed or unreadable."""
+        src = meta.source
+        if not src.is_file():
+            return None, (f"the mesh file is not at {src} (it moved or was deleted): fitted on "
+                          "the nearest stored view, no GLB")
+        if content_sha256(src) != meta.sha256:
+            return None, (f"{src} changed since it was catalogued: fitted on the nearest stored "
+                          "view, no GLB")
+        try:
+            mesh = in_frame(load_mesh(src, orientation=None), meta.file_to_norm)
+        except (IngestError, ValueError) as exc:
+            return None, f"{src} cannot be read ({exc}): fitted on the nearest stored view"
+        if len(mesh.materials) != meta.n_materials:
+            return None, (f"{src}: {len(mesh.materials)} materials, the catalogue has "
+                          f"{meta.n_materials}: fitted on the nearest stored view")
+        return mesh, ""
+
+    # -- pose
+    def _refined_pose(self, photo, mesh, sha, box, mask) -> tuple[FitPose, float]:
+        """The pose search's best pose and its score (lower is better)."""
+        ring = catalog_ring(self.r, sha)
+        est = estimate_pose(photo, mesh, box=box, mask=mask, coarse=ring, top=1,
+                            runtime=self.runtime)
+        c = est.best
+        assert c.K is not None and c.w2c is not None
+        return FitPose(c.azimuth, c.elevation, np.asarray(c.K, np.float64),
+                       np.asarray(c.w2c, np.float64), "refined"), float(c.score)
+
+    def _stored_pose(self, sha, view, obj, photo, box, mask) -> FitPose:
+        """The nearest stored view (by HOG) placed onto the object's box."""
+        if view is None:
+            ring = catalog_ring(self.r, sha)
+            q, _ = query_features(photo, HogExtractor(runtime=self.runtime), box=box,
+                                  mask=mask, runtime=self.runtime)
+            n = len(ring.feats)
+            view = search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
+                                  ring.ring.azimuth, ring.ring.elevation, top=1)[0].view
+        rec = self.r.view(sha, int(view))
+        sil = rec.mat_id > 0
+        if not sil.any():
+            raise ValueError(f"stored view {view} of mesh {sha[:12]} shows nothing")
+        A = _box_similarity(mask_box(sil), mask_box(obj.mask))
+        self.stored = (rec, A)
+        return FitPose(rec.azimuth, rec.elevation, A @ np.asarray(rec.K, np.float64),
+                       np.asarray(rec.w2c, np.float64), "stored view")
+
+    def _stored_frame(self, sha, pose, K_work, shape, lut) -> _Frame:
+        import cv2
+
+        rec, A = self.stored
+        h, w = shape[:2]
+        normal = _depth_normals(rec.depth, rec.K, rec.w2c)
+        M = (K_work @ np.linalg.inv(np.asarray(rec.K, np.float64)))[:2]
+        mat = cv2.warpAffine(rec.mat_id.astype(np.float32), M, (w, h), flags=cv2.INTER_NEAREST,
+                             borderValue=0.0).astype(np.int64)
+        nrm = cv2.warpAffine(normal.astype(np.float32), M, (w, h), flags=cv2.INTER_NEAREST,
+                             borderValue=(0.0, 0.0, 0.0)).astype(np.float64)
+        _, rays = pixel_rays(K_work, pose.w2c, w, h)
+        view = -rays
+        return _Frame(part_map=lut[np.minimum(mat, len(lut) - 1)], normal=_facing(nrm, view),
+                      view=view, K=K_work, w2c=pose.w2c, mat_map=mat)
+
+
+def _part_lut(rows) -> np.ndarray:
+    """material id (index + 1; 0 background) -> index into PART_NAMES (-1: none/unseen)."""
+    lut = np.full(max((int(r.index) for r in rows), default=-1) + 2, -1, np.int64)
+    for r in rows:
+        if r.part in PART_NAMES:
+            lut[int(r.index) + 1] = PART_NAMES.index(r.part)
+    return lut
+
+
+def _work_crop(shape, obj: ObjectMask) -> tuple[tuple[int, int, int, int], float]:
+    """The working crop (x0, y0, x1, y1) of the photo and its scale (<= 1)."""
+    H, W = shape
+    x0, y0, x1, y1 = mask_box(obj.mask)
+    g = CROP_GROW * max(x1 - x0, y1 - y0)
+    c = (max(0, int(np.floor(x0 - g))), max(0, int(np.floor(y0 - g))),
+         min(W, int(np.ceil(x1 + g))), min(H, int(np.ceil(y1 + g))))
+    side = max(c[2] - c[0], c[3] - c[1])
+    return c, min(1.0, WORK_SIDE / side)
+
+
+def _to_work(img: np.ndarray, crop, scale: float, nearest: bool = False) -> np.ndarray:
+    import cv2
+
+    x0, y0, x1, y1 = crop
+    sub = np.ascontiguousarray(img[y0:y1, x0:x1])
+    if scale == 1.0:
+        return sub
+    size = (max(1, int(round((x1 - x0) * scale))), max(1, int(round((y1 - y0) * scale))))
+    return cv2.resize(sub, size, interpolation=cv2.INTER_NEAREST if nearest
+                      else cv2.INTER_AREA)
+
+
+def _work_K(K: np.ndarray, crop, scale: float) -> np.ndarray:
+    """K of the working frame: pixel centres map by x_w + 0.5 = scale (x + 0.5 - x0)."""
+    A = np.array([[scale, 0.0, -scale * crop[0]], [0.0, scale, -scale * crop[1]],
+                  [0.0, 0.0, 1.0]])
+    return A @ np.asarray(K, np.float64)
+
+
+def _box_similarity(src, dst) -> np.ndarray:
+    """3x3 scale + translation taking box ``src`` onto box ``dst`` (centres aligned, longer
+    sides equal), image coordinates."""
+    s = max(dst[2] - dst[0], dst[3] - dst[1]) / max(src[2] - src[0], src[3] - src[1], 1)
+    cs = ((src[0] + src[2]) / 2.0, (src[1] + src[3]) / 2.0)
+    cd = ((dst[0] + dst[2]) / 2.0, (dst[1] + dst[3]) / 2.0)
+    return np.array([[s, 0.0, cd[0] - s * cs[0]], [0.0, s, cd[1] - s * cs[1]], [0, 0, 1.0]])
+
+
+def _facing(normal: np.ndarray, view: np.ndarray) -> np.ndarray:
+    """Unit normals flipped toward the camera (zero normals: the view direction)."""
+    n = np.asarray(normal, np.float64)
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.where(length > 1e-9, n / np.maximum(length, 1e-12), view)
+    flip = np.einsum("...i,...i->...", n, view) < 0
+    n[flip] *= -1.0
+    return n
+
+
+def _render_frame(mesh: Mesh, K, w2c, w: int, h: int, lut, runtime) -> _Frame:
+    dist = float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3]))
+    ring = CameraRing(K=np.asarray(K, np.float64), w2c=np.asarray(w2c, np.float64)[None],
+                      width=w, height=h, azimuth=np.zeros(1), elevation=np.zeros(1),
+                      distance=dist, near=0.01 * dist)
+    views = render_views(mesh, ring, runtime=runtime)
+    tri = views.tri_id[0].astype(np.int64)
+    fg = tri != 0xFFFFFFFF
+    normals = face_normals(mesh)
+    nrm = np.zeros((h, w, 3))
+    nrm[fg] = normals[tri[fg]]
+    _, rays = pixel_rays(np.asarray(K, np.float64), np.asarray(w2c, np.float64), w, h)
+    view = -rays
+    mat = views.mat_id[0].astype(np.int64)
+    part_map = np.where(mat < len(lut), lut[np.minimum(mat, len(lut) - 1)], -1)
+    return _Frame(part_map=part_map, normal=_facing(nrm, view), view=view, K=K, w2c=w2c,
+                  mat_map=mat)
+
+
+def _rotated(w2c: np.ndarray, d_az: float, d_el: float) -> np.ndarray:
+    """w2c of the camera moved by d_az degrees of azimuth (about +Y through the vehicle's
+    centre) and d_el degrees of elevation (about the camera's right axis through the centre)."""
+    def rot(axis, deg):
+        a = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+        t = np.radians(deg)
+        A = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        return np.eye(3) + np.sin(t) * A + (1 - np.cos(t)) * A @ A
+    R = rot([0.0, 1.0, 0.0], d_az) @ rot(-w2c[0, :3], d_el)   # moves the camera centre
+    out = np.asarray(w2c, np.float64).copy()
+    out[:3, :3] = w2c[:3, :3] @ R.T
+    return out
+
+
+def _silhouette_iou(mesh, K, w2c, obj: np.ndarray, runtime) -> float:
+    """IoU of the render's silhouette and ``obj`` after the best whole-pixel shift."""
+    h, w = obj.shape
+    dist = float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3]))
+    ring = CameraRing(K=np.asarray(K, np.float64), w2c=np.asarray(w2c, np.float64)[None],
+                      width=w, height=h, azimuth=np.zeros(1), elevation=np.zeros(1),
+                      distance=dist, near=0.01 * dist)
+    sil = np.isfinite(render_views(mesh, ring, runtime=runtime).depth[0])
+    return _best_shift(sil, obj, max(1, int(round(SHIFT * max(h, w)))))[0]
+
+
+def _best_shift(sil: np.ndarray, obj: np.ndarray, s: int) -> tuple[float, int, int]:
+    """(IoU, dx, dy) of the shift of ``sil`` within +-s pixels that best overlaps ``obj``
+    (ties: the smaller |dx| + |dy|, then dy, then dx)."""
+    best = (-1.0, 0, 0)
+    shifts = sorted(((dx, dy) for dy in range(-s, s + 1) for dx in range(-s, s + 1)),
+                    key=lambda t: (abs(t[0]) + abs(t[1]), t[1], t[0]))
+    n_obj = np.count_nonzero(obj)
+    n_sil = np.count_nonzero(sil)
+    for dx, dy in shifts:
+        inter = np.count_nonzero(_shifted(sil, dx, dy, False) & obj)
+        union = n_obj + n_sil - inter
+        iou = inter / union if union else 0.0
+        if iou > best[0]:
+            best = (iou, dx, dy)
+    return best
+
+
+def _refine_rotation(mesh, pose: FitPose, K_work, obj: np.ndarray, runtime) -> FitPose:
+    """Coordinate descent on (azimuth, elevation) maximising the silhouette IoU in the half-size
+    working frame: steps of ``ROT_STEPS`` degrees, each axis in turn, while it improves."""
+    import cv2
+
+    h, w = obj.shape
+    half = cv2.resize(obj.astype(np.uint8), (max(1, w // 2), max(1, h // 2)),
+                      interpolation=cv2.INTER_NEAREST) > 0
+    Kh = np.diag([0.5, 0.5, 1.0]) @ K_work
+    best = (_silhouette_iou(mesh, Kh, pose.w2c, half, runtime), 0.0, 0.0)
+    for step in ROT_STEPS:
+        improved = True
+        while improved:
+            improved = False
+            for da, de in ((-step, 0.0), (step, 0.0), (0.0, -step), (0.0, step)):
+                a, e = best[1] + da, best[2] + de
+                if abs(a) > ROT_RANGE or abs(e) > ROT_RANGE:
+                    continue
+                iou = _silhouette_iou(mesh, Kh, _rotated(pose.w2c, a, e), half, runtime)
+                if iou > best[0] + 1e-9:
+                    best, improved = (iou, a, e), True
+                    break
+    _, a, e = best
+    if a == 0.0 and e == 0.0:
+        return pose
+    return FitPose((pose.azimuth + a) % 360.0, pose.elevation + e, pose.K,
+                   _rotated(pose.w2c, a, e), pose.source)
+
+
+def _depth_normals(depth: np.ndarray, K, w2c) -> np.ndarray:
+    """(H, W, 3) canonical-frame normals of a stored depth map (central differences of the
+    back-projected points; zero where a neighbour is background)."""
+    H, W = depth.shape
+    j, i = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    Kinv = np.linalg.inv(np.asarray(K, np.float64))
+    d = np.where(np.isfinite(depth), depth, np.nan).astype(np.float64)
+    cam = np.stack([j, i, np.ones_like(j)], -1) @ Kinv.T * d[..., None]
+    R, t = np.asarray(w2c)[:3, :3], np.asarray(w2c)[:3, 3]
+    P = (cam - t) @ R                                  # R^T (p - t)
+    du = np.gradient(P, axis=1)
+    dv = np.gradient(P, axis=0)
+    n = np.cross(du, dv)
+    return np.nan_to_num(n)
+
+
+def _align(frame: _Frame, obj: np.ndarray) -> tuple[_Frame, tuple[int, int]]:
+    """The frame shifted by whole pixels (dx, dy) to best overlap ``obj`` (IoU)."""
+    sil = np.isfinite(frame.normal[..., 0]) & (np.abs(frame.normal).sum(-1) > 0) & \
+        (frame.part_map >= 0)
+    h, w = obj.shape
+    _, dx, dy = _best_shift(sil, obj, max(1, int(round(SHIFT * max(h, w)))))
+    if dx == 0 and dy == 0:
+        return frame, (0, 0)
+    K = frame.K.copy()
+    K[0, 2] += dx
+    K[1, 2] += dy
+    return _Frame(part_map=_shifted(frame.part_map, dx, dy, -1),
+                  mat_map=_shifted(frame.mat_map, dx, dy, 0),
+                  normal=_shifted(frame.normal, dx, dy, 0.0),
+                  view=frame.view, K=K, w2c=frame.w2c), (dx, dy)
+
+
+def _shifted(a: np.ndarray, dx: int, dy: int, fill) -> np.ndarray:
+    out = np.full_like(a, fill)
+    h, w = a.shape[:2]
+    ys, yd = (slice(0, h - dy), slice(dy, h)) if dy >= 0 else (slice(-dy, h), slice(0, h + dy))
+    xs, xd = (slice(0, w - dx), slice(dx, w)) if dx >= 0 else (slice(-dx, w), slice(0, w + dx))
+    out[yd, xd] = a[ys, xs]
+    return out
+
+
+# ----------------------------------------------------------------------------- fitting
+
+def _prior(part: str, rows) -> tuple[np.ndarray, float, float, float]:
+    """(prior base colour, metallic, roughness, clear-coat weight) of a part; car paint and
+    'other' take the colour of the part's largest material (most pixels; ties: lower index)."""
+    spec = PART_MATERIALS.get(part)
+    mine = sorted((r for r in rows if r.part == part), key=lambda r: (-int(r.pixels), r.index))
+    src = mine[0].props.get("base_color") if mine else None
+    src_rgb = np.asarray(src[:3] if isinstance(src, list) and len(src) >= 3 else (0.8,) * 3,
+                         np.float64)
+    if spec is None:
+        props = mine[0].props if mine else {}
+        return (src_rgb, float(props.get("metallic", 0.0) or 0.0),
+                float(props.get("roughness", 1.0) or 1.0), 0.0)
+    pbr = spec["pbrMetallicRoughness"]
+    color = (src_rgb if spec.get("keep_source_color")
+             else np.asarray(pbr.get("baseColorFactor", [0.8] * 4)[:3], np.float64))
+    ext = spec.get("extensions", {})
+    coat = float(ext.get("KHR_materials_clearcoat", {}).get("clearcoatFactor", 0.0))
+    if "KHR_materials_transmission" in ext:
+        coat = 1.0                                  # glass reflects like a clear coat
+    return color, float(pbr["metallicFactor"]), float(pbr["roughnessFactor"]), coat
+
+
+def _fit_parts(work, obj, frame: _Frame, rows, seg):
+    """Per-part fit in the working frame; returns (parts, lighting, loss, images, materials)."""
+    import cv2
+
+    h, w = obj.shape
+    present = [p for p in PART_NAMES if any(r.part == p for r in rows)]
+    rendered = (frame.part_map >= 0) & obj
+    diag = float(np.hypot(*(np.array(mask_box(obj))[2:] - np.array(mask_box(obj))[:2])))
+    margin = max(1, int(round(MARGIN * diag)))
+    kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    part_map = np.full((h, w), -1, np.int64)
+    visible: dict[str, int] = {}
+    for p in present:
+        k = PART_NAMES.index(p)
+        m = (frame.part_map == k) & obj
+        if seg is not None:
+            m = np.asarray(seg.get(p, np.zeros((h, w), bool)), bool) & rendered
+        visible[p] = int(m.sum())
+        er = cv2.erode(m.astype(np.uint8), kernel, borderType=cv2.BORDER_CONSTANT,
+                       borderValue=0) > 0
+        part_map[er] = k
+    lin = srgb8_to_linear(work)
+    unsat = work.max(axis=-1) < SATURATED
+    priors = {p: _prior(p, rows) for p in present}
+    fit_parts = [p for p in present if np.count_nonzero((part_map == PART_NAMES.index(p))
+                                                        & unsat) >= MIN_PIXELS]
+    if not fit_parts:
+        raise ValueError("no part of the vehicle shows enough pixels to fit (the object is "
+                         f"too small or the pose misses it: {sum(visible.values())} pixels)")
+    index = {PART_NAMES.index(p): i for i, p in enumerate(fit_parts)}
+    sel = np.zeros((h, w), bool)
+    for k in index:
+        sel |= part_map == k
+    sel &= unsat
+    mats = frame.mat_map[sel]
+    samples = _samples(lin[sel], frame.normal[sel], frame.view[sel], part_map[sel], index,
+                       fit_parts, priors)
+    lf = fit_light(samples, len(fit_parts))
+    neutral = {i: float(np.count_nonzero(samples.part == i)) for i, p in enumerate(fit_parts)
+               if p in NEUTRAL_PARTS and float(LUMA @ np.nan_to_num(lf.albedo[i])) <= TYRE_LUMA}
+    lf, gain = balance(lf, neutral)
+    B, C = shading(samples, lf.lighting)
+    res = (samples.rgb - predict(samples, lf.lighting, lf.albedo))
+    parts: dict[str, PartFit] = {}
+    for p in present:
+        color, metal, rough, _ = priors[p]
+        npx = int(np.count_nonzero(part_map == PART_NAMES.index(p)))
+        if p in fit_parts:
+            i = fit_parts.index(p)
+            on = (samples.part == i)
+            kept = on & lf.kept
+            r = float(np.sqrt(np.mean((res[kept] @ np.array([0.2126, 0.7152, 0.0722])) ** 2)))
+            status = "fitted"
+            reason = (_two_colours(samples, B, C, on & lf.kept, mats)
+                      if p not in NOT_ONE_COLOUR else "")
+            if reason:
+                status = "flagged"
+            parts[p] = PartFit(p, lf.albedo[i], metal, rough, npx, r, status, reason)
+        elif visible[p] == 0:
+            parts[p] = PartFit(p, color, metal, rough, 0, 0.0, "prior")
+        else:
+            parts[p] = PartFit(p, color, metal, rough, npx, 0.0, "flagged",
+                               f"too few pixels ({npx} after a {margin}-pixel erosion, "
+                               f"fewer than {MIN_PIXELS})")
+    render = _render_image(work, frame, parts, lf.lighting, priors)
+    materials = [{"name": r.name, "part": r.part,
+                  "color_linear": _rl(parts[r.part].color_linear) if r.part in parts
+                  else _rl(_prior(r.part, [r])[0])}
+                 for r in sorted(rows, key=lambda r: r.index)]
+    images = FitImages(photo=work, render=render, part_map=part_map, object=obj)
+    return parts, lf.lighting, lf.loss, images, materials
+
+
+def _samples(rgb, normal, view, pmap, index, fit_parts, priors) -> Samples:
+    lut = np.full(len(PART_NAMES) + 1, -1, np.int64)
+    for k, i in index.items():
+        lut[k] = i
+    part = lut[np.asarray(pmap, np.int64)]
+    table = np.array([priors[p][1:] for p in fit_parts], np.float64)   # metallic, rough, coat
+    return Samples(rgb=rgb, normal=normal, view=view, part=part, coat=table[part, 2],
+                   metallic=table[part, 0], roughness=table[part, 1])
+
+
+def _two_colours(s: Samples, B: np.ndarray, C: np.ndarray, on: np.ndarray,
+                 mats: np.ndarray) -> str:
+    """A reason when the part's materials show two colours, else ''.
+
+    Each material of the part with at least MIN_PIXELS kept pixels gets its own closed-form
+    colour under the fitted light (averaging over a material cancels most per-pixel model
+    error); the colours are reduced to chromaticity (r, g) = (R, G) / (R + G + B), which an
+    error of the light's strength does not change (two greys, e.g. black and white, are not
+    told apart), and split by 2-means (pixel-weighted; from the largest material and the
+    material farthest from it). Flagged when each group holds at least TWO_COLOUR_SHARE of the
+    pixels and the groups are TWO_COLOUR_CHROMA apart in chromaticity and TWO_COLOUR_DE in
+    CIEDE2000 (their pixel-weighted colours)."""
+    ids, cols, wts = [], [], []
+    for m in np.unique(mats[on]):
+        sel = on & (mats == m)
+        n = int(np.count_nonzero(sel))
+        if n < MIN_PIXELS:
+            continue
+        b, c, y = B[sel], C[sel], s.rgb[sel]
+        a = np.maximum((b * (y - c)).sum(axis=0) / np.maximum((b * b).sum(axis=0), 1e-12), 0)
+        if a.sum() <= 1e-6:
+            continue
+        ids.append(int(m))
+        cols.append(a)
+        wts.append(n)
+    if len(cols) < 2:
+        return ""
+    col, w = np.array(cols), np.array(wts, np.float64)
+    ch = col[:, :2] / col.sum(axis=1, keepdims=True)
+    c1 = ch[int(np.argmax(w))]
+    c2 = ch[int(np.argmax(np.linalg.norm(ch - c1, axis=1)))]
+    a = np.ones(len(ch), bool)
+    for _ in range(10):
+        a = np.linalg.norm(ch - c1, axis=1) <= np.linalg.norm(ch - c2, axis=1)
+        if a.all():
+            return ""
+        c1 = (ch[a] * w[a, None]).sum(0) / w[a].sum()
+        c2 = (ch[~a] * w[~a, None]).sum(0) / w[~a].sum()
+    share = float(w[a].sum() / w.sum())
+    if min(share, 1 - share) < TWO_COLOUR_SHARE or np.linalg.norm(c1 - c2) < TWO_COLOUR_CHROMA:
+        return ""
+    g1 = (col[a] * w[a, None]).sum(0) / w[a].sum()
+    g2 = (col[~a] * w[~a, None]).sum(0) / w[~a].sum()
+    de = float(delta_e2000(linear_to_lab(g1), linear_to_lab(g2)))
+    if de < TWO_COLOUR_DE:
+        return ""
+    return (f"two colours: materials holding {share:.0%} and {1 - share:.0%} of its pixels "
+            f"are {srgb_hex(np.clip(g1, 0, 1))} and {srgb_hex(np.clip(g2, 0, 1))} "
+            f"(CIEDE2000 {de:.0f})")
+
+
+def _render_image(work, frame: _Frame, parts, light, priors) -> np.ndarray:
+    """uint8 RGB of the fitted model under ``light`` in the working frame (grey background)."""
+    h, w = frame.part_map.shape
+    out = np.full((h, w, 3), 128, np.uint8)
+    sel = frame.part_map >= 0
+    if not sel.any():
+        return out
+    names = [p for p in PART_NAMES if p in parts]
+    idx = {PART_NAMES.index(p): i for i, p in enumerate(names)}
+    pm = frame.part_map[sel]
+    keep = np.isin(pm, list(idx))
+    s = _samples(np.zeros((int(keep.sum()), 3)), frame.normal[sel][keep], frame.view[sel][keep],
+                 pm[keep], idx, names, priors)
+    albedo = np.array([parts[p].color_linear for p in names], np.float64)
+    vals = np.zeros((len(pm), 3))
+    vals[keep] = predict(s, light, albedo)
+    out[sel] = linear_to_srgb8(vals)
+    return out
+
+
+def _rl(v) -> list:
+    a = np.asarray(v, np.float64)
+    return np.round(a, 6).tolist()
