@@ -45,6 +45,10 @@ The working frame is the photo cropped to the object's box grown by ``CROP_GROW`
 its longer side is at most ``WORK_SIDE`` pixels (never enlarged); poses are reported for the
 full photo (``K``, ``w2c``: docs/CONVENTIONS.md). Deterministic: GrabCut is reseeded, grids and
 tie rules are fixed, so the same inputs give the same numbers.
+
+Why one module of over 800 lines: the six steps above share the working frame, the photo's
+object and the pose, and each is a few short functions; the light model and its solver, the
+largest separable part, live in ``ucad_cl/light.py``.
 """
 from __future__ import annotations
 
