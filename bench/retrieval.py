@@ -20,6 +20,8 @@ Per reference:
   stored view's squared HOG distance to the photo's query (``pose.query_features``, background
   replaced; GrabCut in the box, or the true mask with ``--true-mask``); exact float64 over every
   row. Reported as top-1/5/20/50 shares.
+* ``kind``: the first mesh is of the truth's kind (sedan, van, ...: the library's JSON; a mesh
+  outside the library, e.g. a real model, counts as another kind).
 * ``az error``: degrees between the true camera azimuth and the azimuth of the best row of the
   first mesh (the mirror twin -a folded: generated vehicles are left/right symmetric).
 * with ``--fit``: ``fit_photo``'s own answer (its preselection, exact ranking and the pose
@@ -73,6 +75,14 @@ def vehicle(js: Path) -> Vehicle:
                    [parts.get(m.name, "other") for m in mesh.materials], js.with_suffix(".glb"))
 
 
+def kind_of(lib: Path, meta) -> str:
+    """The generator's kind of a catalogued mesh of ``lib`` ('' for a mesh of another library)."""
+    if Path(meta.library_root).resolve() != lib.resolve():
+        return ""
+    js = lib / Path(meta.path).with_suffix(".json")
+    return str(json.loads(js.read_text())["kind"]) if js.is_file() else ""
+
+
 def az_error(a: float, b: float) -> float:
     """Degrees between azimuths a and b, the mirror twin (-b) folded."""
     d = [abs((a - x + 180.0) % 360.0 - 180.0) for x in (b, -b)]
@@ -110,6 +120,7 @@ def main(argv=None) -> int:
         ids = [m.sha256 for m in metas]
         feats = [np.asarray(reader.features(k), np.float64) for k in ids]
         azs = [np.array([v.azimuth for v in reader.views(k)]) for k in ids]
+        kinds = [kind_of(lib, m) for m in metas]
         print(f"catalogue {cat}: {len(ids)} accepted meshes, {sum(map(len, feats))} views")
         files = sorted(lib.glob("*.json"))
         step = max(1, len(files) // args.refs)
@@ -127,6 +138,7 @@ def main(argv=None) -> int:
             first = int(order[0])
             err = az_error(ref.azimuth, float(azs[first][int(np.argmin(dist[first]))]))
             row = {"vehicle": v.name, "rank": rank, "az_error": err,
+                   "same_kind": kinds[first] == kinds[ids.index(truth)],
                    "true_azimuth": ref.azimuth, "true_elevation": ref.elevation}
             if args.fit:
                 t = time.perf_counter()
@@ -134,7 +146,8 @@ def main(argv=None) -> int:
                 row["fit_top1"] = res.mesh_id == truth
                 row["seconds"] = time.perf_counter() - t
             rows.append(row)
-            print(f"{i:3d} {v.name:28s} HOG rank {rank:3d}  az error {err:5.1f}"
+            print(f"{i:3d} {v.name:28s} HOG rank {rank:3d}  kind {int(row['same_kind'])}"
+                  f"  az error {err:5.1f}"
                   + (f"  fit top-1 {int(row['fit_top1'])}  {row['seconds']:.2f} s"
                      if args.fit else ""), flush=True)
     ranks = np.array([r["rank"] for r in rows])
@@ -142,7 +155,8 @@ def main(argv=None) -> int:
     print(f"\n{len(rows)} references, {len(ids)} meshes, query "
           f"{'true mask' if args.true_mask else 'box (GrabCut)'}")
     print("HOG " + ", ".join(f"top-{k} {np.mean(ranks < k):.0%}" for k in TOPS)
-          + f"; azimuth of the first mesh within 10 deg: {np.mean(errs <= 10):.0%}")
+          + f"; first mesh of the right kind {np.mean([r['same_kind'] for r in rows]):.0%}"
+          + f", its azimuth within 10 deg: {np.mean(errs <= 10):.0%}")
     if args.fit:
         print(f"fit_photo top-1 {np.mean([r['fit_top1'] for r in rows]):.0%}, "
               f"median {np.median([r['seconds'] for r in rows]):.2f} s per photo")
