@@ -1,11 +1,12 @@
 """Labeller speed, this tree's code against another revision's, interleaved in one process.
 
-Loads ``ucad_cl/labeller.py`` and ``ucad_cl/segment.py`` of ``--before`` (a git revision,
-default ``main``) beside this tree's, then on the same meshes and views (generated vehicles of
-about --triangles triangles, cached like ``bench/build.py``'s library, and the real models of
-``../shared/data/vehicles`` when present) checks that both give the same answer (features
-within 1e-6, identical parts, probabilities, splits and masks) and times, alternating old and
-new within every repetition:
+Loads ``ucad_cl/labeller.py``, ``ucad_cl/segment.py`` and the shipped model of ``--before`` (a
+git revision, default ``main``) beside this tree's, then on the same meshes and views
+(generated vehicles of about --triangles triangles, cached like ``bench/build.py``'s library,
+and the real models of ``../shared/data/vehicles`` when present) checks that both give the
+same answer (features within 1e-6, identical parts, probabilities, splits and masks; a change
+of features or model is listed as differences) and times, alternating old and new within every
+repetition:
 
 * label: ``label_materials`` (features, the layer behind glass, ONNX trees, splits);
 * segment: ``LabellerSegmenter.segment`` (label + painting the masks), as the build calls it;
@@ -111,6 +112,20 @@ def meshes(args):
     return out
 
 
+def revision_model(rev: str) -> Path:
+    """The shipped model (``labeller.onnx`` + ``labeller.json``) of git revision ``rev``,
+    written to a temporary folder: the old code reads the old model (a tree whose features
+    changed ships a model the old code refuses)."""
+    import tempfile
+
+    out = Path(tempfile.mkdtemp(prefix="ucad-model-")) / "labeller.onnx"
+    for suffix in (".onnx", ".json"):
+        blob = subprocess.run(["git", "show", f"{rev}:ucad_cl/models/labeller{suffix}"],
+                              cwd=ROOT, capture_output=True, check=True).stdout
+        out.with_suffix(suffix).write_bytes(blob)
+    return out
+
+
 def same_answer(name, old, new, mesh, views, old_seg, new_seg) -> tuple[list[str], float]:
     """Differences between the old and new code's features, labels and masks (empty: same)
     and the largest feature difference."""
@@ -168,7 +183,7 @@ def main() -> None:
     rt = get_runtime()
     print(f"device: {rt.device.name.strip()} ({rt.device.platform.version.strip()}), "
           f"POCL_MAX_PTHREAD_COUNT={os.environ.get('POCL_MAX_PTHREAD_COUNT')}")
-    segs = {"old": old_segment.LabellerSegmenter(runtime=rt),
+    segs = {"old": old_segment.LabellerSegmenter(revision_model(args.before), runtime=rt),
             "new": new_segment.LabellerSegmenter(runtime=rt)}
     model = segs["new"].model
     data = meshes(args)

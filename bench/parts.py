@@ -345,6 +345,8 @@ def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
     models = T.load_real_models(VEHICLES, frame=args.frame) if tables is None else None
     tables = tables if tables is not None else real_tables(models, args)
     synth = synth if synth is not None else member_rows(args)
+    if getattr(args, "drop_cues", None):
+        tables, synth = drop_cues(tables, synth, args.drop_cues)
     fit = fit or (lambda rows: T.fit_members(rows, args.seed))
     facts = manifest_facts()
     trainable = [f for f in tables
@@ -365,6 +367,31 @@ def fast_lomo(args, fit=None, tables=None, synth=None, log=print) -> dict:
             if log:
                 _log_model(log, f, per[f], tables[f], time.perf_counter() - t0)
     return {"named": tot["named"], "hidden": tot["hidden"], "per_model": per, "tables": tables}
+
+
+def drop_cues(tables: dict, synth: list, groups: list[str]) -> tuple[dict, list]:
+    """Copies of the real ``tables`` and the generated ``synth`` rows with the columns of the
+    cue ``groups`` (``labeller.CUE_GROUPS``; "all" for every one) set to 0, in training and
+    scoring alike: the trees cannot split on a constant column, so the fold is fitted as without
+    the cue (the column count, hence the trees' feature sampling, stays the same)."""
+    from ucad_cl import labeller_train as T
+    from ucad_cl.labeller import CUE_GROUPS, FEATURE_NAMES
+
+    names = list(CUE_GROUPS) if "all" in groups else groups
+    unknown = [g for g in names if g not in CUE_GROUPS]
+    if unknown:
+        raise SystemExit(f"error: --drop-cues: unknown cue {unknown[0]!r} "
+                         f"(cues: {', '.join(CUE_GROUPS)}, all)")
+    cols = [FEATURE_NAMES.index(c) for g in names for c in CUE_GROUPS[g]]
+
+    def zero(X):
+        X = np.array(X, copy=True)
+        X[:, cols] = 0
+        return X
+
+    tables = {f: {**t, "Xn": zero(t["Xn"]), "Xh": zero(t["Xh"])} for f, t in tables.items()}
+    synth = [T.Rows(zero(r.X), r.y, r.w, r.group) for r in synth]
+    return tables, synth
 
 
 def _score_fold_model(T, clf, t, tot, ablate=(), probs=None) -> dict:
@@ -412,7 +439,7 @@ def fast_table(args):
           f"{args.frame}; {args.members} members of {args.vehicles} generated vehicles, seeds "
           f"{args.seed}..{args.seed + args.members - 1}, + the real models outside the fold"
           f"{' that the manifest does not mark added' if args.train_real == 'original' else ''}"
-          "; per-material argmax, no masks)")
+          f"; per-material argmax, no masks; cues dropped: {','.join(args.drop_cues) or 'none'})")
     print(f"{'model':44s} {'mats':>4s} | {'named':>13s} | {'hidden':>13s} | wrong (names hidden)")
     res = fast_lomo(args, log=lambda *a, **k: print(*a, **k))
     print_totals(res)
@@ -618,6 +645,9 @@ def main():
     ap.add_argument("--ablate", type=lambda s: [x for x in s.split(",") if x], default=[],
                     help="with --fast: leave out labeller rules: wheel (tyre/rim by radial "
                          "position), hidden (never-visible part from geometry)")
+    ap.add_argument("--drop-cues", type=lambda s: [x for x in s.split(",") if x], default=[],
+                    help="with --fast: fit and score without these cue feature groups "
+                         "(labeller.CUE_GROUPS: glaze, under, trim; all): their columns zeroed")
     ap.add_argument("--save-probs", default=None, metavar="FILE.npz",
                     help="with --fast: write each model's held-out probabilities ('named:FILE', "
                          "'hidden:FILE'), to score rules on them without refitting")

@@ -479,11 +479,13 @@ def test_same_labels_in_all_24_axis_aligned_poses(tmp_path, runtime):
 # that real libraries showed and the generator lacked
 # ---------------------------------------------------------------------------------------------
 def test_relative_features_on_the_hand_made_car(car_views):
-    from ucad_cl.labeller import RELATIVE_NAMES
+    from ucad_cl.labeller import CUE_NAMES, RELATIVE_NAMES
 
     mesh, views = car_views
     X = material_table(mesh, views).X
-    assert FEATURE_NAMES[-len(RELATIVE_NAMES):] == RELATIVE_NAMES      # appended at the end
+    # appended after the base columns, then the cue columns last
+    assert FEATURE_NAMES[-len(CUE_NAMES):] == CUE_NAMES
+    assert FEATURE_NAMES[-len(RELATIVE_NAMES + CUE_NAMES):-len(CUE_NAMES)] == RELATIVE_NAMES
     c = lambda name: X[:, COL[name]]  # noqa: E731
     paint, tyre, rim, glass, seat, hidden = range(6)
     # the paint has the most pixels and the largest area: 0 against itself
@@ -607,3 +609,80 @@ def test_wheel_assembly_and_never_visible_rules():
     np.testing.assert_array_equal(wheel_assembly(prob[[1, 3]], X[[1, 3]]), prob[[1, 3]])
     assert [PART_NAMES[p] for p in never_visible_part(X)] == ["rim", "rim", "rim", "other",
                                                               "interior"]
+
+
+# ---------------------------------------------------------------------------------------------
+# the issue-24 cues (``CUE_GROUPS``): views from above and below, component shape, zones
+# ---------------------------------------------------------------------------------------------
+def _projected_area(corners: np.ndarray, ring, view: int) -> float:
+    """Image area (pixels) of a planar convex quadrilateral (4, 3) seen by ``ring``'s ``view``
+    (pinhole projection, shoelace formula): the NumPy reference of the rasteriser's count."""
+    P = ring.K @ ring.w2c[view, :3]
+    x = np.c_[corners, np.ones(4)] @ P.T
+    p = x[:, :2] / x[:, 2:]
+    c = p.mean(axis=0)
+    p = p[np.argsort(np.arctan2(p[:, 1] - c[1], p[:, 0] - c[0]))]
+    return 0.5 * abs(np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(p[:, 1], np.roll(p[:, 0], -1)))
+
+
+def test_top_and_bottom_views_against_projected_areas(runtime):
+    """``top_bottom_counts``: a body slab with a smaller plate under it. From above only the
+    body shows; from below the plate covers its own projection and the body the rest of its
+    bottom face (the side faces show as slivers at 1 degree off vertical): pixel shares within
+    0.02 of the shoelace areas of the projected faces."""
+    from ucad_cl.labeller import BEHIND_SIZE, TB_ELEVATION, top_bottom_counts
+
+    mats = [Material("paint", (0.6, 0.1, 0.1, 1.0)), Material("under", (0.1, 0.1, 0.1, 1.0))]
+    mesh = make_mesh([(*box([-2, 0.3, -0.8], [2, 1.2, 0.8]), 0, "body"),
+                      (*box([-1.0, 0.1, -0.5], [1.0, 0.2, 0.5]), 1, "pan")], mats)
+    counts = top_bottom_counts(mesh, runtime)
+    assert counts.shape == (2, 2)
+    assert counts[0, 1] == 0 and counts[0, 0] > 0                 # the plate is hidden above
+    ring = make_ring(azimuths=(0.0,), elevations=(TB_ELEVATION, -TB_ELEVATION),
+                     size=BEHIND_SIZE)
+    v = np.asarray(mesh.vertices)
+
+    def bottom_face(lo_idx):          # the 4 corners of a box's bottom face (y = min)
+        b = v[lo_idx:lo_idx + 8]
+        return b[b[:, 1] <= b[:, 1].min() + 1e-12]
+
+    body, pan = bottom_face(0), bottom_face(8)
+    a_body, a_pan = _projected_area(body, ring, 1), _projected_area(pan, ring, 1)
+    assert 0 < a_pan < a_body
+    share = counts[1] / counts[1].sum()
+    assert share[1] == pytest.approx(a_pan / a_body, abs=0.02)
+    assert counts[1].sum() == pytest.approx(a_body, rel=0.05)
+
+
+def test_cue_columns_on_hand_made_parts(runtime):
+    """Component shape (``comp_elong`` = log10 longest / middle box side, ``comp_narrow`` =
+    middle side / vehicle height, area-weighted over a material's components), the glazing
+    band and the lamp zone against the boxes' own dimensions; a plate under the body is seen
+    from below only (``bottom_pix``, ``top_pix``)."""
+    from ucad_cl.render import render_views
+
+    mats = [Material("paint", (0.6, 0.1, 0.1, 1.0)), Material("strip", (0.02, 0.02, 0.02, 1.0)),
+            Material("glass", (0.1, 0.1, 0.1, 1.0)), Material("lamp", (0.9, 0.1, 0.1, 1.0)),
+            Material("pan", (0.2, 0.2, 0.2, 1.0))]
+    # file frame: length X (4 m), height 0..1.5 m, width Z (1.6 m)
+    parts = [(*box([-2, 0.2, -0.8], [2, 0.9, 0.8]), 0, "body"),
+             (*box([-1.5, 0.5, 0.8], [1.5, 0.55, 0.82]), 1, "strip_L"),     # 3 m x 5 cm x 2 cm
+             (*box([-1.5, 0.5, -0.82], [1.5, 0.55, -0.8]), 1, "strip_R"),
+             (*box([-1.0, 0.95, -0.7], [1.0, 1.4, 0.7]), 2, "greenhouse"),
+             (*box([2.0, 0.55, -0.7], [2.01, 0.7, -0.4]), 3, "lamp_L"),
+             (*box([-0.6, 0.0, -0.3], [0.6, 0.05, 0.3]), 4, "pan")]
+    parts.append((*box([-0.5, 1.4, -0.5], [0.5, 1.5, 0.5]), 0, "roof_box"))
+    mesh = make_mesh(parts, mats)
+    views = render_views(mesh, make_ring(azimuth_step=30, elevations=(15.0,), size=96))
+    X = material_table(mesh, views).X
+    strip, glass, lamp, pan = 1, 2, 3, 4
+    H = 1.5                                                   # the vehicle's height (m)
+    assert X[strip, COL["comp_elong"]] == pytest.approx(np.log10(3.0 / 0.05), abs=1e-4)
+    assert X[strip, COL["comp_narrow"]] == pytest.approx(0.05 / H, abs=1e-4)
+    # a 2 x 0.45 x 1.4 m box: longest 2, middle 1.4
+    assert X[glass, COL["comp_elong"]] == pytest.approx(np.log10(2.0 / 1.4), abs=1e-4)
+    assert X[glass, COL["glaze_band"]] > 0.8 and X[lamp, COL["glaze_band"]] == 0
+    assert X[lamp, COL["lamp_zone"]] > 0.9 and X[glass, COL["lamp_zone"]] == 0
+    assert X[pan, COL["top_pix"]] == 0 and X[pan, COL["bottom_pix"]] > 0.1
+    assert X[pan, COL["bottom_rel"]] > X[0, COL["bottom_rel"]]
+    assert X[0, COL["top_pix"]] > 0.5

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from .build import BuildSummary
 
 
-CODE_VERSION = "16"       # bump when a change alters results: it enters the options hash
+CODE_VERSION = "17"       # bump when a change alters results: it enters the options hash
 
 
 @dataclass(frozen=True)

@@ -49,6 +49,15 @@ Features (``FEATURE_NAMES``, one row per material, float32):
   length position against the paint and against the main glass, colour distance to the main
   glass and pixels against it (a lamp lens is a small see-through material, the windows the
   large one).
+* cues (``CUE_GROUPS``, ``CUE_NAMES``; appended after the relative ones; issue 24): *glaze*:
+  area shares in the glazing band (h 0.5-0.95 between the ends, |u| < 0.85) and in the lamp
+  zone (|u| > 0.75, h 0.15-0.65, facing the ends, |n_u| > 0.5); *under*: pixel shares in one
+  view from straight above and one from straight below (``top_bottom_counts``: what the ring
+  never shows: frame rails, axles, tanks, a ground sheet) and log10 of the bottom share over
+  the ring's pixel share (seen mostly from below); *trim*: component shape, area-weighted over
+  the material's components: log10 of the longest over the middle side of the component's box
+  (``comp_elong``: a strip along a panel edge is long and thin) and the middle side over the
+  vehicle height (``comp_narrow``).
 
 See through glass (the documented rule): a material is *see-through* when its transmission
 > 0.05, or its alpha < 0.95 with alpha mode BLEND, or its alpha < 0.9 in any mode. When a mesh
@@ -89,6 +98,7 @@ from pathlib import Path
 import numpy as np
 
 from .artifacts import PART_NAMES, CameraRing, Mesh, ViewSet
+from .cameras import make_ring
 from .names import name_prior
 from .render import render_views
 from .runtime import Runtime
@@ -97,6 +107,7 @@ MODEL_DIR = Path(__file__).resolve().parent / "models"
 MODEL_PATH = MODEL_DIR / "labeller.onnx"
 BEHIND_VIEWS = 6           # at most this many views of the layer behind glass
 BEHIND_SIZE = 96           # at most this many pixels on its longer side
+TB_ELEVATION = 89.0        # the views from above and below (``top_bottom_counts``), degrees
 ADJ_VIEWS = 12             # views used for image adjacency (every k-th view)
 ADJ_SIZE = 128             # ... sampled at every s-th pixel so the longer side is <= this
 SPLIT_MIN_SHARE = 0.05     # a component group must hold this share of the material's area
@@ -128,7 +139,14 @@ def _feature_names() -> tuple[str, ...]:
 RELATIVE_NAMES: tuple[str, ...] = (
     "rel_area", "rel_pix", "dark_frac", "chroma_frac", "same_colour", "rel_emission",
     "h_rel_paint", "u_rel_paint", "h_rel_glass", "u_rel_glass", "d_glass", "glass_rel_pix")
-FEATURE_NAMES: tuple[str, ...] = _feature_names() + RELATIVE_NAMES
+#: the issue-24 cue columns, appended last (``cue_features``), by cue: ``CUE_GROUPS``
+CUE_GROUPS: dict[str, tuple[str, ...]] = {
+    "glaze": ("glaze_band", "lamp_zone"),
+    "under": ("top_pix", "bottom_pix", "bottom_rel"),
+    "trim": ("comp_elong", "comp_narrow"),
+}
+CUE_NAMES: tuple[str, ...] = tuple(n for g in CUE_GROUPS.values() for n in g)
+FEATURE_NAMES: tuple[str, ...] = _feature_names() + RELATIVE_NAMES + CUE_NAMES
 
 
 @dataclass
@@ -321,6 +339,20 @@ def behind_glass(mesh: Mesh, views: ViewSet, runtime: Runtime | None = None
     clear_id = np.zeros(len(mesh.materials) + 1, bool)
     clear_id[1:] = clear
     return idx, np.where(clear_id[first], layer2, 0).astype(np.uint16), first
+
+
+def top_bottom_counts(mesh: Mesh, runtime: Runtime | None = None) -> np.ndarray:
+    """(2, M) pixels of every material in a view from straight above and one from straight
+    below (elevations +/- ``TB_ELEVATION``, azimuth 0, ``BEHIND_SIZE`` px square): what the
+    ring (elevations 10-45) never shows, the underside (frame rails, axles, tanks, a ground
+    sheet) and the roof."""
+    M = len(mesh.materials)
+    if mesh.n_faces == 0 or M == 0:
+        return np.zeros((2, M))
+    ring = make_ring(azimuths=(0.0,), elevations=(TB_ELEVATION, -TB_ELEVATION),
+                     size=BEHIND_SIZE)
+    return render_views(mesh, ring, runtime=runtime).material_counts(M + 1)[:, 1:].astype(
+        np.float64)
 
 
 def _resize_ids(ids: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -575,6 +607,18 @@ def material_table(mesh: Mesh, views: ViewSet, *, use_names: bool = True,
     put("ctx_wheels", float(len(wheels)))
     put("ctx_clear", float(clear.any()))
     relative_features(X, col)
+    put("glaze_band", mean((h > 0.5) & (h < 0.95) & (au < 0.85)))
+    put("lamp_zone", mean((au > 0.75) & (h > 0.15) & (h < 0.65) & (np.abs(unit[:, la]) > 0.5)))
+    e = np.sort(cbox[:, 3:] - cbox[:, :3], axis=1) if C else np.zeros((0, 3))    # ascending
+    tiny = 1e-6 * float(np.linalg.norm(ext))
+    elong = np.clip(np.log10(np.maximum(e[:, 2], tiny) / np.maximum(e[:, 1], tiny)), 0.0, 3.0)
+    put("comp_elong", np.bincount(comp_mat, weights=carea * elong, minlength=M) / safe)
+    put("comp_narrow", np.bincount(comp_mat, weights=carea * e[:, 1], minlength=M) / safe / ext[1])
+    tb = top_bottom_counts(mesh, runtime)                                  # (2, M)
+    tshare = tb / np.maximum(tb.sum(axis=1, keepdims=True), 1.0)
+    put("top_pix", tshare[0])
+    put("bottom_pix", tshare[1])
+    put("bottom_rel", np.log10((tshare[1] + 1e-4) / (X[:, col["pix_share"]] + 1e-4)))
     return MaterialTable(X=X.astype(np.float32), pixels=pix.astype(np.int64),
                          behind_pixels=behind_px.astype(np.int64), face_comp=comp,
                          comp_material=comp_mat, comp_area=carea, comp_box=cbox,
