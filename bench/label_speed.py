@@ -134,10 +134,16 @@ def same_answer(name, old, new, mesh, views, old_seg, new_seg) -> tuple[list[str
     bad = []
     a = old.material_table(mesh, views)
     b = new.material_table(mesh, views)
-    d = float(np.abs(a.X.astype(np.float64) - b.X).max(initial=0))
+    shared = [n for n in new.FEATURE_NAMES if n in old.FEATURE_NAMES]     # compared by name
+    if len(shared) != len(new.FEATURE_NAMES) or len(shared) != len(old.FEATURE_NAMES):
+        bad.append(f"feature columns {len(old.FEATURE_NAMES)} -> {len(new.FEATURE_NAMES)} "
+                   f"({len(shared)} shared)")
+    xa = a.X[:, [old.FEATURE_NAMES.index(n) for n in shared]].astype(np.float64)
+    xb = b.X[:, [new.FEATURE_NAMES.index(n) for n in shared]].astype(np.float64)
+    d = float(np.abs(xa - xb).max(initial=0))
     if d > 1e-6:
-        col = int(np.abs(a.X.astype(np.float64) - b.X).max(axis=0).argmax())
-        bad.append(f"features differ by {d:.2e} (column {new.FEATURE_NAMES[col]})")
+        col = int(np.abs(xa - xb).max(axis=0).argmax())
+        bad.append(f"features differ by {d:.2e} (column {shared[col]})")
     for k in ("pixels", "behind_pixels", "face_comp", "comp_material", "wheels"):
         if not np.array_equal(getattr(a, k), getattr(b, k)):
             bad.append(f"{k} differ")
