@@ -28,8 +28,8 @@ Light, in the vehicle's canonical frame (+Y up; ``docs/CONVENTIONS.md``):
 **Scale convention.** A single photo cannot separate albedo from light intensity: the light is
 fixed so that a horizontal surface facing up receives ``E_up = sky + sun * max(l_y, 0) = 1``
 (before the white balance, below). Base colours are therefore relative to the photo's exposure
-(comparisons use one exposure factor per photo, ``bench/fit.py``); ``GROUND = 0.2`` of
-``E_up``. The light's shape is then one number, the sky share ``g = sky / E_up`` in [0, 1]
+(comparisons use one exposure factor per photo, ``bench/fit.py``); ``GROUND = 0.1`` of
+``E_up`` (the radiance of an asphalt-like ground of albedo ~0.1 under the same light). The light's shape is then one number, the sky share ``g = sky / E_up`` in [0, 1]
 (``sun = (1 - g) / l_y``), the same for the three channels (``SHARED_SKY``); B and C are affine
 in it. **White balance** (``balance``): a photo's colour cast is moved into the light's colour
 by per-channel gains that make parts known to be neutral grey (the fit uses the tyres) come out
@@ -48,6 +48,14 @@ of products of the affine terms (``_Moments``), so a candidate costs O(parts), n
 within ``TRIM_SIGMA`` robust standard deviations (1.4826 x the median distance, at least
 ``MIN_SIGMA``) of their part's median residual, and searches only the fine grid around the
 first pass's sun.
+**Reflection folded into the colour.** The clear coat's reflection ``C`` is the least reliable
+term (the photo's environment is not the model's sky and ground: buildings, a lighter or darker
+ground, occlusion); subtracting it from a dark paint amplifies its error (a black body comes out
+at 0, a neutral one tinted). So after the final solve, a coated part (``k > 0``) whose modelled
+reflection carries more than ``REFLECTION_MAX`` of its light (luminance of the mean ``C`` over
+the mean pixel) or whose closed form clips a channel at 0 is re-solved with ``C = 0``: its
+reflection is folded into its colour, like a flat mean of its pixels but shaded by ``B``
+(``Lighting.coat_scale`` is 0 for it, 1 otherwise, and ``predict`` uses it).
 **Determinism:** fixed grids, float64 sums in a fixed order; ties go to the earlier grid point.
 """
 from __future__ import annotations
@@ -57,7 +65,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 F0 = 0.04                   # Fresnel reflectance at normal incidence (clear coat, glass)
-GROUND = 0.2                # ground radiance, share of E_up
+GROUND = 0.1                # ground radiance, share of E_up
 SUN_AZIMUTHS = 12           # coarse sun azimuths (every 30 degrees)
 SUN_ELEVATIONS = (15.0, 30.0, 45.0, 60.0)   # coarse sun elevations, degrees
 SUN_RANGE = (10.0, 70.0)    # sun elevations searched, degrees (daylight photos)
@@ -69,6 +77,8 @@ E_MAX = 1.2                 # mean diffuse irradiance allowed on the visible sur
 ENV_BLUR = 1.0              # mirror-direction step half-width per unit of roughness
 SHARED_SKY = True           # one sky share for the three channels
 STAT_WEIGHT = 0.1           # weight of l_stat against l_rgb (the paper's 0.1 / 1)
+REFLECTION_MAX = 0.5        # a coated part whose modelled reflection carries more of its light
+#                             has it folded into its colour (module docstring)
 LUMA = np.array([0.2126, 0.7152, 0.0722])   # linear-RGB luminance (Rec. 709)
 
 
@@ -78,13 +88,16 @@ class Lighting:
     ``sun`` (3,) linear RGB with ``sky + sun * max(sun_dir_y, 0) = white_balance`` (1 before
     ``balance``); ``sun_dir`` (3,) unit
     vector toward the sun; ``ground`` the ground's radiance; ``white_balance`` the per-channel
-    gains ``balance`` moved from the colours into the light (1 without)."""
+    gains ``balance`` moved from the colours into the light (1 without); ``coat_scale`` (P,)
+    the factor on each fitted part's clear-coat reflection (1; 0 where it is folded into the
+    part's colour), None: 1 for every part."""
 
     sky: np.ndarray
     sun: np.ndarray
     sun_dir: np.ndarray
     ground: float = GROUND
     white_balance: np.ndarray = field(default_factory=lambda: np.ones(3))
+    coat_scale: np.ndarray | None = None
 
     def to_json(self) -> dict:
         d = self.sun_dir
@@ -146,9 +159,10 @@ def fit_light(samples: Samples, n_parts: int, *, search_pixels: int = 3000) -> L
         albedo = solve_albedo(samples.take(idx), light, n_parts)
         keep = _trim(samples, light, albedo, n_parts) & keep
     assert light is not None
-    idx = np.flatnonzero(keep)
-    albedo = solve_albedo(samples.take(idx), light, n_parts)
-    loss = objective(samples.take(idx), light, albedo, n_parts)
+    kept = samples.take(np.flatnonzero(keep))
+    albedo = solve_albedo(kept, light, n_parts)
+    light, albedo = _fold_reflections(kept, light, albedo, n_parts)
+    loss = objective(kept, light, albedo, n_parts)
     return LightFit(lighting=light, albedo=albedo, loss=loss, kept=keep)
 
 
@@ -156,7 +170,10 @@ def shading(s: Samples, light: Lighting) -> tuple[np.ndarray, np.ndarray]:
     """(B, C), each (N, 3): the model is ``albedo[part] * B + C`` (module docstring)."""
     B0, B1, C0, C1 = _affine(s, light.sun_dir)
     sky = np.asarray(light.sky, np.float64)
-    return B0 + B1 * sky, C0 + C1 * sky
+    C = C0 + C1 * sky
+    if light.coat_scale is not None:
+        C = C * np.asarray(light.coat_scale, np.float64)[s.part][:, None]
+    return B0 + B1 * sky, C
 
 
 def predict(s: Samples, light: Lighting, albedo: np.ndarray) -> np.ndarray:
@@ -197,11 +214,35 @@ def balance(fit: LightFit, neutral: dict[int, float]) -> tuple[LightFit, np.ndar
     g = g / float(LUMA @ g)
     light = Lighting(sky=fit.lighting.sky * g, sun=fit.lighting.sun * g,
                      sun_dir=fit.lighting.sun_dir, ground=fit.lighting.ground,
-                     white_balance=g)
+                     white_balance=g, coat_scale=fit.lighting.coat_scale)
     return LightFit(lighting=light, albedo=fit.albedo / g, loss=fit.loss, kept=fit.kept), g
 
 
 # ----------------------------------------------------------------------------- internals
+
+def _fold_reflections(s: Samples, light: Lighting, albedo: np.ndarray,
+                      n_parts: int) -> tuple[Lighting, np.ndarray]:
+    """The light with ``coat_scale`` set and the colours re-solved: a coated part whose
+    modelled reflection carries more than ``REFLECTION_MAX`` of its luminance, or whose colour
+    is clipped at 0 in a channel, gets coat_scale 0 (module docstring)."""
+    B, C = shading(s, light)
+    cnt = np.bincount(s.part, minlength=n_parts).astype(np.float64)
+    safe = np.maximum(cnt, 1.0)
+    coated = np.bincount(s.part, weights=s.coat, minlength=n_parts) > 0
+    mean_c = np.stack([np.bincount(s.part, weights=C[:, c], minlength=n_parts)
+                       for c in range(3)], 1) / safe[:, None]
+    mean_y = np.stack([np.bincount(s.part, weights=s.rgb[:, c], minlength=n_parts)
+                       for c in range(3)], 1) / safe[:, None]
+    share = (mean_c @ LUMA) / np.maximum(mean_y @ LUMA, 1e-9)
+    clipped = np.any(np.nan_to_num(albedo, nan=1.0) <= 0.0, axis=1)
+    fold = coated & (cnt > 0) & ((share > REFLECTION_MAX) | clipped)
+    if not fold.any():
+        return light, albedo
+    scale = np.where(fold, 0.0, 1.0)
+    out = Lighting(sky=light.sky, sun=light.sun, sun_dir=light.sun_dir, ground=light.ground,
+                   white_balance=light.white_balance, coat_scale=scale)
+    return out, np.where(fold[:, None], solve_albedo(s, out, n_parts), albedo)
+
 
 def sun_direction(azimuth: float, elevation: float) -> np.ndarray:
     """Unit vector toward a sun at (azimuth, elevation) degrees, the camera ring's convention
