@@ -86,9 +86,10 @@ def test_light_model_recovers_its_own_colours_exactly():
 def test_known_colours_under_known_light(catalogue, tmp_path):
     """Photo-like Embree references (not the project's renderer) of known part colours under a
     known neutral daylight, the true mask given: the body colour after one exposure factor.
-    The light model's mismatch (no occlusion or shadows, uniform sky) and the flat valley of
-    scale vs sun direction (docs/FIT.md, Limits) leave CIEDE2000 ~2-3.5 here (measured: 2.2,
-    3.4, 2.0), not the 1 the issue asks for; the bound catches a regression."""
+    Measured CIEDE2000 2.1, 0.08, 0.14 (ground 0.1 of E_up, reflection folding and the
+    white-balance check of ucad_cl/light.py; before them 2.2, 3.4, 2.0): the median is within
+    the issue's 1; the view at azimuth 30 (its tyre mask holds paint, so it is flagged and no
+    white balance is applied) stays near 2. The bounds catch a regression."""
     from ucad_cl.fit import fit_photo
     from ucad_cl.refphoto import render_reference
 
@@ -104,7 +105,7 @@ def test_known_colours_under_known_light(catalogue, tmp_path):
         s = _exposure(body.color_linear, COLORS["body"])
         assert s > 0
         des.append(_de(body.color_linear, COLORS["body"], s))
-    assert float(np.median(des)) < 4.0 and max(des) < 8.0, des
+    assert float(np.median(des)) < 1.0 and max(des) < 4.0, des
     # deterministic: the same input gives the same JSON (timings aside)
     again = fit_photo(ref.image, mask=ref.mask, catalog=catalogue, mesh=m.sha256[:12])
     a, b = res.to_json(), again.to_json()

@@ -70,7 +70,8 @@ from .features import HogExtractor
 from .foreground import ObjectMask, check_image, mask_box, object_mask
 from .ingest import IngestError, load_mesh
 from .jobs import content_sha256
-from .light import LUMA, Lighting, Samples, balance, fit_light, predict, shading
+from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
+                    plausible_cast, predict, shading)
 from .orient import in_frame
 from .pose import CatalogMatch, PoseRing, estimate_pose, query_features, search_catalog
 from .render import render_views
@@ -766,11 +767,8 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
             status, fitted = "fitted", lf.albedo[i]
             reason = (_two_colours(samples, B, C, on & lf.kept, mats)
                       if p not in NOT_ONE_COLOUR else "")
-            luma = float(LUMA @ np.nan_to_num(fitted))
-            if p in NEUTRAL_PARTS and luma > TYRE_LUMA:   # a tyre is dark: its mask is off it
-                reason, fitted = (f"fitted luminance {luma:.2f} is too light for a tyre (over "
-                                  f"{TYRE_LUMA}): its mask is likely off the tyres; prior "
-                                  "colour kept"), color
+            if p in NEUTRAL_PARTS:             # a tyre is dark grey: else its mask is off it
+                reason, fitted = _check_tyre(fitted, color, lf.lighting.white_balance)
             if reason:
                 status = "flagged"
             refl = ""
@@ -791,6 +789,21 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
                  for r in sorted(rows, key=lambda r: r.index)]
     images = FitImages(photo=work, render=render, part_map=part_map, object=obj)
     return parts, lf.lighting, lf.loss, images, materials
+
+
+def _check_tyre(fitted: np.ndarray, prior: np.ndarray, gains: np.ndarray):
+    """(reason, colour) of a fitted tyre: ('', fitted), or a reason and the prior colour when
+    it is lighter than ``TYRE_LUMA`` or, after the white balance ``gains``, still further from
+    grey than a plausible light cast (``light.plausible_cast``): its mask holds something else
+    (paint, background)."""
+    luma = float(LUMA @ np.nan_to_num(fitted))
+    if luma > TYRE_LUMA:
+        return (f"fitted luminance {luma:.2f} is too light for a tyre (over {TYRE_LUMA}): its "
+                "mask is likely off the tyres; prior colour kept"), prior
+    if luma > 0 and not plausible_cast(neutral_gains(np.nan_to_num(fitted))):
+        return (f"fitted colour {srgb_hex(np.clip(fitted, 0, 1))} is not grey for a tyre: its "
+                "mask is likely off the tyres; prior colour kept"), prior
+    return "", fitted
 
 
 def _samples(rgb, normal, view, pmap, index, fit_parts, priors) -> Samples:

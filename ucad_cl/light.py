@@ -72,7 +72,7 @@ SUN_RANGE = (10.0, 70.0)    # sun elevations searched, degrees (daylight photos)
 SKY_STEPS = 11              # sky share grid per channel: 0, 0.1, ..., 1
 TRIM_SIGMA = 2.5            # residual trim, robust standard deviations
 MIN_SIGMA = 0.01            # floor of the robust standard deviation (linear RGB)
-BALANCE_RANGE = (0.7, 1.4)  # white-balance gains allowed per channel
+BALANCE_RANGE = (0.8, 1.25)  # white-balance gains allowed per channel (else none)
 E_MAX = 1.2                 # mean diffuse irradiance allowed on the visible surfaces (x E_up)
 ENV_BLUR = 1.0              # mirror-direction step half-width per unit of roughness
 SHARED_SKY = True           # one sky share for the three channels
@@ -200,22 +200,38 @@ def objective(s: Samples, light: Lighting, albedo: np.ndarray, n_parts: int) -> 
 
 def balance(fit: LightFit, neutral: dict[int, float]) -> tuple[LightFit, np.ndarray]:
     """The fit white-balanced on parts known to be neutral grey (``neutral``: part index ->
-    weight, e.g. its pixel count): per-channel gains ``g`` (luminance 1, each within
-    ``BALANCE_RANGE``) make the weighted mean chromaticity of those parts' colours neutral;
-    every colour is divided by ``g`` and the light multiplied by it, so the model's pixels are
-    unchanged (the light's colour, not the paint's, takes the cast). Returns (fit, g); g = 1
-    without a usable neutral part."""
+    weight, e.g. its pixel count): per-channel gains ``g`` (luminance 1) make the weighted mean
+    chromaticity of those parts' colours neutral; every colour is divided by ``g`` and the
+    light multiplied by it, so the model's pixels are unchanged (the light's colour, not the
+    paint's, takes the cast). Returns (fit, g); g = 1 without a usable neutral part, or when a
+    gain falls outside ``BALANCE_RANGE`` (a cast that strong means the "neutral" part's mask
+    holds something else, e.g. paint)."""
     rows = [(fit.albedo[p], w) for p, w in neutral.items()
             if w > 0 and np.all(np.isfinite(fit.albedo[p])) and fit.albedo[p].mean() > 1e-4]
     if not rows:
         return fit, np.ones(3)
     chroma = sum(w * a / a.mean() for a, w in rows) / sum(w for _, w in rows)
-    g = np.clip(chroma / float(LUMA @ chroma), *BALANCE_RANGE)
-    g = g / float(LUMA @ g)
+    g = neutral_gains(chroma)
+    if not plausible_cast(g):
+        return fit, np.ones(3)              # not a plausible cast: the "grey" part is not grey
     light = Lighting(sky=fit.lighting.sky * g, sun=fit.lighting.sun * g,
                      sun_dir=fit.lighting.sun_dir, ground=fit.lighting.ground,
                      white_balance=g, coat_scale=fit.lighting.coat_scale)
     return LightFit(lighting=light, albedo=fit.albedo / g, loss=fit.loss, kept=fit.kept), g
+
+
+def neutral_gains(color: np.ndarray) -> np.ndarray:
+    """(3,) per-channel gains of luminance 1 that would make ``color`` (linear RGB) grey."""
+    c = np.asarray(color, np.float64)
+    return c / float(LUMA @ c)
+
+
+def plausible_cast(gains: np.ndarray) -> bool:
+    """Whether white-balance ``gains`` lie within ``BALANCE_RANGE`` (a daylight cast left by a
+    camera's white balance), so the part they come from can be grey under a coloured light."""
+    g = np.asarray(gains, np.float64)
+    return bool(np.all(np.isfinite(g)) and g.min() >= BALANCE_RANGE[0]
+                and g.max() <= BALANCE_RANGE[1])
 
 
 # ----------------------------------------------------------------------------- internals
