@@ -52,10 +52,11 @@ first pass's sun.
 term (the photo's environment is not the model's sky and ground: buildings, a lighter or darker
 ground, occlusion); subtracting it from a dark paint amplifies its error (a black body comes out
 at 0, a neutral one tinted). So after the final solve, a coated part (``k > 0``) whose modelled
-reflection carries more than ``REFLECTION_MAX`` of its light (luminance of the mean ``C`` over
-the mean pixel) or whose closed form clips a channel at 0 is re-solved with ``C = 0``: its
-reflection is folded into its colour, like a flat mean of its pixels but shaded by ``B``
-(``Lighting.coat_scale`` is 0 for it, 1 otherwise, and ``predict`` uses it).
+reflection carries more than ``REFLECTION_MAX`` of its light in every channel (mean ``C`` over
+the mean pixel; a saturated paint, dark in some channels only, keeps its modelled reflection) is
+re-solved with ``C = 0``: its reflection is folded into its colour, like a flat mean of its
+pixels but shaded by ``B`` (``Lighting.coat_scale`` is 0 for it, 1 otherwise; ``predict`` uses
+it).
 **Determinism:** fixed grids, float64 sums in a fixed order; ties go to the earlier grid point.
 """
 from __future__ import annotations
@@ -77,8 +78,8 @@ E_MAX = 1.2                 # mean diffuse irradiance allowed on the visible sur
 ENV_BLUR = 1.0              # mirror-direction step half-width per unit of roughness
 SHARED_SKY = True           # one sky share for the three channels
 STAT_WEIGHT = 0.1           # weight of l_stat against l_rgb (the paper's 0.1 / 1)
-REFLECTION_MAX = 0.5        # a coated part whose modelled reflection carries more of its light
-#                             has it folded into its colour (module docstring)
+REFLECTION_MAX = 0.5        # a coated part whose modelled reflection carries more of its light in
+#                             every channel has it folded into its colour (module docstring)
 LUMA = np.array([0.2126, 0.7152, 0.0722])   # linear-RGB luminance (Rec. 709)
 
 
@@ -239,8 +240,8 @@ def plausible_cast(gains: np.ndarray) -> bool:
 def _fold_reflections(s: Samples, light: Lighting, albedo: np.ndarray,
                       n_parts: int) -> tuple[Lighting, np.ndarray]:
     """The light with ``coat_scale`` set and the colours re-solved: a coated part whose
-    modelled reflection carries more than ``REFLECTION_MAX`` of its luminance, or whose colour
-    is clipped at 0 in a channel, gets coat_scale 0 (module docstring)."""
+    modelled reflection carries more than ``REFLECTION_MAX`` of its light in every channel
+    gets coat_scale 0 (module docstring)."""
     B, C = shading(s, light)
     cnt = np.bincount(s.part, minlength=n_parts).astype(np.float64)
     safe = np.maximum(cnt, 1.0)
@@ -249,9 +250,8 @@ def _fold_reflections(s: Samples, light: Lighting, albedo: np.ndarray,
                        for c in range(3)], 1) / safe[:, None]
     mean_y = np.stack([np.bincount(s.part, weights=s.rgb[:, c], minlength=n_parts)
                        for c in range(3)], 1) / safe[:, None]
-    share = (mean_c @ LUMA) / np.maximum(mean_y @ LUMA, 1e-9)
-    clipped = np.any(np.nan_to_num(albedo, nan=1.0) <= 0.0, axis=1)
-    fold = coated & (cnt > 0) & ((share > REFLECTION_MAX) | clipped)
+    share = (mean_c / np.maximum(mean_y, 1e-9)).min(axis=1)       # the least-reflecting channel
+    fold = coated & (cnt > 0) & (share > REFLECTION_MAX)
     if not fold.any():
         return light, albedo
     scale = np.where(fold, 0.0, 1.0)
