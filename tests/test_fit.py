@@ -86,9 +86,10 @@ def test_light_model_recovers_its_own_colours_exactly():
 def test_known_colours_under_known_light(catalogue, tmp_path):
     """Photo-like Embree references (not the project's renderer) of known part colours under a
     known neutral daylight, the true mask given: the body colour after one exposure factor.
-    The light model's mismatch (no occlusion or shadows, uniform sky) and the flat valley of
-    scale vs sun direction (docs/FIT.md, Limits) leave CIEDE2000 ~2-3.5 here (measured: 2.2,
-    3.4, 2.0), not the 1 the issue asks for; the bound catches a regression."""
+    Measured CIEDE2000 2.1, 0.08, 0.14 (ground 0.1 of E_up, reflection folding and the
+    white-balance check of ucad_cl/light.py; before them 2.2, 3.4, 2.0): the median is within
+    the issue's 1; the view at azimuth 30 (its tyre mask holds paint, so it is flagged and no
+    white balance is applied) stays near 2. The bounds catch a regression."""
     from ucad_cl.fit import fit_photo
     from ucad_cl.refphoto import render_reference
 
@@ -104,12 +105,66 @@ def test_known_colours_under_known_light(catalogue, tmp_path):
         s = _exposure(body.color_linear, COLORS["body"])
         assert s > 0
         des.append(_de(body.color_linear, COLORS["body"], s))
-    assert float(np.median(des)) < 4.0 and max(des) < 8.0, des
+        # a tyre is reported dark grey, or flagged with its prior colour (its mask holds paint)
+        tyre = res.parts["wheel"]
+        c = np.asarray(tyre.color_linear)
+        assert float(c.max() / c.min()) < 1.3 and float(c.mean()) < 0.2, (az, tyre)
+        assert tyre.status == "fitted" or tyre.reason.endswith("prior colour kept"), tyre
+    assert float(np.median(des)) < 1.0 and max(des) < 4.0, des
     # deterministic: the same input gives the same JSON (timings aside)
     again = fit_photo(ref.image, mask=ref.mask, catalog=catalogue, mesh=m.sha256[:12])
     a, b = res.to_json(), again.to_json()
     a.pop("seconds"), b.pop("seconds")
     assert json.dumps(a) == json.dumps(b)
+
+
+def test_black_paint_is_not_fitted_as_zero(catalogue):
+    """A black body (albedo 0.015) under the known light: its pixels are mostly the clear
+    coat's reflection, which the light model over-estimates; subtracting it gave 0 in every
+    channel (L* 0) before the reflection was folded into the colour (ucad_cl/light.py). Now
+    the body is a dark neutral grey (measured: 0.036 against rims 0.705, chroma CIEDE2000 0.7
+    after its own exposure), darker than the rims by more than 10x (truth: 40x; the folded
+    reflection makes it lighter than true)."""
+    from ucad_cl.fit import fit_photo
+    from ucad_cl.light import LUMA
+    from ucad_cl.refphoto import render_reference
+
+    colors = dict(COLORS, body=(0.015, 0.015, 0.016))
+    m, mesh, rows = _mesh(catalogue, 1)
+    ref = render_reference(mesh, [r.part for r in rows], colors, azimuth=130.0, elevation=8.0,
+                           light=_neutral_light(), seed=1, background="plain", noise=0.0,
+                           jpeg_quality=None)
+    res = fit_photo(ref.image, mask=ref.mask, catalog=catalogue, mesh=m.sha256[:12])
+    body, rim = res.parts["body"], res.parts["rim"]
+    assert body.status == "fitted" and body.reflection == "folded"
+    lb, lr = float(LUMA @ body.color_linear), float(LUMA @ rim.color_linear)
+    assert 0.0 < lb < 0.1 * lr, (body.color_linear, rim.color_linear)
+    assert _de(body.color_linear, colors["body"], _exposure(body.color_linear,
+                                                            colors["body"])) < 1.5
+    assert res.to_json()["parts"]["body"]["reflection"] == "folded"
+
+
+def test_white_balance_only_for_a_plausible_cast():
+    """light.balance moves a tyre's cast into the light when it is one a camera leaves (gains
+    within BALANCE_RANGE): the tyre comes out grey and the paint loses the cast; a tyre far
+    from grey (its mask on red paint) gives no gains and leaves the colours as they are."""
+    from ucad_cl.light import BALANCE_RANGE, LightFit, Lighting, balance, sun_direction
+
+    def fit(tyre):
+        d = sun_direction(0.0, 45.0)
+        light = Lighting(sky=np.full(3, 0.3), sun=np.full(3, 0.7 / d[1]), sun_dir=d)
+        albedo = np.array([[0.5, 0.1, 0.08], tyre])
+        return LightFit(lighting=light, albedo=albedo, loss=0.0, kept=np.ones(1, bool))
+
+    cast = np.array([1.08, 1.0, 0.9])               # a warm cast, within the range
+    out, g = balance(fit(0.03 * cast), {1: 100.0})
+    assert BALANCE_RANGE[0] <= g.min() and g.max() <= BALANCE_RANGE[1]
+    t = out.albedo[1]
+    assert float(t.max() - t.min()) < 1e-9 * float(t.max())            # the tyre is grey
+    assert np.allclose(out.albedo[0] * g, [0.5, 0.1, 0.08])             # paint / gains
+    assert np.allclose(out.lighting.sky, 0.3 * g)                       # the light takes it
+    out, g = balance(fit(np.array([0.09, 0.03, 0.03])), {1: 100.0})    # red: not a cast
+    assert np.all(g == 1.0) and np.allclose(out.albedo[0], [0.5, 0.1, 0.08])
 
 
 def test_unseen_part_keeps_its_prior(catalogue):

@@ -53,7 +53,7 @@ largest separable part, live in ``ucad_cl/light.py``.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -70,7 +70,8 @@ from .features import HogExtractor
 from .foreground import ObjectMask, check_image, mask_box, object_mask
 from .ingest import IngestError, load_mesh
 from .jobs import content_sha256
-from .light import LUMA, Lighting, Samples, balance, fit_light, predict, shading
+from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
+                    plausible_cast, predict, shading)
 from .orient import in_frame
 from .pose import CatalogMatch, PoseRing, estimate_pose, query_features, search_catalog
 from .render import render_views
@@ -173,6 +174,7 @@ class PartFit:
     residual: float
     status: str
     reason: str = ""
+    reflection: str = ""        # coated fitted parts: 'modelled' or 'folded' (ucad_cl.light)
 
 
 @dataclass
@@ -231,7 +233,8 @@ class FitResult:
                           "color_srgb": srgb_hex(np.clip(f.color_linear, 0.0, 1.0)),
                           "metallic": f.metallic, "roughness": f.roughness,
                           "pixels": f.pixels, "residual": round(f.residual, 6),
-                          "status": f.status, **({"reason": f.reason} if f.reason else {})}
+                          "status": f.status, **({"reason": f.reason} if f.reason else {}),
+                          **({"reflection": f.reflection} if f.reflection else {})}
                       for p, f in self.parts.items()},
             "materials": self.materials,
             "candidates": [{"mesh_id": c.mesh_id, "mesh_path": c.mesh_path, "view": c.view,
@@ -761,12 +764,18 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
             on = (samples.part == i)
             kept = on & lf.kept
             r = float(np.sqrt(np.mean((res[kept] @ np.array([0.2126, 0.7152, 0.0722])) ** 2)))
-            status = "fitted"
+            status, fitted = "fitted", lf.albedo[i]
             reason = (_two_colours(samples, B, C, on & lf.kept, mats)
                       if p not in NOT_ONE_COLOUR else "")
+            if p in NEUTRAL_PARTS:             # a tyre is dark grey: else its mask is off it
+                reason, fitted = _check_tyre(fitted, color, lf.lighting.white_balance)
             if reason:
                 status = "flagged"
-            parts[p] = PartFit(p, lf.albedo[i], metal, rough, npx, r, status, reason)
+            refl = ""
+            if priors[p][3] > 0:
+                scale = lf.lighting.coat_scale
+                refl = "folded" if scale is not None and scale[i] == 0 else "modelled"
+            parts[p] = PartFit(p, fitted, metal, rough, npx, r, status, reason, refl)
         elif visible[p] == 0:
             parts[p] = PartFit(p, color, metal, rough, 0, 0.0, "prior")
         else:
@@ -780,6 +789,21 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
                  for r in sorted(rows, key=lambda r: r.index)]
     images = FitImages(photo=work, render=render, part_map=part_map, object=obj)
     return parts, lf.lighting, lf.loss, images, materials
+
+
+def _check_tyre(fitted: np.ndarray, prior: np.ndarray, gains: np.ndarray):
+    """(reason, colour) of a fitted tyre: ('', fitted), or a reason and the prior colour when
+    it is lighter than ``TYRE_LUMA`` or, after the white balance ``gains``, still further from
+    grey than a plausible light cast (``light.plausible_cast``): its mask holds something else
+    (paint, background)."""
+    luma = float(LUMA @ np.nan_to_num(fitted))
+    if luma > TYRE_LUMA:
+        return (f"fitted luminance {luma:.2f} is too light for a tyre (over {TYRE_LUMA}): its "
+                "mask is likely off the tyres; prior colour kept"), prior
+    if luma > 0 and not plausible_cast(neutral_gains(np.nan_to_num(fitted))):
+        return (f"fitted colour {srgb_hex(np.clip(fitted, 0, 1))} is not grey for a tyre: its "
+                "mask is likely off the tyres; prior colour kept"), prior
+    return "", fitted
 
 
 def _samples(rgb, normal, view, pmap, index, fit_parts, priors) -> Samples:
@@ -857,6 +881,8 @@ def _render_image(work, frame: _Frame, parts, light, priors) -> np.ndarray:
     s = _samples(np.zeros((int(keep.sum()), 3)), frame.normal[sel][keep], frame.view[sel][keep],
                  pm[keep], idx, names, priors)
     albedo = np.array([parts[p].color_linear for p in names], np.float64)
+    scale = np.array([0.0 if parts[p].reflection == "folded" else 1.0 for p in names])
+    light = replace(light, coat_scale=scale)           # indexed by ``names``, not fitted parts
     vals = np.zeros((len(pm), 3))
     vals[keep] = predict(s, light, albedo)
     out[sel] = linear_to_srgb8(vals)

@@ -28,8 +28,8 @@ Light, in the vehicle's canonical frame (+Y up; ``docs/CONVENTIONS.md``):
 **Scale convention.** A single photo cannot separate albedo from light intensity: the light is
 fixed so that a horizontal surface facing up receives ``E_up = sky + sun * max(l_y, 0) = 1``
 (before the white balance, below). Base colours are therefore relative to the photo's exposure
-(comparisons use one exposure factor per photo, ``bench/fit.py``); ``GROUND = 0.2`` of
-``E_up``. The light's shape is then one number, the sky share ``g = sky / E_up`` in [0, 1]
+(comparisons use one exposure factor per photo, ``bench/fit.py``); ``GROUND = 0.1`` of
+``E_up`` (the radiance of an asphalt-like ground of albedo ~0.1 under the same light). The light's shape is then one number, the sky share ``g = sky / E_up`` in [0, 1]
 (``sun = (1 - g) / l_y``), the same for the three channels (``SHARED_SKY``); B and C are affine
 in it. **White balance** (``balance``): a photo's colour cast is moved into the light's colour
 by per-channel gains that make parts known to be neutral grey (the fit uses the tyres) come out
@@ -48,6 +48,15 @@ of products of the affine terms (``_Moments``), so a candidate costs O(parts), n
 within ``TRIM_SIGMA`` robust standard deviations (1.4826 x the median distance, at least
 ``MIN_SIGMA``) of their part's median residual, and searches only the fine grid around the
 first pass's sun.
+**Reflection folded into the colour.** The clear coat's reflection ``C`` is the least reliable
+term (the photo's environment is not the model's sky and ground: buildings, a lighter or darker
+ground, occlusion); subtracting it from a dark paint amplifies its error (a black body comes out
+at 0, a neutral one tinted). So after the final solve, a coated part (``k > 0``) whose modelled
+reflection carries more than ``REFLECTION_MAX`` of its light in every channel (mean ``C`` over
+the mean pixel; a saturated paint, dark in some channels only, keeps its modelled reflection) is
+re-solved with ``C = 0``: its reflection is folded into its colour, like a flat mean of its
+pixels but shaded by ``B`` (``Lighting.coat_scale`` is 0 for it, 1 otherwise; ``predict`` uses
+it).
 **Determinism:** fixed grids, float64 sums in a fixed order; ties go to the earlier grid point.
 """
 from __future__ import annotations
@@ -57,18 +66,20 @@ from dataclasses import dataclass, field
 import numpy as np
 
 F0 = 0.04                   # Fresnel reflectance at normal incidence (clear coat, glass)
-GROUND = 0.2                # ground radiance, share of E_up
+GROUND = 0.1                # ground radiance, share of E_up
 SUN_AZIMUTHS = 12           # coarse sun azimuths (every 30 degrees)
 SUN_ELEVATIONS = (15.0, 30.0, 45.0, 60.0)   # coarse sun elevations, degrees
 SUN_RANGE = (10.0, 70.0)    # sun elevations searched, degrees (daylight photos)
 SKY_STEPS = 11              # sky share grid per channel: 0, 0.1, ..., 1
 TRIM_SIGMA = 2.5            # residual trim, robust standard deviations
 MIN_SIGMA = 0.01            # floor of the robust standard deviation (linear RGB)
-BALANCE_RANGE = (0.7, 1.4)  # white-balance gains allowed per channel
+BALANCE_RANGE = (0.8, 1.25)  # white-balance gains allowed per channel (else none)
 E_MAX = 1.2                 # mean diffuse irradiance allowed on the visible surfaces (x E_up)
 ENV_BLUR = 1.0              # mirror-direction step half-width per unit of roughness
 SHARED_SKY = True           # one sky share for the three channels
 STAT_WEIGHT = 0.1           # weight of l_stat against l_rgb (the paper's 0.1 / 1)
+REFLECTION_MAX = 0.5        # a coated part whose modelled reflection carries more of its light in
+#                             every channel has it folded into its colour (module docstring)
 LUMA = np.array([0.2126, 0.7152, 0.0722])   # linear-RGB luminance (Rec. 709)
 
 
@@ -78,13 +89,16 @@ class Lighting:
     ``sun`` (3,) linear RGB with ``sky + sun * max(sun_dir_y, 0) = white_balance`` (1 before
     ``balance``); ``sun_dir`` (3,) unit
     vector toward the sun; ``ground`` the ground's radiance; ``white_balance`` the per-channel
-    gains ``balance`` moved from the colours into the light (1 without)."""
+    gains ``balance`` moved from the colours into the light (1 without); ``coat_scale`` (P,)
+    the factor on each fitted part's clear-coat reflection (1; 0 where it is folded into the
+    part's colour), None: 1 for every part."""
 
     sky: np.ndarray
     sun: np.ndarray
     sun_dir: np.ndarray
     ground: float = GROUND
     white_balance: np.ndarray = field(default_factory=lambda: np.ones(3))
+    coat_scale: np.ndarray | None = None
 
     def to_json(self) -> dict:
         d = self.sun_dir
@@ -146,9 +160,10 @@ def fit_light(samples: Samples, n_parts: int, *, search_pixels: int = 3000) -> L
         albedo = solve_albedo(samples.take(idx), light, n_parts)
         keep = _trim(samples, light, albedo, n_parts) & keep
     assert light is not None
-    idx = np.flatnonzero(keep)
-    albedo = solve_albedo(samples.take(idx), light, n_parts)
-    loss = objective(samples.take(idx), light, albedo, n_parts)
+    kept = samples.take(np.flatnonzero(keep))
+    albedo = solve_albedo(kept, light, n_parts)
+    light, albedo = _fold_reflections(kept, light, albedo, n_parts)
+    loss = objective(kept, light, albedo, n_parts)
     return LightFit(lighting=light, albedo=albedo, loss=loss, kept=keep)
 
 
@@ -156,7 +171,10 @@ def shading(s: Samples, light: Lighting) -> tuple[np.ndarray, np.ndarray]:
     """(B, C), each (N, 3): the model is ``albedo[part] * B + C`` (module docstring)."""
     B0, B1, C0, C1 = _affine(s, light.sun_dir)
     sky = np.asarray(light.sky, np.float64)
-    return B0 + B1 * sky, C0 + C1 * sky
+    C = C0 + C1 * sky
+    if light.coat_scale is not None:
+        C = C * np.asarray(light.coat_scale, np.float64)[s.part][:, None]
+    return B0 + B1 * sky, C
 
 
 def predict(s: Samples, light: Lighting, albedo: np.ndarray) -> np.ndarray:
@@ -183,25 +201,64 @@ def objective(s: Samples, light: Lighting, albedo: np.ndarray, n_parts: int) -> 
 
 def balance(fit: LightFit, neutral: dict[int, float]) -> tuple[LightFit, np.ndarray]:
     """The fit white-balanced on parts known to be neutral grey (``neutral``: part index ->
-    weight, e.g. its pixel count): per-channel gains ``g`` (luminance 1, each within
-    ``BALANCE_RANGE``) make the weighted mean chromaticity of those parts' colours neutral;
-    every colour is divided by ``g`` and the light multiplied by it, so the model's pixels are
-    unchanged (the light's colour, not the paint's, takes the cast). Returns (fit, g); g = 1
-    without a usable neutral part."""
+    weight, e.g. its pixel count): per-channel gains ``g`` (luminance 1) make the weighted mean
+    chromaticity of those parts' colours neutral; every colour is divided by ``g`` and the
+    light multiplied by it, so the model's pixels are unchanged (the light's colour, not the
+    paint's, takes the cast). Returns (fit, g); g = 1 without a usable neutral part, or when a
+    gain falls outside ``BALANCE_RANGE`` (a cast that strong means the "neutral" part's mask
+    holds something else, e.g. paint)."""
     rows = [(fit.albedo[p], w) for p, w in neutral.items()
             if w > 0 and np.all(np.isfinite(fit.albedo[p])) and fit.albedo[p].mean() > 1e-4]
     if not rows:
         return fit, np.ones(3)
     chroma = sum(w * a / a.mean() for a, w in rows) / sum(w for _, w in rows)
-    g = np.clip(chroma / float(LUMA @ chroma), *BALANCE_RANGE)
-    g = g / float(LUMA @ g)
+    g = neutral_gains(chroma)
+    if not plausible_cast(g):
+        return fit, np.ones(3)              # not a plausible cast: the "grey" part is not grey
     light = Lighting(sky=fit.lighting.sky * g, sun=fit.lighting.sun * g,
                      sun_dir=fit.lighting.sun_dir, ground=fit.lighting.ground,
-                     white_balance=g)
+                     white_balance=g, coat_scale=fit.lighting.coat_scale)
     return LightFit(lighting=light, albedo=fit.albedo / g, loss=fit.loss, kept=fit.kept), g
 
 
+def neutral_gains(color: np.ndarray) -> np.ndarray:
+    """(3,) per-channel gains of luminance 1 that would make ``color`` (linear RGB) grey."""
+    c = np.asarray(color, np.float64)
+    return c / float(LUMA @ c)
+
+
+def plausible_cast(gains: np.ndarray) -> bool:
+    """Whether white-balance ``gains`` lie within ``BALANCE_RANGE`` (a daylight cast left by a
+    camera's white balance), so the part they come from can be grey under a coloured light."""
+    g = np.asarray(gains, np.float64)
+    return bool(np.all(np.isfinite(g)) and g.min() >= BALANCE_RANGE[0]
+                and g.max() <= BALANCE_RANGE[1])
+
+
 # ----------------------------------------------------------------------------- internals
+
+def _fold_reflections(s: Samples, light: Lighting, albedo: np.ndarray,
+                      n_parts: int) -> tuple[Lighting, np.ndarray]:
+    """The light with ``coat_scale`` set and the colours re-solved: a coated part whose
+    modelled reflection carries more than ``REFLECTION_MAX`` of its light in every channel
+    gets coat_scale 0 (module docstring)."""
+    B, C = shading(s, light)
+    cnt = np.bincount(s.part, minlength=n_parts).astype(np.float64)
+    safe = np.maximum(cnt, 1.0)
+    coated = np.bincount(s.part, weights=s.coat, minlength=n_parts) > 0
+    mean_c = np.stack([np.bincount(s.part, weights=C[:, c], minlength=n_parts)
+                       for c in range(3)], 1) / safe[:, None]
+    mean_y = np.stack([np.bincount(s.part, weights=s.rgb[:, c], minlength=n_parts)
+                       for c in range(3)], 1) / safe[:, None]
+    share = (mean_c / np.maximum(mean_y, 1e-9)).min(axis=1)       # the least-reflecting channel
+    fold = coated & (cnt > 0) & (share > REFLECTION_MAX)
+    if not fold.any():
+        return light, albedo
+    scale = np.where(fold, 0.0, 1.0)
+    out = Lighting(sky=light.sky, sun=light.sun, sun_dir=light.sun_dir, ground=light.ground,
+                   white_balance=light.white_balance, coat_scale=scale)
+    return out, np.where(fold[:, None], solve_albedo(s, out, n_parts), albedo)
+
 
 def sun_direction(azimuth: float, elevation: float) -> np.ndarray:
     """Unit vector toward a sun at (azimuth, elevation) degrees, the camera ring's convention
