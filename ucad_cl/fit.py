@@ -67,7 +67,7 @@ from .artifacts import CameraRing, Mesh
 from .cameras import pixel_rays
 from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
 from .features import HogExtractor
-from .foreground import ObjectMask, check_image, mask_box, object_mask
+from .foreground import ObjectMask, check_image, mask_box, object_mask, refine_with_silhouette
 from .ingest import IngestError, load_mesh
 from .jobs import content_sha256
 from .light import LUMA, Lighting, Samples, balance, fit_light, predict, shading
@@ -100,6 +100,9 @@ RERANK_POSE = 2             # retrieval: the first meshes posed; the best pose s
 CANDIDATES = 5              # distinct meshes listed by retrieval
 PRESELECT_ROWS = 2048       # retrieval: rows kept by float32 dot products for the exact rank
 RETRIEVAL_ROWS = 64         # stored views ranked before collapsing to distinct meshes
+REFINE_MESHES = 3           # object: stored silhouettes of the first meshes seed GrabCut again
+REFINE_CORE = 0.04          # ... their core (eroded by this share of the box side) is foreground
+MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of the prior
 
 
 class PhotoSegmenter(Protocol):
@@ -217,6 +220,8 @@ class FitResult:
     part_rows: list = field(default_factory=list, repr=False)
     object_source: str = ""
     loss: float = 0.0
+    object: ObjectMask | None = field(default=None, repr=False)   # the photo's object (full
+    #                                                               frame), as the fit used it
 
     def to_json(self) -> dict:
         """JSON-ready dict; floats rounded (6 digits, seconds 3), keys in a fixed order."""
@@ -327,23 +332,36 @@ class _Fit:
             if spread < UNIFORM_STD:
                 raise ValueError(f"no vehicle found inside the box {obj.box}: it is uniform "
                                  f"(standard deviation {spread:.1f} levels; all background?)")
+        self._lap("object")
+        meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
+        self._lap("retrieval")
+        refined = None
+        if obj.source != "mask":                # GrabCut again, seeded by stored silhouettes
+            seeds = ([(c.mesh_id, c.view) for c in candidates[:REFINE_MESHES]] if candidates
+                     else [(meta.sha256, self._nearest_view(meta.sha256, photo, obj))])
+            refined = self._refined_object(photo, obj, seeds)
+            self._lap("object")
+            if refined is not None:
+                obj = refined
+                if mesh_key is None:            # retrieval again, with the better mask
+                    meta, candidates, best_view = self._pick_mesh(photo, obj, None)
+                self._lap("retrieval")
+        if obj.source == "box":
             self.notes.append(f"GrabCut kept {obj.kept:.0%} of the box: the vehicle's outline "
                               "is the render's silhouette at the pose, inside the box")
-        self._lap("object")
-        meta, candidates, best_view = self._pick_mesh(photo, obj, box, mask, mesh_key)
-        self._lap("retrieval")
+        given = {"box": box} if box is not None and refined is None else {"mask": obj.mask}
         mesh, note = self._load(meta)
         self._lap("load")
         crop, scale = _work_crop(photo.shape[:2], obj)
         pose = None
         if mesh is not None:
-            pose, score = self._refined_pose(photo, mesh, meta.sha256, box, mask)
+            pose, score = self._refined_pose(photo, mesh, meta.sha256, given)
             for c in candidates[1:RERANK_POSE]:     # the next meshes, posed alike
                 other = self.r.mesh(c.mesh_id)
                 m2, _ = self._load(other)
                 if m2 is None:
                     continue
-                p2, s2 = self._refined_pose(photo, m2, other.sha256, box, mask)
+                p2, s2 = self._refined_pose(photo, m2, other.sha256, given)
                 if s2 < score:
                     meta, mesh, pose, score = other, m2, p2, s2
             if candidates and candidates[0].mesh_id != meta.sha256:
@@ -352,7 +370,7 @@ class _Fit:
         if note:
             self.notes.append(note)
         if pose is None:
-            pose = self._stored_pose(meta.sha256, best_view, obj, photo, box, mask)
+            pose = self._stored_pose(meta.sha256, best_view, obj, photo)
         rows = self.r.parts(meta.sha256)
         self._lap("pose")
         work = _to_work(photo, crop, scale)
@@ -381,10 +399,10 @@ class _Fit:
                          lighting=light, parts=parts, materials=materials,
                          candidates=candidates, seconds=dict(self.seconds), notes=self.notes,
                          images=images, mesh=mesh, part_rows=rows, object_source=obj.source,
-                         loss=loss)
+                         loss=loss, object=obj)
 
     # -- which mesh
-    def _pick_mesh(self, photo, obj: ObjectMask, box, mask, key):
+    def _pick_mesh(self, photo, obj: ObjectMask, key):
         if key is not None:
             try:
                 meta = self.r.mesh(str(key))
@@ -407,9 +425,8 @@ class _Fit:
         if not feats:
             raise ValueError("the catalogue has no accepted mesh with stored features")
         db = np.concatenate(feats)
-        given = {"mask": obj.mask} if obj.source != "box" else {"box": box}
-        query, _ = query_features(photo, HogExtractor(runtime=self.runtime),
-                                  runtime=self.runtime, **given)
+        query, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
+                                  runtime=self.runtime)
         mesh_of, view_of = np.concatenate(ids), np.concatenate(views)
         if len(db) > PRESELECT_ROWS:               # float32 dot products pick the rows that
             q = query / max(float(np.linalg.norm(query)), 1e-30)    # the exact search ranks
@@ -449,26 +466,61 @@ class _Fit:
                           f"{meta.n_materials}: fitted on the nearest stored view")
         return mesh, ""
 
-    # -- pose
-    def _refined_pose(self, photo, mesh, sha, box, mask) -> tuple[FitPose, float]:
-        """The pose search's best pose and its score (lower is better)."""
+    # -- the object
+    def _refined_object(self, photo, obj: ObjectMask, seeds) -> ObjectMask | None:
+        """GrabCut rerun with the stored silhouettes of ``seeds`` ([(sha, view)]) as its prior
+        (``foreground.refine_with_silhouette``, core ``REFINE_CORE``): each placed onto the box
+        (its silhouette's box stretched onto the object's box), a pixel is "probably
+        foreground" when at least half of them cover it. None when GrabCut keeps under
+        ``MIN_REFINED`` of that prior (it lost the vehicle)."""
+        import cv2
+
+        H, W = photo.shape[:2]
+        X0, Y0, X1, Y1 = obj.box
+        votes = np.zeros((H, W), np.float64)
+        for sha, view in seeds:
+            sil = np.asarray(self.r.material_map(sha, int(view))) > 0
+            if not sil.any():
+                continue
+            x0, y0, x1, y1 = mask_box(sil)
+            sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
+            M = np.array([[sx, 0.0, X0 - sx * x0], [0.0, sy, Y0 - sy * y0]])
+            votes += cv2.warpAffine(sil.astype(np.uint8), M, (W, H),
+                                    flags=cv2.INTER_NEAREST) > 0
+        prior = votes >= len(seeds) / 2.0
+        if not prior.any():
+            return None
+        fg = refine_with_silhouette(photo, prior, core=REFINE_CORE)
+        if np.count_nonzero(fg) < max(MIN_REFINED * np.count_nonzero(prior), 8):
+            return None
+        x0, y0, x1, y1 = obj.box
+        return ObjectMask(mask=fg, source="grabcut", box=obj.box,
+                          kept=float(fg[y0:y1, x0:x1].mean()))
+
+    def _nearest_view(self, sha: str, photo, obj: ObjectMask) -> int:
+        """The stored view of mesh ``sha`` nearest to the photo's object by HOG."""
         ring = catalog_ring(self.r, sha)
-        est = estimate_pose(photo, mesh, box=box, mask=mask, coarse=ring, top=1,
-                            runtime=self.runtime)
+        q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
+                              runtime=self.runtime)
+        n = len(ring.feats)
+        return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
+                              ring.ring.azimuth, ring.ring.elevation, top=1)[0].view
+
+    # -- pose
+    def _refined_pose(self, photo, mesh, sha, given: dict) -> tuple[FitPose, float]:
+        """The pose search's best pose and its score (lower is better); ``given``: the box
+        or the object's mask."""
+        ring = catalog_ring(self.r, sha)
+        est = estimate_pose(photo, mesh, coarse=ring, top=1, runtime=self.runtime, **given)
         c = est.best
         assert c.K is not None and c.w2c is not None
         return FitPose(c.azimuth, c.elevation, np.asarray(c.K, np.float64),
                        np.asarray(c.w2c, np.float64), "refined"), float(c.score)
 
-    def _stored_pose(self, sha, view, obj, photo, box, mask) -> FitPose:
+    def _stored_pose(self, sha, view, obj, photo) -> FitPose:
         """The nearest stored view (by HOG) placed onto the object's box."""
         if view is None:
-            ring = catalog_ring(self.r, sha)
-            q, _ = query_features(photo, HogExtractor(runtime=self.runtime), box=box,
-                                  mask=mask, runtime=self.runtime)
-            n = len(ring.feats)
-            view = search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
-                                  ring.ring.azimuth, ring.ring.elevation, top=1)[0].view
+            view = self._nearest_view(sha, photo, obj)
         rec = self.r.view(sha, int(view))
         sil = rec.mat_id > 0
         if not sil.any():
