@@ -3,7 +3,12 @@
 ``fit_photo(photo, box=... | mask=..., catalog=CAT, mesh=None)`` runs, on a CPU:
 
 1. **Object**: the vehicle's pixels (the given mask, or GrabCut inside the box:
-   ``ucad_cl.foreground``). When GrabCut keeps too little of the box (clutter of the vehicle's
+   ``ucad_cl.foreground``). With a box, GrabCut is rerun with a prior (``_refined_object``):
+   the best stored views of the first ``REFINE_MESHES`` meshes retrieved with GrabCut's mask
+   (step 2; with ``mesh`` given, its stored view nearest by HOG), stretched onto the box; their
+   majority is probable foreground, its core (eroded by ``REFINE_CORE`` of the box side)
+   foreground; retrieval then runs again with the new mask (pose search still gets the box:
+   measured better than the new mask, docs/FIT.md), and the fit uses it. When GrabCut keeps too little of the box both times (clutter of the vehicle's
    colours), the box goes to the pose search and the render's silhouette at the pose, inside
    the box, is the outline (a note says so); a box of uniform pixels (standard deviation under
    ``UNIFORM_STD`` levels) is refused as holding no vehicle.
@@ -335,7 +340,6 @@ class _Fit:
         self._lap("object")
         meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
         self._lap("retrieval")
-        refined = None
         if obj.source != "mask":                # GrabCut again, seeded by stored silhouettes
             seeds = ([(c.mesh_id, c.view) for c in candidates[:REFINE_MESHES]] if candidates
                      else [(meta.sha256, self._nearest_view(meta.sha256, photo, obj))])
@@ -349,7 +353,7 @@ class _Fit:
         if obj.source == "box":
             self.notes.append(f"GrabCut kept {obj.kept:.0%} of the box: the vehicle's outline "
                               "is the render's silhouette at the pose, inside the box")
-        given = {"box": box} if box is not None and refined is None else {"mask": obj.mask}
+        given = {"box": box} if box is not None else {"mask": obj.mask}   # see docs/FIT.md
         mesh, note = self._load(meta)
         self._lap("load")
         crop, scale = _work_crop(photo.shape[:2], obj)
