@@ -4,10 +4,10 @@
 
 1. **Object**: the vehicle's pixels (the given mask, or GrabCut inside the box:
    ``ucad_cl.foreground``). With a box, GrabCut is rerun with a prior (``_refined_object``):
-   the best stored views of the first ``REFINE_MESHES`` meshes retrieved with GrabCut's mask
-   (step 2; with ``mesh`` given, its stored view nearest by HOG), stretched onto the box; their
-   majority is probable foreground, its core (eroded by ``REFINE_CORE`` of the box side)
-   foreground; retrieval then runs again with the new mask (pose search still gets the box:
+   the best stored views of the first ``REFINE_MESHES`` meshes by the HOG of GrabCut's object
+   (``_first_views``; with ``mesh`` given, its stored view nearest by HOG), stretched onto the
+   box; their majority is probable foreground, its core (eroded by ``REFINE_CORE`` of the box
+   side) foreground; retrieval then runs with the new mask (pose search still gets the box:
    measured better than the new mask, docs/FIT.md), and the fit uses it. When GrabCut keeps too little of the box both times (clutter of the vehicle's
    colours), the box goes to the pose search and the render's silhouette at the pose, inside
    the box, is the outline (a note says so); a box of uniform pixels (standard deviation under
@@ -321,6 +321,7 @@ class _Fit:
         self.r, self.runtime = reader, runtime
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
+        self.db: tuple | None = None
         self._t = time.perf_counter()
 
     def _lap(self, stage: str) -> None:
@@ -338,18 +339,19 @@ class _Fit:
                 raise ValueError(f"no vehicle found inside the box {obj.box}: it is uniform "
                                  f"(standard deviation {spread:.1f} levels; all background?)")
         self._lap("object")
-        meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
-        self._lap("retrieval")
         if obj.source != "mask":                # GrabCut again, seeded by stored silhouettes
-            seeds = ([(c.mesh_id, c.view) for c in candidates[:REFINE_MESHES]] if candidates
-                     else [(meta.sha256, self._nearest_view(meta.sha256, photo, obj))])
+            if mesh_key is None:
+                seeds = self._first_views(photo, obj)
+            else:
+                sha = self._given(mesh_key).sha256
+                seeds = [(sha, self._nearest_view(sha, photo, obj))]
+            self._lap("retrieval")
             refined = self._refined_object(photo, obj, seeds)
-            self._lap("object")
             if refined is not None:
                 obj = refined
-                if mesh_key is None:            # retrieval again, with the better mask
-                    meta, candidates, best_view = self._pick_mesh(photo, obj, None)
-                self._lap("retrieval")
+            self._lap("object")
+        meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
+        self._lap("retrieval")
         if obj.source == "box":
             self.notes.append(f"GrabCut kept {obj.kept:.0%} of the box: the vehicle's outline "
                               "is the render's silhouette at the pose, inside the box")
@@ -406,32 +408,38 @@ class _Fit:
                          loss=loss, object=obj)
 
     # -- which mesh
+    def _given(self, key):
+        """The catalogue's record of the mesh the caller named (ValueError if not accepted)."""
+        try:
+            meta = self.r.mesh(str(key))
+        except CatalogError as exc:
+            raise ValueError(f"{exc}") from None
+        if meta.state != "accepted":
+            raise ValueError(f"mesh {key} is {meta.state} in the catalogue ({meta.reason});"
+                             " it has no part table to fit")
+        return meta
+
+    def _first_views(self, photo, obj: ObjectMask) -> list[tuple[str, int]]:
+        """[(sha, view)] of the first ``REFINE_MESHES`` distinct meshes by float32 dot product
+        of the object's HOG with every stored row (the order the exact search refines; ties:
+        the lower row), each with its best row: the seeds of ``_refined_object``."""
+        metas, db, mesh_of, view_of = self._database()
+        q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
+                              runtime=self.runtime)
+        q = (q / max(float(np.linalg.norm(q)), 1e-30)).astype(np.float32)
+        out: dict[int, int] = {}
+        for row in np.argsort(-(db @ q), kind="stable"):
+            out.setdefault(int(mesh_of[row]), int(view_of[row]))
+            if len(out) >= REFINE_MESHES:
+                break
+        return [(metas[k].sha256, v) for k, v in out.items()]
+
     def _pick_mesh(self, photo, obj: ObjectMask, key):
         if key is not None:
-            try:
-                meta = self.r.mesh(str(key))
-            except CatalogError as exc:
-                raise ValueError(f"{exc}") from None
-            if meta.state != "accepted":
-                raise ValueError(f"mesh {key} is {meta.state} in the catalogue ({meta.reason});"
-                                 " it has no part table to fit")
-            return meta, [], None
-        metas = self.r.meshes()
-        feats, ids, views = [], [], []
-        for k, m in enumerate(metas):
-            try:
-                f = np.asarray(self.r.features(m.sha256), np.float32)
-            except (CatalogError, KeyError, OSError):
-                continue
-            ids.append(np.full(len(f), k))
-            views.append(np.arange(len(f)))
-            feats.append(f)
-        if not feats:
-            raise ValueError("the catalogue has no accepted mesh with stored features")
-        db = np.concatenate(feats)
+            return self._given(key), [], None
+        metas, db, mesh_of, view_of = self._database()
         query, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                                   runtime=self.runtime)
-        mesh_of, view_of = np.concatenate(ids), np.concatenate(views)
         if len(db) > PRESELECT_ROWS:               # float32 dot products pick the rows that
             q = query / max(float(np.linalg.norm(query)), 1e-30)    # the exact search ranks
             near = np.sort(np.argpartition(-(db @ q.astype(np.float32)), PRESELECT_ROWS)
@@ -450,6 +458,25 @@ class _Fit:
             cands.append(Candidate(m.sha256, str(m.source), mt.view, v.azimuth, v.elevation,
                                    mt.score))
         return metas[matches[0].mesh], cands, matches[0].view
+
+    def _database(self):
+        """(accepted meshes, (N, D) float32 stored features, mesh index and view of each row),
+        built once per fit (retrieval runs twice with a box)."""
+        if self.db is None:
+            metas = self.r.meshes()
+            feats, ids, views = [], [], []
+            for k, m in enumerate(metas):
+                try:
+                    f = np.asarray(self.r.features(m.sha256), np.float32)
+                except (CatalogError, KeyError, OSError):
+                    continue
+                ids.append(np.full(len(f), k))
+                views.append(np.arange(len(f)))
+                feats.append(f)
+            if not feats:
+                raise ValueError("the catalogue has no accepted mesh with stored features")
+            self.db = (metas, np.concatenate(feats), np.concatenate(ids), np.concatenate(views))
+        return self.db
 
     def _load(self, meta) -> tuple[Mesh | None, str]:
         """(the mesh in the catalogue's frame, ''), or (None, why) when its file is gone,
