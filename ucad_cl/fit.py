@@ -8,10 +8,11 @@
    (``_first_views``; with ``mesh`` given, its stored view nearest by HOG), stretched onto the
    box; their majority is probable foreground, its core (eroded by ``REFINE_CORE`` of the box
    side) foreground; retrieval then runs with the new mask (pose search still gets the box:
-   measured better than the new mask, docs/FIT.md), and the fit uses it. When GrabCut keeps too little of the box both times (clutter of the vehicle's
-   colours), the box goes to the pose search and the render's silhouette at the pose, inside
-   the box, is the outline (a note says so); a box of uniform pixels (standard deviation under
-   ``UNIFORM_STD`` levels) is refused as holding no vehicle.
+   measured better than the new mask, docs/FIT.md), and the fit uses it. When GrabCut keeps
+   too little of the box both times (clutter of the vehicle's colours), the box goes to the
+   pose search and the render's silhouette at the pose, inside the box, is the outline (a note
+   says so); a box of uniform pixels (standard deviation under ``UNIFORM_STD`` levels) is
+   refused as holding no vehicle.
 2. **Retrieval** (no ``mesh``): the photo's HOG feature against every stored view of every
    accepted mesh: the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
    (the stored rows are unit vectors), then ``pose.search_catalog``'s exact float64 ranking of
@@ -461,7 +462,7 @@ class _Fit:
 
     def _database(self):
         """(accepted meshes, (N, D) float32 stored features, mesh index and view of each row),
-        built once per fit (retrieval runs twice with a box)."""
+        built once per fit (with a box, the refinement's seeds and retrieval both use it)."""
         if self.db is None:
             metas = self.r.meshes()
             feats, ids, views = [], [], []
