@@ -3,10 +3,16 @@
 ``fit_photo(photo, box=... | mask=..., catalog=CAT, mesh=None)`` runs, on a CPU:
 
 1. **Object**: the vehicle's pixels (the given mask, or GrabCut inside the box:
-   ``ucad_cl.foreground``). When GrabCut keeps too little of the box (clutter of the vehicle's
-   colours), the box goes to the pose search and the render's silhouette at the pose, inside
-   the box, is the outline (a note says so); a box of uniform pixels (standard deviation under
-   ``UNIFORM_STD`` levels) is refused as holding no vehicle.
+   ``ucad_cl.foreground``). With a box, GrabCut is rerun with a prior (``_refined_object``):
+   the best stored views of the first ``REFINE_MESHES`` meshes by the HOG of GrabCut's object
+   (``_first_views``; with ``mesh`` given, its stored view nearest by HOG), stretched onto the
+   box; their majority is probable foreground, its core (eroded by ``REFINE_CORE`` of the box
+   side) foreground; retrieval then runs with the new mask (pose search still gets the box:
+   measured better than the new mask, docs/FIT.md), and the fit uses it. When GrabCut keeps
+   too little of the box both times (clutter of the vehicle's colours), the box goes to the
+   pose search and the render's silhouette at the pose, inside the box, is the outline (a note
+   says so); a box of uniform pixels (standard deviation under ``UNIFORM_STD`` levels) is
+   refused as holding no vehicle.
 2. **Retrieval** (no ``mesh``): the photo's HOG feature against every stored view of every
    accepted mesh: the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
    (the stored rows are unit vectors), then ``pose.search_catalog``'s exact float64 ranking of
@@ -67,7 +73,7 @@ from .artifacts import CameraRing, Mesh
 from .cameras import pixel_rays
 from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
 from .features import HogExtractor
-from .foreground import ObjectMask, check_image, mask_box, object_mask
+from .foreground import ObjectMask, check_image, mask_box, object_mask, refine_with_silhouette
 from .ingest import IngestError, load_mesh
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
@@ -101,6 +107,9 @@ RERANK_POSE = 2             # retrieval: the first meshes posed; the best pose s
 CANDIDATES = 5              # distinct meshes listed by retrieval
 PRESELECT_ROWS = 2048       # retrieval: rows kept by float32 dot products for the exact rank
 RETRIEVAL_ROWS = 64         # stored views ranked before collapsing to distinct meshes
+REFINE_MESHES = 3           # object: stored silhouettes of the first meshes seed GrabCut again
+REFINE_CORE = 0.04          # ... their core (eroded by this share of the box side) is foreground
+MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of the prior
 
 
 class PhotoSegmenter(Protocol):
@@ -219,6 +228,8 @@ class FitResult:
     part_rows: list = field(default_factory=list, repr=False)
     object_source: str = ""
     loss: float = 0.0
+    object: ObjectMask | None = field(default=None, repr=False)   # the photo's object (full
+    #                                                               frame), as the fit used it
 
     def to_json(self) -> dict:
         """JSON-ready dict; floats rounded (6 digits, seconds 3), keys in a fixed order."""
@@ -314,6 +325,7 @@ class _Fit:
         self.r, self.runtime = reader, runtime
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
+        self.db: tuple | None = None
         self._t = time.perf_counter()
 
     def _lap(self, stage: str) -> None:
@@ -330,23 +342,36 @@ class _Fit:
             if spread < UNIFORM_STD:
                 raise ValueError(f"no vehicle found inside the box {obj.box}: it is uniform "
                                  f"(standard deviation {spread:.1f} levels; all background?)")
+        self._lap("object")
+        if obj.source != "mask":                # GrabCut again, seeded by stored silhouettes
+            if mesh_key is None:
+                seeds = self._first_views(photo, obj)
+            else:
+                sha = self._given(mesh_key).sha256
+                seeds = [(sha, self._nearest_view(sha, photo, obj))]
+            self._lap("retrieval")
+            refined = self._refined_object(photo, obj, seeds)
+            if refined is not None:
+                obj = refined
+            self._lap("object")
+        meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
+        self._lap("retrieval")
+        if obj.source == "box":
             self.notes.append(f"GrabCut kept {obj.kept:.0%} of the box: the vehicle's outline "
                               "is the render's silhouette at the pose, inside the box")
-        self._lap("object")
-        meta, candidates, best_view = self._pick_mesh(photo, obj, box, mask, mesh_key)
-        self._lap("retrieval")
+        given = {"box": box} if box is not None else {"mask": obj.mask}   # see docs/FIT.md
         mesh, note = self._load(meta)
         self._lap("load")
         crop, scale = _work_crop(photo.shape[:2], obj)
         pose = None
         if mesh is not None:
-            pose, score = self._refined_pose(photo, mesh, meta.sha256, box, mask)
+            pose, score = self._refined_pose(photo, mesh, meta.sha256, given)
             for c in candidates[1:RERANK_POSE]:     # the next meshes, posed alike
                 other = self.r.mesh(c.mesh_id)
                 m2, _ = self._load(other)
                 if m2 is None:
                     continue
-                p2, s2 = self._refined_pose(photo, m2, other.sha256, box, mask)
+                p2, s2 = self._refined_pose(photo, m2, other.sha256, given)
                 if s2 < score:
                     meta, mesh, pose, score = other, m2, p2, s2
             if candidates and candidates[0].mesh_id != meta.sha256:
@@ -355,7 +380,7 @@ class _Fit:
         if note:
             self.notes.append(note)
         if pose is None:
-            pose = self._stored_pose(meta.sha256, best_view, obj, photo, box, mask)
+            pose = self._stored_pose(meta.sha256, best_view, obj, photo)
         rows = self.r.parts(meta.sha256)
         self._lap("pose")
         work = _to_work(photo, crop, scale)
@@ -384,36 +409,41 @@ class _Fit:
                          lighting=light, parts=parts, materials=materials,
                          candidates=candidates, seconds=dict(self.seconds), notes=self.notes,
                          images=images, mesh=mesh, part_rows=rows, object_source=obj.source,
-                         loss=loss)
+                         loss=loss, object=obj)
 
     # -- which mesh
-    def _pick_mesh(self, photo, obj: ObjectMask, box, mask, key):
+    def _given(self, key):
+        """The catalogue's record of the mesh the caller named (ValueError if not accepted)."""
+        try:
+            meta = self.r.mesh(str(key))
+        except CatalogError as exc:
+            raise ValueError(f"{exc}") from None
+        if meta.state != "accepted":
+            raise ValueError(f"mesh {key} is {meta.state} in the catalogue ({meta.reason});"
+                             " it has no part table to fit")
+        return meta
+
+    def _first_views(self, photo, obj: ObjectMask) -> list[tuple[str, int]]:
+        """[(sha, view)] of the first ``REFINE_MESHES`` distinct meshes by float32 dot product
+        of the object's HOG with every stored row (the order the exact search refines; ties:
+        the lower row), each with its best row: the seeds of ``_refined_object``."""
+        metas, db, mesh_of, view_of = self._database()
+        q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
+                              runtime=self.runtime)
+        q = (q / max(float(np.linalg.norm(q)), 1e-30)).astype(np.float32)
+        out: dict[int, int] = {}
+        for row in np.argsort(-(db @ q), kind="stable"):
+            out.setdefault(int(mesh_of[row]), int(view_of[row]))
+            if len(out) >= REFINE_MESHES:
+                break
+        return [(metas[k].sha256, v) for k, v in out.items()]
+
+    def _pick_mesh(self, photo, obj: ObjectMask, key):
         if key is not None:
-            try:
-                meta = self.r.mesh(str(key))
-            except CatalogError as exc:
-                raise ValueError(f"{exc}") from None
-            if meta.state != "accepted":
-                raise ValueError(f"mesh {key} is {meta.state} in the catalogue ({meta.reason});"
-                                 " it has no part table to fit")
-            return meta, [], None
-        metas = self.r.meshes()
-        feats, ids, views = [], [], []
-        for k, m in enumerate(metas):
-            try:
-                f = np.asarray(self.r.features(m.sha256), np.float32)
-            except (CatalogError, KeyError, OSError):
-                continue
-            ids.append(np.full(len(f), k))
-            views.append(np.arange(len(f)))
-            feats.append(f)
-        if not feats:
-            raise ValueError("the catalogue has no accepted mesh with stored features")
-        db = np.concatenate(feats)
-        given = {"mask": obj.mask} if obj.source != "box" else {"box": box}
-        query, _ = query_features(photo, HogExtractor(runtime=self.runtime),
-                                  runtime=self.runtime, **given)
-        mesh_of, view_of = np.concatenate(ids), np.concatenate(views)
+            return self._given(key), [], None
+        metas, db, mesh_of, view_of = self._database()
+        query, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
+                                  runtime=self.runtime)
         if len(db) > PRESELECT_ROWS:               # float32 dot products pick the rows that
             q = query / max(float(np.linalg.norm(query)), 1e-30)    # the exact search ranks
             near = np.sort(np.argpartition(-(db @ q.astype(np.float32)), PRESELECT_ROWS)
@@ -432,6 +462,25 @@ class _Fit:
             cands.append(Candidate(m.sha256, str(m.source), mt.view, v.azimuth, v.elevation,
                                    mt.score))
         return metas[matches[0].mesh], cands, matches[0].view
+
+    def _database(self):
+        """(accepted meshes, (N, D) float32 stored features, mesh index and view of each row),
+        built once per fit (with a box, the refinement's seeds and retrieval both use it)."""
+        if self.db is None:
+            metas = self.r.meshes()
+            feats, ids, views = [], [], []
+            for k, m in enumerate(metas):
+                try:
+                    f = np.asarray(self.r.features(m.sha256), np.float32)
+                except (CatalogError, KeyError, OSError):
+                    continue
+                ids.append(np.full(len(f), k))
+                views.append(np.arange(len(f)))
+                feats.append(f)
+            if not feats:
+                raise ValueError("the catalogue has no accepted mesh with stored features")
+            self.db = (metas, np.concatenate(feats), np.concatenate(ids), np.concatenate(views))
+        return self.db
 
     def _load(self, meta) -> tuple[Mesh | None, str]:
         """(the mesh in the catalogue's frame, ''), or (None, why) when its file is gone,
@@ -452,26 +501,61 @@ class _Fit:
                           f"{meta.n_materials}: fitted on the nearest stored view")
         return mesh, ""
 
-    # -- pose
-    def _refined_pose(self, photo, mesh, sha, box, mask) -> tuple[FitPose, float]:
-        """The pose search's best pose and its score (lower is better)."""
+    # -- the object
+    def _refined_object(self, photo, obj: ObjectMask, seeds) -> ObjectMask | None:
+        """GrabCut rerun with the stored silhouettes of ``seeds`` ([(sha, view)]) as its prior
+        (``foreground.refine_with_silhouette``, core ``REFINE_CORE``): each placed onto the box
+        (its silhouette's box stretched onto the object's box), a pixel is "probably
+        foreground" when at least half of them cover it. None when GrabCut keeps under
+        ``MIN_REFINED`` of that prior (it lost the vehicle)."""
+        import cv2
+
+        H, W = photo.shape[:2]
+        X0, Y0, X1, Y1 = obj.box
+        votes = np.zeros((H, W), np.float64)
+        for sha, view in seeds:
+            sil = np.asarray(self.r.material_map(sha, int(view))) > 0
+            if not sil.any():
+                continue
+            x0, y0, x1, y1 = mask_box(sil)
+            sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
+            M = np.array([[sx, 0.0, X0 - sx * x0], [0.0, sy, Y0 - sy * y0]])
+            votes += cv2.warpAffine(sil.astype(np.uint8), M, (W, H),
+                                    flags=cv2.INTER_NEAREST) > 0
+        prior = votes >= len(seeds) / 2.0
+        if not prior.any():
+            return None
+        fg = refine_with_silhouette(photo, prior, core=REFINE_CORE)
+        if np.count_nonzero(fg) < max(MIN_REFINED * np.count_nonzero(prior), 8):
+            return None
+        x0, y0, x1, y1 = obj.box
+        return ObjectMask(mask=fg, source="grabcut", box=obj.box,
+                          kept=float(fg[y0:y1, x0:x1].mean()))
+
+    def _nearest_view(self, sha: str, photo, obj: ObjectMask) -> int:
+        """The stored view of mesh ``sha`` nearest to the photo's object by HOG."""
         ring = catalog_ring(self.r, sha)
-        est = estimate_pose(photo, mesh, box=box, mask=mask, coarse=ring, top=1,
-                            runtime=self.runtime)
+        q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
+                              runtime=self.runtime)
+        n = len(ring.feats)
+        return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
+                              ring.ring.azimuth, ring.ring.elevation, top=1)[0].view
+
+    # -- pose
+    def _refined_pose(self, photo, mesh, sha, given: dict) -> tuple[FitPose, float]:
+        """The pose search's best pose and its score (lower is better); ``given``: the box
+        or the object's mask."""
+        ring = catalog_ring(self.r, sha)
+        est = estimate_pose(photo, mesh, coarse=ring, top=1, runtime=self.runtime, **given)
         c = est.best
         assert c.K is not None and c.w2c is not None
         return FitPose(c.azimuth, c.elevation, np.asarray(c.K, np.float64),
                        np.asarray(c.w2c, np.float64), "refined"), float(c.score)
 
-    def _stored_pose(self, sha, view, obj, photo, box, mask) -> FitPose:
+    def _stored_pose(self, sha, view, obj, photo) -> FitPose:
         """The nearest stored view (by HOG) placed onto the object's box."""
         if view is None:
-            ring = catalog_ring(self.r, sha)
-            q, _ = query_features(photo, HogExtractor(runtime=self.runtime), box=box,
-                                  mask=mask, runtime=self.runtime)
-            n = len(ring.feats)
-            view = search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
-                                  ring.ring.azimuth, ring.ring.elevation, top=1)[0].view
+            view = self._nearest_view(sha, photo, obj)
         rec = self.r.view(sha, int(view))
         sil = rec.mat_id > 0
         if not sil.any():

@@ -17,7 +17,9 @@ pixels over the renders' background, exactly as the renders have it.
   is used instead (``source='box'``).
 * ``refine_with_silhouette`` reruns GrabCut seeded by a render's silhouette placed over the
   object (pose search does this with its best candidate): "probably foreground" inside the
-  silhouette, "probably background" in a band around it, background beyond.
+  silhouette, "probably background" in a band around it, background beyond (with ``core``,
+  the silhouette's eroded core is "foreground": the fit seeds it with the first retrieved
+  meshes' stored silhouettes, ``ucad_cl.fit``).
 
 Determinism: GrabCut initialises its colour models with k-means seeded from OpenCV's global
 random generator; it is reseeded (``cv2.setRNGSeed(0)``) before every call, so the same input
@@ -149,18 +151,25 @@ def grabcut_box(image: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray
 
 
 def refine_with_silhouette(image: np.ndarray, silhouette: np.ndarray,
-                           band: float = 0.06) -> np.ndarray:
+                           band: float = 0.06, core: float = 0.0) -> np.ndarray:
     """(H, W) bool foreground from GrabCut seeded by ``silhouette`` ((H, W) bool, a render's
     mask placed over the object): "probably foreground" inside it, "probably background" in a
-    band of ``band`` x its box side around it, background beyond."""
+    band of ``band`` x its box side around it, background beyond; with ``core`` > 0 the
+    silhouette eroded by ``core`` x its box side is "foreground" (GrabCut cannot drop it: a
+    dark car on dark asphalt keeps its body, only the boundary band is decided by colour)."""
     x0, y0, x1, y1 = mask_box(silhouette)
-    g = max(band * max(x1 - x0, y1 - y0), 1.0)
+    side = max(x1 - x0, y1 - y0)
+    g = max(band * side, 1.0)
     seeds = _Seeds(image.shape[:2], (x0 - 2 * g, y0 - 2 * g, x1 + 2 * g, y1 + 2 * g))
     k = 2 * int(np.ceil(g * seeds.scale)) + 1
     sil = seeds.crop(silhouette.astype(np.uint8))
     near = cv2.dilate(sil, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
     seeds.labels[near] = cv2.GC_PR_BGD
     seeds.labels[sil > 0] = cv2.GC_PR_FGD
+    if core > 0:
+        c = 2 * int(np.ceil(core * side * seeds.scale)) + 1
+        inner = cv2.erode(sil, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (c, c))) > 0
+        seeds.labels[inner] = cv2.GC_FGD
     return seeds.run(image)
 
 
