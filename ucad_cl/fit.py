@@ -430,9 +430,8 @@ class _Fit:
         metas, db, mesh_of, view_of = self._database()
         q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                               runtime=self.runtime)
-        q = (q / max(float(np.linalg.norm(q)), 1e-30)).astype(np.float32)
         out: dict[int, int] = {}
-        for row in np.argsort(-(db @ q), kind="stable"):
+        for row in np.argsort(-_dot_scores(db, q), kind="stable"):
             out.setdefault(int(mesh_of[row]), int(view_of[row]))
             if len(out) >= REFINE_MESHES:
                 break
@@ -445,9 +444,8 @@ class _Fit:
         query, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                                   runtime=self.runtime)
         if len(db) > PRESELECT_ROWS:               # float32 dot products pick the rows that
-            q = query / max(float(np.linalg.norm(query)), 1e-30)    # the exact search ranks
-            near = np.sort(np.argpartition(-(db @ q.astype(np.float32)), PRESELECT_ROWS)
-                           [:PRESELECT_ROWS])
+            near = np.sort(np.argpartition(-_dot_scores(db, query), PRESELECT_ROWS)  # the
+                           [:PRESELECT_ROWS])                        # exact search ranks
             db, mesh_of, view_of = db[near], mesh_of[near], view_of[near]
         zeros = np.zeros(len(db))                  # angles are read for the matches only
         matches = search_catalog(query, db, mesh_of, view_of, zeros, zeros,
@@ -528,9 +526,8 @@ class _Fit:
         fg = refine_with_silhouette(photo, prior, core=REFINE_CORE)
         if np.count_nonzero(fg) < max(MIN_REFINED * np.count_nonzero(prior), 8):
             return None
-        x0, y0, x1, y1 = obj.box
         return ObjectMask(mask=fg, source="grabcut", box=obj.box,
-                          kept=float(fg[y0:y1, x0:x1].mean()))
+                          kept=float(fg[Y0:Y1, X0:X1].mean()))
 
     def _nearest_view(self, sha: str, photo, obj: ObjectMask) -> int:
         """The stored view of mesh ``sha`` nearest to the photo's object by HOG."""
@@ -847,7 +844,7 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
             i = fit_parts.index(p)
             on = (samples.part == i)
             kept = on & lf.kept
-            r = float(np.sqrt(np.mean((res[kept] @ np.array([0.2126, 0.7152, 0.0722])) ** 2)))
+            r = float(np.sqrt(np.mean((res[kept] @ LUMA) ** 2)))
             status, fitted = "fitted", lf.albedo[i]
             reason = (_two_colours(samples, B, C, on & lf.kept, mats)
                       if p not in NOT_ONE_COLOUR else "")
@@ -873,6 +870,13 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
                  for r in sorted(rows, key=lambda r: r.index)]
     images = FitImages(photo=work, render=render, part_map=part_map, object=obj)
     return parts, lf.lighting, lf.loss, images, materials
+
+
+def _dot_scores(db: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """(N,) float32 dot products of the stored unit rows ``db`` with ``query`` made unit: the
+    order in which retrieval preselects rows (and the refinement picks its seeds)."""
+    q = query / max(float(np.linalg.norm(query)), 1e-30)
+    return db @ q.astype(np.float32)
 
 
 def _check_tyre(fitted: np.ndarray, prior: np.ndarray, gains: np.ndarray):

@@ -29,7 +29,8 @@ Light, in the vehicle's canonical frame (+Y up; ``docs/CONVENTIONS.md``):
 fixed so that a horizontal surface facing up receives ``E_up = sky + sun * max(l_y, 0) = 1``
 (before the white balance, below). Base colours are therefore relative to the photo's exposure
 (comparisons use one exposure factor per photo, ``bench/fit.py``); ``GROUND = 0.1`` of
-``E_up`` (the radiance of an asphalt-like ground of albedo ~0.1 under the same light). The light's shape is then one number, the sky share ``g = sky / E_up`` in [0, 1]
+``E_up`` (the radiance of an asphalt-like ground of albedo ~0.1 under the same light). The
+light's shape is then one number, the sky share ``g = sky / E_up`` in [0, 1]
 (``sun = (1 - g) / l_y``), the same for the three channels (``SHARED_SKY``); B and C are affine
 in it. **White balance** (``balance``): a photo's colour cast is moved into the light's colour
 by per-channel gains that make parts known to be neutral grey (the fit uses the tyres) come out
@@ -61,7 +62,7 @@ it).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -215,9 +216,8 @@ def balance(fit: LightFit, neutral: dict[int, float]) -> tuple[LightFit, np.ndar
     g = neutral_gains(chroma)
     if not plausible_cast(g):
         return fit, np.ones(3)              # not a plausible cast: the "grey" part is not grey
-    light = Lighting(sky=fit.lighting.sky * g, sun=fit.lighting.sun * g,
-                     sun_dir=fit.lighting.sun_dir, ground=fit.lighting.ground,
-                     white_balance=g, coat_scale=fit.lighting.coat_scale)
+    light = replace(fit.lighting, sky=fit.lighting.sky * g, sun=fit.lighting.sun * g,
+                    white_balance=g)
     return LightFit(lighting=light, albedo=fit.albedo / g, loss=fit.loss, kept=fit.kept), g
 
 
@@ -246,17 +246,14 @@ def _fold_reflections(s: Samples, light: Lighting, albedo: np.ndarray,
     cnt = np.bincount(s.part, minlength=n_parts).astype(np.float64)
     safe = np.maximum(cnt, 1.0)
     coated = np.bincount(s.part, weights=s.coat, minlength=n_parts) > 0
-    mean_c = np.stack([np.bincount(s.part, weights=C[:, c], minlength=n_parts)
-                       for c in range(3)], 1) / safe[:, None]
-    mean_y = np.stack([np.bincount(s.part, weights=s.rgb[:, c], minlength=n_parts)
-                       for c in range(3)], 1) / safe[:, None]
+    mean_c = _sums(C.T, s.part, n_parts).T / safe[:, None]          # (P, 3)
+    mean_y = _sums(s.rgb.T, s.part, n_parts).T / safe[:, None]
     share = (mean_c / np.maximum(mean_y, 1e-9)).min(axis=1)       # the least-reflecting channel
     fold = coated & (cnt > 0) & (share > REFLECTION_MAX)
     if not fold.any():
         return light, albedo
     scale = np.where(fold, 0.0, 1.0)
-    out = Lighting(sky=light.sky, sun=light.sun, sun_dir=light.sun_dir, ground=light.ground,
-                   white_balance=light.white_balance, coat_scale=scale)
+    out = replace(light, coat_scale=scale)
     return out, np.where(fold[:, None], solve_albedo(s, out, n_parts), albedo)
 
 
