@@ -46,8 +46,9 @@ def _bed(ctx: Context) -> float:
     """An open load bed (a pickup's, an open truck's) is at the rear: in each of 20 columns
     along the length, the top of the middle (|q| < 0.4) lower by 0.15 of the half height
     than the top of the sides (|q| > 0.7), with the sides a quarter of the height below the
-    highest point (a glassless window opening's pillars are higher), is a hollow column; (hollow columns in the back half - in the
-    front half) / 4, clipped. A closed body or a bonnet (highest in the middle) has none."""
+    highest point (a glassless window opening's pillars are higher), is a hollow column;
+    score: sign(d) (|d| - 2) / 3 clipped to [0, 1] in size, d = hollow columns in the back
+    half - in the front half. A closed body or a bonnet (highest in the middle) has none."""
     col = np.minimum(((ctx.s + 1.0) * 10.0).astype(np.intp), 19)
     aq = np.abs(ctx.q)
     mid_top, side_top = np.full(20, -np.inf), np.full(20, -np.inf)

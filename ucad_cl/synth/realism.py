@@ -238,8 +238,8 @@ def _cartoon(parts: list[Part], r: np.random.Generator) -> list[Part]:
     y by sy (1.1-1.3) about the ground (y = 0); each wheel (tyre, rim, brake parts: nodes
     ending in its tag such as ``FL``) scaled by k (1.15-1.45) in x and y about its ground
     contact, which moves with the body; axle rods keep joining the wheel centres."""
-    sx, sy, k = float(r.uniform(0.72, 0.88)), float(r.uniform(1.1, 1.3)), float(r.uniform(1.15,
-                                                                                             1.45))
+    sx, sy = float(r.uniform(0.72, 0.88)), float(r.uniform(1.1, 1.3))
+    k = float(r.uniform(1.15, 1.45))
     tyres = {q.node[len("tyre_"):]: _bbox(q) for q in parts if q.node.startswith("tyre_")}
     out = []
     for q in parts:
