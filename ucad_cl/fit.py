@@ -16,9 +16,13 @@
 2. **Retrieval** (no ``mesh``): the photo's HOG feature against every stored view of every
    accepted mesh: the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
    (the stored rows are unit vectors), then ``pose.search_catalog``'s exact float64 ranking of
-   those; the first ``RERANK_POSE`` distinct meshes are posed (step 3) and the best pose score
-   wins; the first ``CANDIDATES`` distinct meshes are reported as ``candidates`` (mesh, view
-   pose, feature score; lower is better).
+   those; the first ``FINE_MESHES`` distinct meshes are re-ranked by a finer HOG (``FINE_HOG``:
+   128 px crop, 8 px cells) of their best view and its neighbours, the stored views shaded
+   from their depth, material and triangle maps (``shade.shade_stored_view``; no mesh is
+   read): score = HOG distance + ``FINE_WEIGHT`` x the finer HOG's distance (``_fine_rerank``);
+   the first ``RERANK_POSE`` distinct meshes are posed (step 3) and the best pose score wins;
+   the first ``CANDIDATES`` distinct meshes are reported as ``candidates`` (mesh, view pose,
+   feature score; lower is better).
 3. **Pose**: ``pose.estimate_pose`` with the mesh re-read from the recorded library (as
    ``export-glb`` does: refused when the file moved or changed), its coarse ring taken from the
    catalogue's stored features (``catalog_ring``, refinement renders at most ``RING_SIDE``
@@ -72,7 +76,7 @@ from ucad_catalog.reader import CatalogReader
 from .artifacts import CameraRing, Mesh
 from .cameras import pixel_rays
 from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
-from .features import HogExtractor
+from .features import HogExtractor, unit_rows
 from .foreground import ObjectMask, check_image, mask_box, object_mask, refine_with_silhouette
 from .ingest import IngestError, load_mesh
 from .jobs import content_sha256
@@ -83,7 +87,7 @@ from .pose import CatalogMatch, PoseRing, estimate_pose, query_features, search_
 from .render import render_views
 from .runtime import Runtime
 from .segment import OnnxSegmenter
-from .shade import face_normals
+from .shade import face_normals, shade_stored_view
 
 RING_SIDE = 192             # pose refinement render size, pixels
 WORK_SIDE = 384             # longer side of the working frame, pixels
@@ -103,11 +107,14 @@ NOT_ONE_COLOUR = ("light", "window")   # parts not tested for two colours (red a
 NEUTRAL_PARTS = ("wheel",)  # white balance: tyres are taken as neutral grey ...
 TYRE_LUMA = 0.2             # ... when their fitted luminance is at most this (tyres are dark;
 #                             a light "tyre" means its mask landed on something else)
-RERANK_POSE = 2             # retrieval: the first meshes posed; the best pose score wins
+RERANK_POSE = 1             # retrieval: the first meshes posed; the best pose score wins
 CANDIDATES = 5              # distinct meshes listed by retrieval
 PRESELECT_ROWS = 2048       # retrieval: rows kept by float32 dot products for the exact rank
-RETRIEVAL_ROWS = 64         # stored views ranked before collapsing to distinct meshes
 REFINE_MESHES = 3           # object: stored silhouettes of the first meshes seed GrabCut again
+FINE_MESHES = 20            # retrieval: the first meshes re-ranked by the finer HOG ...
+FINE_VIEWS = 1              # ... at their best view and this many neighbours on each side ...
+FINE_WEIGHT = 2.0           # ... by HOG distance + this x the finer HOG's distance
+FINE_HOG = dict(size=128, cell=8)   # the finer HOG: 15 x 15 blocks of the 128 px crop
 REFINE_CORE = 0.04          # ... their core (eroded by this share of the box side) is foreground
 MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of the prior
 
@@ -449,17 +456,57 @@ class _Fit:
             db, mesh_of, view_of = db[near], mesh_of[near], view_of[near]
         zeros = np.zeros(len(db))                  # angles are read for the matches only
         matches = search_catalog(query, db, mesh_of, view_of, zeros, zeros,
-                                 top=min(RETRIEVAL_ROWS, len(db)))
+                                 top=len(db))
         first: dict[int, CatalogMatch] = {}       # mesh -> its best row
         for mt in matches:
             first.setdefault(mt.mesh, mt)
+        ranked = self._fine_rerank(photo, obj, query, metas, list(first.values()))
         cands = []
-        for k, mt in list(first.items())[:CANDIDATES]:
+        for k, view, score in ranked[:CANDIDATES]:
             m = metas[k]
-            v = self.r.views(m.sha256)[mt.view]
-            cands.append(Candidate(m.sha256, str(m.source), mt.view, v.azimuth, v.elevation,
-                                   mt.score))
-        return metas[matches[0].mesh], cands, matches[0].view
+            v = self.r.views(m.sha256)[view]
+            cands.append(Candidate(m.sha256, str(m.source), view, v.azimuth, v.elevation,
+                                   score))
+        return metas[ranked[0][0]], cands, ranked[0][1]
+
+    def _fine_rerank(self, photo, obj: ObjectMask, query, metas,
+                     best: list[CatalogMatch]) -> list[tuple[int, int, float]]:
+        """[(mesh index, view, score)] in retrieval order: the first ``FINE_MESHES`` meshes of
+        ``best`` (each mesh's best row, in HOG order) re-ranked by ``d + FINE_WEIGHT * d_fine``
+        at their best view and its ``FINE_VIEWS`` neighbours on each side in azimuth (same
+        elevation): ``d`` the squared distance of the unit HOG rows, ``d_fine`` that of the
+        finer HOG (``FINE_HOG``) of the photo's object and of the stored view shaded from its
+        maps (``shade.shade_stored_view``: no mesh read), each mesh scored by its best view
+        (ties: the HOG order); the other meshes follow with their HOG distance."""
+        ex = HogExtractor(runtime=self.runtime, **FINE_HOG)
+        q_fine, _ = query_features(photo, ex, mask=obj.mask, runtime=self.runtime)
+        qf = unit_rows(q_fine[None])[0][0]
+        q = unit_rows(np.asarray(query)[None])[0][0]
+        scored = []
+        for mt in best[:FINE_MESHES]:
+            sha = metas[mt.mesh].sha256
+            views = self.r.views(sha)
+            ring = sorted((v.azimuth, v.index) for v in views
+                          if v.elevation == views[mt.view].elevation)
+            at = [i for _, i in ring].index(mt.view)
+            sel = [ring[(at + d) % len(ring)][1] for d in range(-FINE_VIEWS, FINE_VIEWS + 1)]
+            d = 2.0 - 2.0 * unit_rows(np.asarray(self.r.features(sha))[sel])[0] @ q
+            albedo = np.full((metas[mt.mesh].n_materials + 1, 3), 0.8)
+            for row in self.r.parts(sha):
+                albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
+            imgs, masks = [], []
+            for v in sel:
+                depth = self.r.depth(sha, v)
+                imgs.append(shade_stored_view(depth, self.r.material_map(sha, v),
+                                              self.r.triangle_map(sha, v), views[v].K, albedo))
+                masks.append(np.isfinite(depth))
+            f = unit_rows(ex.extract(np.stack(imgs), np.stack(masks)).feats)[0]
+            total = d + FINE_WEIGHT * (2.0 - 2.0 * f @ qf)
+            i = int(np.argmin(total))
+            scored.append((float(total[i]), len(scored), mt.mesh, sel[i]))
+        scored.sort()
+        return ([(k, v, s) for s, _, k, v in scored]
+                + [(mt.mesh, mt.view, mt.score) for mt in best[FINE_MESHES:]])
 
     def _database(self):
         """(accepted meshes, (N, D) float32 stored features, mesh index and view of each row),

@@ -212,3 +212,65 @@ def _background(background, V: int, H: int, W: int) -> np.ndarray:
         return b
     raise ValueError(f"background must be (3,), ({H}, {W}, 3) or ({V}, {H}, {W}, 3), "
                      f"got {b.shape}")
+
+
+def shade_stored_view(depth: np.ndarray, mat_id: np.ndarray, tri_id: np.ndarray, K: np.ndarray,
+                      albedo: np.ndarray, *, light_dir: Sequence[float] = DEFAULT_LIGHT,
+                      ambient: float = 0.3, specular: float = 0.25, shininess: float = 32.0,
+                      background: Sequence[int] = (128, 128, 128)) -> np.ndarray:
+    """(H, W, 3) uint8 sRGB image of one stored view shaded as ``shade_views`` shades it, without
+    the mesh: from its maps (``depth`` (H, W) linear camera depth, +inf background; ``mat_id``
+    material index + 1; ``tri_id`` face index) and ``K``; ``albedo`` (M + 1, 3) linear RGB per
+    material id (row 0 unused). Face normals are recovered from the depth map: the central
+    differences of the back-projected points at pixels whose four neighbours lie on the same
+    face are exact, and each face takes their mean; a face without such a pixel (under a few
+    pixels) takes its pixels' own central differences (neighbours off the vehicle count as the
+    pixel itself). Normals face the camera; light, ambient, Blinn-Phong as ``shade_views``."""
+    depth = np.asarray(depth, np.float64)
+    H, W = depth.shape
+    out = np.empty((H, W, 3), np.uint8)
+    out[...] = np.asarray(background, np.uint8)
+    rows = np.flatnonzero(np.isfinite(depth).any(axis=1))
+    cols = np.flatnonzero(np.isfinite(depth).any(axis=0))
+    if rows.size == 0:
+        return out
+    win = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))   # the vehicle's box
+    depth = depth[win]
+    fg = np.isfinite(depth)
+    Kinv = np.linalg.inv(np.asarray(K, np.float64))
+    j, i = np.meshgrid(np.arange(cols[0], cols[-1] + 1) + 0.5, np.arange(rows[0], rows[-1] + 1)
+                       + 0.5)
+    P = np.stack([j, i, np.ones_like(j)], -1) @ Kinv.T * np.where(fg, depth, 0.0)[..., None]
+    pad = np.pad(P, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    fgp = np.pad(fg, 1)
+    nb = [(slice(1, -1), slice(2, None)), (slice(1, -1), slice(None, -2)),
+          (slice(2, None), slice(1, -1)), (slice(None, -2), slice(1, -1))]
+    pts = [np.where(fgp[s][..., None], pad[s], P) for s in nb]     # off-vehicle: the pixel
+    n = np.cross(pts[0] - pts[1], pts[2] - pts[3])
+    tri = np.pad(np.asarray(tri_id, np.int64)[win], 1, constant_values=-1)
+    t = tri[1:-1, 1:-1]
+    same = fg & np.logical_and.reduce([tri[s] == t for s in nb])
+    nf = n[fg]
+    nf /= np.maximum(np.linalg.norm(nf, axis=-1, keepdims=True), 1e-300)
+    faces, f = np.unique(t[fg], return_inverse=True)
+    ok = same[fg]
+    if ok.any():
+        acc = np.stack([np.bincount(f[ok], weights=nf[ok, c], minlength=faces.size)
+                        for c in range(3)], -1)
+        has = np.bincount(f[ok], minlength=faces.size)[f] > 0
+        nf[has] = acc[f[has]]
+    nf /= np.maximum(np.linalg.norm(nf, axis=-1, keepdims=True), 1e-300)
+    p = P[fg]
+    nf *= np.where(np.einsum("pk,pk->p", nf, p) > 0.0, -1.0, 1.0)[:, None]
+    light = np.asarray(light_dir, np.float64)
+    light = light / np.linalg.norm(light)
+    v = -p / np.linalg.norm(p, axis=-1, keepdims=True)
+    half = light + v
+    half /= np.linalg.norm(half, axis=-1, keepdims=True)
+    alb = np.asarray(albedo, np.float64)
+    a = alb[np.minimum(np.asarray(mat_id, np.int64)[win][fg], len(alb) - 1)]
+    diffuse = np.maximum(nf @ light, 0.0)
+    spec = specular * np.maximum(np.einsum("pk,pk->p", nf, half), 0.0) ** shininess
+    out[win][fg] = linear_to_srgb8(a * (ambient + (1.0 - ambient) * diffuse)[:, None]
+                                   + spec[:, None])
+    return out
