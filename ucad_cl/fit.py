@@ -482,7 +482,7 @@ class _Fit:
         q_fine, _ = query_features(photo, ex, mask=obj.mask, runtime=self.runtime)
         qf = unit_rows(q_fine[None])[0][0]
         q = unit_rows(np.asarray(query)[None])[0][0]
-        scored = []
+        imgs, masks, rows = [], [], []
         for mt in best[:FINE_MESHES]:
             sha = metas[mt.mesh].sha256
             views = self.r.views(sha)
@@ -494,16 +494,19 @@ class _Fit:
             albedo = np.full((metas[mt.mesh].n_materials + 1, 3), 0.8)
             for row in self.r.parts(sha):
                 albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
-            imgs, masks = [], []
-            for v in sel:
-                depth = self.r.depth(sha, v)
-                imgs.append(shade_stored_view(depth, self.r.material_map(sha, v),
-                                              self.r.triangle_map(sha, v), views[v].K, albedo))
-                masks.append(np.isfinite(depth))
+            for v, dv in zip(sel, d):
+                rec = self.r.view(sha, v)
+                imgs.append(shade_stored_view(rec.depth, rec.mat_id, rec.tri_id, rec.K, albedo))
+                masks.append(np.isfinite(rec.depth))
+                rows.append((mt.mesh, v, float(dv)))
+        scored: list[tuple[float, int, int, int]] = []
+        if rows:                                    # one HOG launch for every view
             f = unit_rows(ex.extract(np.stack(imgs), np.stack(masks)).feats)[0]
-            total = d + FINE_WEIGHT * (2.0 - 2.0 * f @ qf)
-            i = int(np.argmin(total))
-            scored.append((float(total[i]), len(scored), mt.mesh, sel[i]))
+            total = np.array([dv for _, _, dv in rows]) + FINE_WEIGHT * (2.0 - 2.0 * f @ qf)
+            for rank, mt in enumerate(best[:FINE_MESHES]):
+                own = [i for i, (k, _, _) in enumerate(rows) if k == mt.mesh]
+                i = own[int(np.argmin(total[own]))]
+                scored.append((float(total[i]), rank, mt.mesh, rows[i][1]))
         scored.sort()
         return ([(k, v, s) for s, _, k, v in scored]
                 + [(mt.mesh, mt.view, mt.score) for mt in best[FINE_MESHES:]])
