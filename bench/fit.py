@@ -157,7 +157,8 @@ def generated_vehicles(lib: Path, limit: int) -> list[Vehicle]:
     return out
 
 
-def build_catalog(work: Path, synth_lib: Path, tag: str, segmenter: str) -> Path:
+def build_catalog(work: Path, synth_lib: Path, tag: str, segmenter: str,
+                  elevations: tuple[float, ...] = (15.0,)) -> Path:
     import hashlib
 
     from ucad_cl.build import build
@@ -165,11 +166,13 @@ def build_catalog(work: Path, synth_lib: Path, tag: str, segmenter: str) -> Path
 
     if segmenter != "labeller":
         tag += "_" + hashlib.sha256(segmenter.encode()).hexdigest()[:8]
+    if elevations != (15.0,):
+        tag += "_el" + "-".join(f"{e:g}" for e in elevations)
     cat = work / f"catalog_{tag}"
     t = time.perf_counter()
     for lib in (VEHICLES, synth_lib):
-        build(lib, cat, BuildOptions(segmenter=segmenter), workers=2, progress=False,
-              log=lambda *a: None)
+        build(lib, cat, BuildOptions(segmenter=segmenter, elevations=elevations), workers=2,
+              progress=False, log=lambda *a: None)
     print(f"catalogue {cat}: ready in {time.perf_counter() - t:.1f} s")
     return cat
 
@@ -449,6 +452,9 @@ def main(argv=None) -> int:
     ap.add_argument("--segmenter", default="labeller",
                     help="the catalogue's part labeller (build --segmenter), e.g. "
                          "labeller:MODEL.onnx trained without the real models")
+    ap.add_argument("--elevations", type=float, nargs="+", default=[15.0], metavar="DEG",
+                    help="the catalogue's stored ring elevations (build --elevations; default "
+                         "15: the build's default; e.g. 5 15, a catalogue of its own)")
     ap.add_argument("--ref-seed", type=int, default=REF_SEED,
                     help=f"reference draws: generator REF_SEED + index (default {REF_SEED})")
     ap.add_argument("--runs", type=int, default=1,
@@ -469,7 +475,8 @@ def main(argv=None) -> int:
     print(f"machine: {machine()}")
     t0 = time.perf_counter()
     synth_lib = generated_library(args.work, args.library)
-    cat = build_catalog(args.work, synth_lib, f"{args.library}", args.segmenter)
+    cat = build_catalog(args.work, synth_lib, f"{args.library}", args.segmenter,
+                        tuple(args.elevations))
 
     from ucad_catalog.reader import CatalogReader
     from ucad_cl.jobs import content_sha256
