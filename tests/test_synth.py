@@ -619,3 +619,69 @@ def test_inner_shell_and_mirror_glass_traits():
     a = {x.name: x for x in make_vehicle(3, "sedan").mesh().materials}
     b = {x.name: x for x in make_vehicle(3, "sedan", realism=["mirror_glass"]).mesh().materials}
     assert b.keys() - a.keys() == {"mirror_glass"} and all(a[n] == b[n] for n in a)
+
+
+def test_plastic_trim_and_cargo_paint_traits():
+    """plastic_trim: one neutral grey plastic (linear grey <= 0.3) on the grille, the bumpers
+    (taller than built, their bottom kept), mirrors, side trim and a sill cladding on both sides
+    that stays clear of every wheel arch; a truck's chassis sides take it too; part chrome
+    (underbody other), the material's truth its majority part. cargo_paint: a truck's cargo box
+    or a pickup's bed in one paint of its own, part body, sometimes under a canvas cover; a
+    sedan's bytes do not move. Parts against the plain build of the same seed."""
+    from ucad_cl.synth.builder import build_parts
+    from ucad_cl.synth.realism import apply_realism
+
+    def parts(kind, seed, traits):
+        built = build_parts(kind, np.random.default_rng([seed, 1]), 1.0)
+        return {q.node: q for q in apply_realism(built, traits, np.random.default_rng([seed, 3]))}
+
+    bb = lambda q: (q.vertices.min(0), q.vertices.max(0))  # noqa: E731
+    for kind, seed in (("sedan", 1), ("truck", 2), ("van", 3), ("pickup", 4)):
+        plain, trim = parts(kind, seed, ()), parts(kind, seed, ("plastic_trim",))
+        mat = trim["grille"].material
+        rgb = np.asarray(mat.base_color[:3])
+        assert mat.name == "plastic" and rgb.max() <= 0.3 * 1.05 and np.ptp(rgb) < 0.02
+        for n in ("grille", "bumper_front", "bumper_rear", "paint_mirror_R", "chrome_trim_L"):
+            assert trim[n].material is mat and trim[n].part == "chrome"
+        for n in ("bumper_front", "bumper_rear"):
+            (lo0, hi0), (lo1, hi1) = bb(plain[n]), bb(trim[n])
+            assert abs(lo1[1] - lo0[1]) < 1e-9 and hi1[1] >= hi0[1]
+            lamp = min(bb(plain[h])[0][1] for h in ("headlight_R", "headlight_L"))
+            assert hi1[1] <= max(lamp - 0.02, hi0[1]) + 1e-9
+        clad = [q for n, q in trim.items() if n.startswith("cladding_")]
+        assert clad and {q.node[-1] for q in clad} == {"L", "R"}
+        wheels = [bb(q) for n, q in plain.items() if n.startswith("tyre_")]
+        for q in clad:
+            lo, hi = bb(q)
+            assert q.material is mat and q.part == "chrome"
+            assert all(hi[0] < w[0][0] or lo[0] > w[1][0] for w in wheels)   # between arches
+        sides = [q for n, q in trim.items() if n.startswith("paint_side_")]
+        assert (kind == "truck") == bool(sides and all(q.material is mat for q in sides))
+        assert trim["underbody"].part == "other"
+        kept = [n for n in plain if not n.startswith(("grille", "bumper_", "paint_mirror_",
+                                                      "chrome_trim_", "paint_side_", "underbody"))]
+        assert all(trim[n] is plain[n] or np.array_equal(trim[n].vertices, plain[n].vertices)
+                   for n in kept)
+    t = make_vehicle(2, "truck", realism=["plastic_trim"]).truth
+    assert t["materials"]["plastic"] == majority_part(t["material_part_faces"]["plastic"])
+    covers = 0
+    for seed in range(6):
+        for kind, load in (("truck", ("cargo_box",)),
+                           ("pickup", ("paint_bed_side_R", "paint_bed_floor", "paint_tailgate"))):
+            plain, cargo = parts(kind, seed, ()), parts(kind, seed, ("cargo_paint",))
+            mat = cargo[load[0]].material
+            assert mat.name == "paint_cargo" and all(cargo[n].material is mat for n in load)
+            assert all(cargo[n].part == "body" for n in load)
+            assert all(q.material is not mat for n, q in cargo.items()
+                       if not n.startswith(("cargo_box", "paint_bed_", "paint_tailgate")))
+            if "cargo_cover" in cargo:
+                covers += 1
+                assert cargo["cargo_cover"].part == "body"
+                (lo0, hi0), (lo1, hi1), (lo2, hi2) = (bb(plain["cargo_box"]),
+                                                      bb(cargo["cargo_box"]),
+                                                      bb(cargo["cargo_cover"]))
+                assert np.allclose(lo1, lo0) and abs(hi1[1] - lo2[1]) <= 0.03 + 1e-9   # bulge
+                assert hi2[1] >= hi0[1] - 1e-9 and lo0[1] < lo2[1] < hi0[1]
+    assert 0 < covers < 6
+    assert (make_vehicle(7, "sedan", realism=["cargo_paint"]).glb_bytes()
+            == make_vehicle(7, "sedan").glb_bytes())

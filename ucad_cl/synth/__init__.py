@@ -89,7 +89,8 @@ REALISM_TRAITS: tuple[str, ...] = (
     "paint_rims", "shared_black", "dark_trim", "textured_body", "varied_looks", "mtl_like",
     "opaque_glass", "dark_glass", "two_tone", "one_glass", "glass_looks", "grey_trim",
     "plain_lights", "lamp_variety", "ground_base", "axles", "light_bar", "plate_looks",
-    "no_glass", "inner_shell", "mirror_glass", "meaningless_names", "misleading_names")
+    "no_glass", "inner_shell", "mirror_glass", "plastic_trim", "cargo_paint",
+    "meaningless_names", "misleading_names")
 #: body-shape traits (``apply_realism`` too, before the material traits): cartoon proportions
 #: and wedge bodies, as low-poly and stylised models have them. Kept apart from
 #: REALISM_TRAITS, whose draws make the labeller's training data

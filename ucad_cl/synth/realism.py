@@ -57,7 +57,11 @@ def apply_realism(parts: list[Part], traits: Sequence[str],  # noqa: C901  one b
     models are built: the interior is seen directly), ``inner_shell`` (the cabin's roof,
     pillars and doors lined inside in an interior material: ``_inner_shell``),
     ``mirror_glass`` (a reflective glass on the back of each door mirror: part chrome,
-    ``_mirror_glass``).
+    ``_mirror_glass``), ``plastic_trim`` (game-kit trim: one neutral grey plastic on the
+    grille, tall bumpers, mirrors, side trim and sill cladding, on trucks the chassis sides,
+    sometimes the underbody: ``_plastic_trim``), ``cargo_paint`` (a truck's cargo box or a
+    pickup's bed in a second paint, neutral or coloured, sometimes under a canvas cover:
+    ``_cargo_paint``).
     Shape traits: ``cartoon`` (cartoon proportions: the body 12-28 % shorter and 10-30 %
     taller, the wheels 15-45 % bigger, standing on the ground: ``_cartoon``), ``wedge`` (a
     wedge body: every non-wheel part's height scaled from 1 - k at the nose to 1 + k at the
@@ -209,6 +213,10 @@ def apply_realism(parts: list[Part], traits: Sequence[str],  # noqa: C901  one b
             parts = _cartoon(parts, _trait_rng(r, t))
         elif t == "wedge":
             parts = _wedge(parts, _trait_rng(r, t))
+        elif t == "plastic_trim":
+            parts = _plastic_trim(parts, _trait_rng(r, t))
+        elif t == "cargo_paint":
+            parts = _cargo_paint(parts, _trait_rng(r, t))
         elif t == "meaningless_names":
             renamed: dict[str, str] = {}
             for k, q in enumerate(parts):
@@ -453,6 +461,105 @@ def _mirror_glass(parts: list[Part], r: np.random.Generator) -> list[Part]:
         v, f = box([lo[0] - 0.01, lo[1] + inset, lo[2] + inset],
                     [lo[0] - 0.002, hi[1] - inset, hi[2] - inset], 0.1)
         out.append(Part(f"mirror_glass_{q.node[-1]}", "chrome", mat, v, f))
+    return out
+
+
+def _plastic_trim(parts: list[Part], r: np.random.Generator) -> list[Part]:
+    """Trim as low-poly game kits build it: one neutral grey plastic (linear grey 0.04-0.3,
+    any metallic, roughness 0.4-1) on the grille, the bumpers (made 40-75 % of the height
+    from their bottom to the belt line tall, kept below the lamps), the mirror housings, the
+    side trim and a cladding strip 10-25 cm tall along each sill between the wheel arches;
+    on a truck also the side panels under the cargo box (the chassis' sides), and on 40 % of
+    the vehicles the underbody. Part ``chrome`` (the trim policy), the underbody ``other``:
+    the material's truth is its majority part (``majority_part``)."""
+    g = float(r.uniform(0.04, 0.3))
+    mat = Material("plastic", (g, g, g * float(r.uniform(0.97, 1.05)), 1.0), "OPAQUE",
+                   float(r.choice([0.0, 1.0, r.uniform(0, 1)])), float(r.uniform(0.4, 1.0)))
+    tall, clad, under = float(r.uniform(0.4, 0.75)), float(r.uniform(0.1, 0.25)), r.random() < 0.4
+    truck = any(q.node == "cargo_box" for q in parts)
+    nodes = {q.node: q for q in parts}
+    sides = [q for q in parts if q.node.startswith(("paint_door", "paint_fender"))]
+    belt = max((_bbox(q)[1][1] for q in sides), default=None)
+    lamp = min((_bbox(q)[0][1] for q in parts if q.node.startswith("headlight_")),
+               default=np.inf)
+    out = []
+    for q in parts:
+        if q.node.startswith(("grille", "paint_mirror_", "chrome_trim_")) or (
+                truck and q.node.startswith("paint_side_")):
+            out.append(Part(q.node, "chrome", mat, q.vertices, q.faces))
+        elif q.node.startswith("bumper_") and belt is not None:
+            lo, hi = _bbox(q)
+            top = max(min(lo[1] + tall * (belt - lo[1]), lamp - 0.02), hi[1])
+            v = np.array(q.vertices, np.float64)
+            v[:, 1] = lo[1] + (v[:, 1] - lo[1]) * (top - lo[1]) / max(hi[1] - lo[1], 1e-9)
+            out.append(Part(q.node, "chrome", mat, v, q.faces))
+        elif q.node == "underbody" and under:
+            out.append(Part(q.node, "other", mat, q.vertices, q.faces))
+        else:
+            out.append(q)
+    floor, bumper = nodes.get("underbody"), nodes.get("bumper_front")
+    if floor is None or bumper is None:
+        return out
+    lo, hi = _bbox(floor)
+    hw = float(_bbox(bumper)[1][2]) + 0.03
+    arches = sorted((float(a[0][0] + a[1][0]) / 2, float(a[1][1] - a[0][1]) / 2)
+                    for a in (_bbox(q) for q in parts if q.node.startswith("tyre_")))
+    edges = [float(lo[0]) + 0.05]
+    for cx, rad in arches:
+        edges += [cx - rad - 0.06, cx + rad + 0.06]
+    edges.append(float(hi[0]) - 0.05)
+    for k in range(0, len(edges) - 1, 2):
+        a, b = edges[k], edges[k + 1]
+        if b - a < 0.15:
+            continue
+        v, f = box([a, lo[1] - 0.01, hw - 0.01], [b, lo[1] + clad, hw + 0.025], 0.15)
+        out.append(Part(f"cladding_{k // 2}_R", "chrome", mat, v, f))
+        out.append(Part(f"cladding_{k // 2}_L", "chrome", mat,
+                        v * [1.0, 1.0, -1.0], f[:, ::-1].copy()))
+    return out
+
+
+def _cargo_paint(parts: list[Part], r: np.random.Generator) -> list[Part]:
+    """A second paint on the load space, as cargo trucks and pickups are painted: a truck's
+    cargo box, or a pickup's bed (sides, floor, front wall, tailgate), in one material of its
+    own: half of the time a neutral (white, grey or silver, grey 0.25-0.95, metallic a third
+    of the time), else a colour at least 0.35 from the first paint (RGB, any channel). On half
+    of the trucks the box's upper 30-70 % is a canvas cover (bulging 3 cm) of a third, dull
+    colour (khaki, olive, grey or a random one). Part ``body``; a vehicle without a load space is
+    unchanged."""
+    load = ("cargo_box", "paint_bed_", "paint_tailgate")
+    if not any(q.node.startswith(load) for q in parts):
+        return parts
+    paint = next((q.material for q in parts if q.part == "body"
+                  and q.material.name.startswith("paint")), None)
+    first = np.asarray(paint.base_color[:3]) if paint is not None else np.full(3, 0.5)
+    if r.random() < 0.5:
+        rgb = np.clip(r.uniform(0.25, 0.95) * (1.0 + r.uniform(-0.04, 0.04, 3)), 0.0, 1.0)
+        metal = float(r.uniform(0.5, 1.0)) if r.random() < 1 / 3 else 0.0
+    else:
+        for _ in range(8):
+            rgb = r.uniform(0, 1, 3)
+            if np.abs(rgb - first).max() > 0.35:
+                break
+        metal = float(r.choice([0.0, r.uniform(0, 1)]))
+    mat = Material("paint_cargo", (*(float(x) for x in rgb), 1.0), "OPAQUE", metal,
+                   float(r.uniform(0.3, 1.0)))
+    dull = [(0.45, 0.4, 0.25), (0.22, 0.27, 0.13), (0.33, 0.33, 0.31),
+            tuple(float(x) for x in r.uniform(0.1, 0.5, 3))][int(r.integers(4))]
+    cover = Material("cargo_cover", (*dull, 1.0), "OPAQUE", 0.0, float(r.uniform(0.8, 1.0)))
+    split = float(r.uniform(0.3, 0.7)) if r.random() < 0.5 else None
+    out = []
+    for q in parts:
+        if not q.node.startswith(load):
+            out.append(q)
+        elif q.node == "cargo_box" and split is not None:
+            lo, hi = _bbox(q)
+            y = float(hi[1] - split * (hi[1] - lo[1]))
+            out.append(Part(q.node, "body", mat, *box(lo, [hi[0], y, hi[2]], 0.15)))
+            out.append(Part("cargo_cover", "body", cover, *box([lo[0], y, lo[2]], hi, 0.15,
+                                                                0.03)))
+        else:
+            out.append(Part(q.node, "body", mat, q.vertices, q.faces))
     return out
 
 
