@@ -252,6 +252,70 @@ def test_symmetric_pairs_found_by_reflection():
     assert symmetric_pairs(Mesh(**{**mesh.__dict__, "vertices": broken})) == []
 
 
+def _pairs_by_brute_force(mesh, tol=0.01, min_match=0.8, plane_match=0.5, max_samples=2000):
+    """symmetric_pairs' rule (its docstring) with full NumPy distance matrices: no KD tree, no
+    box tests, no skipped self matches. Returns (pairs, {(a, b): match share})."""
+    v, f, fm = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces), mesh.face_material
+
+    def sample(idx, k):
+        return idx if idx.size <= k else idx[np.linspace(0, idx.size - 1, k).round().astype(int)]
+
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    axis = 0 if hi[0] - lo[0] <= hi[2] - lo[2] else 2
+    mid = 0.5 * (lo[axis] + hi[axis])
+
+    def reflect(x):
+        y = x.copy()
+        y[:, axis] = 2.0 * mid - y[:, axis]
+        return y
+
+    def share(x, y):                 # share of x's points within tol of one of y's points
+        d = np.sqrt(((x[:, None, :] - y[None, :, :]) ** 2).sum(axis=2))
+        return float(np.mean(d.min(axis=1) <= tol))
+
+    s = v[sample(np.unique(f), max_samples * 4)]
+    if share(reflect(s), s) < plane_match:
+        return [], {}
+    pts = {m: v[sample(np.unique(f[fm == m]), max_samples)] for m in np.unique(fm).tolist()}
+    match = {(a, b): share(reflect(pts[a]), pts[b]) for a in pts for b in pts}
+    cands = sorted((-(match[a, b] + match[b, a]), a, b) for a in pts for b in pts
+                   if a < b and match[a, b] >= min_match and match[b, a] >= min_match
+                   and match[a, b] > match[a, a] and match[b, a] > match[b, b])
+    used, pairs = set(), []
+    for _, a, b in cands:
+        if a not in used and b not in used:
+            used.update((a, b))
+            pairs.append((a, b))
+    return sorted(pairs), match
+
+
+@pytest.mark.parametrize("seed", [3, 11])
+def test_symmetric_pairs_match_brute_force_reference(seed):
+    """The pruned search (box shares, skipped self matches) finds exactly the pairs of the
+    exhaustive rule, on generated vehicles, posed as generated and with the pairs' vertices
+    moved off the mirror (so that no pair remains)."""
+    synth = pytest.importorskip("ucad_cl.synth")
+    mesh = synth.make_vehicle(seed, target_triangles=2500).mesh()
+    pairs = symmetric_pairs(mesh)
+    ref, match = _pairs_by_brute_force(mesh)
+    assert pairs and pairs == ref
+    moved = mesh.vertices.copy()
+    moved[np.unique(mesh.faces[np.isin(mesh.face_material, [b for _, b in pairs])]), 1] += 0.05
+    other = Mesh(**{**mesh.__dict__, "vertices": moved})
+    assert symmetric_pairs(other) == _pairs_by_brute_force(other)[0]
+    # a copy of the most mirror-symmetric material matches it as well as that material matches
+    # itself: no pair, so the self match decides (the case the skipped queries must keep)
+    fm = np.asarray(mesh.face_material)
+    sym = max(sorted({a for a, _ in match}), key=lambda m: match[m, m])
+    assert match[sym, sym] >= 0.8
+    M = len(mesh.materials)
+    twin = Mesh(**{**mesh.__dict__, "faces": np.concatenate([mesh.faces, mesh.faces[fm == sym]]),
+                   "face_material": np.concatenate([fm, np.full((fm == sym).sum(), M, fm.dtype)]),
+                   "materials": [*mesh.materials, Material(name="twin")]})
+    got = symmetric_pairs(twin)
+    assert got == _pairs_by_brute_force(twin)[0] and not any(M in p for p in got)
+
+
 def test_symmetric_pair_gets_one_label(runtime):
     mesh = _mirror_mesh()
     mat = np.ones((1, 20, 20), np.uint16)               # body (id 1) on top

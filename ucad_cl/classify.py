@@ -283,30 +283,45 @@ def symmetric_pairs(mesh: Mesh, *, tol: float = 0.01, min_match: float = 0.8,
              & np.all(rhi[:, None, :] >= lo[None, :, :] - tol, axis=2))
     grow = tol * (1.0 + 1e-6)                         # looser than tol: stays a necessary test
 
-    def may_match(a, ib):
-        """Necessary for match(a, b) >= min_match: that share of a's reflected points lies in
-        b's box grown by tol (a point within tol of b's points is in that box); ~5x cheaper
-        than the KD query it saves."""
-        inside = np.all((refl[a] >= lo[ib] - grow) & (refl[a] <= hi[ib] + grow), axis=1)
-        return float(np.mean(inside)) >= min_match
+    def shares_inside(x, boxes):
+        """For each box index of ``boxes``, the share of material ``mats[x]``'s reflected points
+        inside that material's box grown by tol. A share >= min_match is necessary for
+        match(a, b) >= min_match (a point within tol of b's points is in that box); ~5x
+        cheaper than the KD query it saves. One array operation per material."""
+        r = refl[mats[x]][:, None, :]
+        inside = np.all((r >= lo[boxes] - grow) & (r <= hi[boxes] + grow), axis=2)
+        return np.count_nonzero(inside, axis=0) / inside.shape[0]
+
+    ia_all, ib_all = np.nonzero(np.triu(meets, k=1))
+    need: dict[int, list[int]] = {}                   # material -> box indices to test
+    for x, y in zip(np.concatenate([ia_all, ib_all]), np.concatenate([ib_all, ia_all])):
+        need.setdefault(int(x), [int(x)]).append(int(y))  # own box too: bounds the self match
+    share: dict[tuple[int, int], float] = {}          # (material, box) -> share inside
+    for x, ys in need.items():
+        ys = sorted(set(ys))
+        share.update(((x, y), float(s)) for y, s in zip(ys, shares_inside(x, np.array(ys))))
 
     self_match: dict[int, float] = {}
 
-    def self_of(m):
+    def beats_self(i, m, x):
+        """x > match(m, m) (material m = mats[i]); the KD query is skipped when the share
+        of m's reflected points in its own grown box, an upper bound of that match, is < x."""
+        if share[i, i] < x:
+            return True
         if m not in self_match:
             self_match[m] = match(m, m)
-        return self_match[m]
+        return x > self_match[m]
 
     cands = []
-    for ia, ib in zip(*np.nonzero(np.triu(meets, k=1))):
+    for ia, ib in zip(ia_all.tolist(), ib_all.tolist()):
         a, b = mats[ia], mats[ib]
-        if not (may_match(a, ib) and may_match(b, ia)):
+        if not (share[ia, ib] >= min_match and share[ib, ia] >= min_match):
             continue
         ab = match(a, b)
         if ab < min_match:
             continue
         ba = match(b, a)
-        if ba >= min_match and ab > self_of(a) and ba > self_of(b):
+        if ba >= min_match and beats_self(ia, a, ab) and beats_self(ib, b, ba):
             cands.append((-(ab + ba), a, b))
     used, pairs = set(), []
     for _, a, b in sorted(cands):
@@ -385,13 +400,18 @@ def _decide(m, name, h, hc, view_conf, part_area, parts, order, threshold, min_p
     w = view_conf[seen] * sa
     if w.sum() <= 0:
         w = sa.copy()                                            # no confidences: area only
+    # every view's winner at once: the largest vs, then the largest IoU among those, then the
+    # first in ``order`` (comparisons only, no arithmetic: the per-view lexsort's choice)
+    vs_o, iou_o = vs[:, order], iou[:, order]
+    tied = vs_o == vs_o.max(axis=1, keepdims=True)
+    iou_t = np.where(tied, iou_o, -np.inf)
+    tied &= iou_t == iou_t.max(axis=1, keepdims=True)
+    best = order[np.argmax(tied, axis=1)]
+    rows_i = np.arange(len(seen))
+    votes = (vs[rows_i, best] > threshold) & (w > 0)
+    winner = np.where(votes, best, -1)
     tot = np.zeros(len(parts))
-    winner = np.full(len(seen), -1)
-    for i in range(len(seen)):
-        best = order[int(np.lexsort((np.arange(len(order)), -iou[i, order], -vs[i, order]))[0])]
-        if vs[i, best] > threshold and w[i] > 0:
-            tot[best] += w[i]
-            winner[i] = best
+    np.add.at(tot, best[votes], w[votes])           # in view order, as a loop adds them
     vt_ok = bool(tot.max() > 0)
     if vt_ok:
         top = np.flatnonzero(tot == tot.max())

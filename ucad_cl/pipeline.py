@@ -206,7 +206,6 @@ def parts_sheet_png(views, table) -> bytes:
     """Contact sheet of (at most 24 of) the views coloured by part, as PNG bytes."""
     import cv2
 
-
-    sub = views.select(np.arange(0, views.n_views, max(1, views.n_views // 24)))
-    ok, png = cv2.imencode(".png", np.ascontiguousarray(part_sheet(sub, table, 1600)[..., ::-1]))
+    sub = views.select(slice(0, views.n_views, max(1, views.n_views // 24)))  # views, no copy
+    ok, png = cv2.imencode(".png", cv2.cvtColor(part_sheet(sub, table, 1600), cv2.COLOR_RGB2BGR))
     return png.tobytes()

@@ -116,12 +116,15 @@ def _shade_device(rt: Runtime, views, normals, v0, face_material, albedo, light,
         a = np.ascontiguousarray(a, dtype)
         return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a if a.size else np.zeros(1, dtype))
 
-    d_tri = buf(views.tri_id, np.uint32)
+    # the maps in place (no copy on PoCL: render_views' are page-aligned), the output in a
+    # scratch buffer reused across calls (no allocation and first touch per call)
+    tri = np.ascontiguousarray(views.tri_id, np.uint32)
+    d_tri = cl.Buffer(ctx, mf.READ_ONLY | mf.USE_HOST_PTR, hostbuf=tri)
     d_w2c = buf(cam.w2c[:, :3, :].reshape(V, 12), np.float32)
     d_n, d_v0 = buf(normals, np.float32), buf(v0, np.float32)
     d_fm, d_alb = buf(face_material, np.uint16), buf(albedo, np.float32)
     out = np.empty((V, H, W, 3), np.uint8)
-    d_out = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
+    d_out = rt.scratch("shade.out", out.nbytes)
     k = rt.kernel("shade", "shade_pixels", ("-cl-fp32-correctly-rounded-divide-sqrt",))
     d_thr = buf(srgb8_thresholds(), np.float32)
     d_start = buf(srgb8_bucket_start(), np.uint8)

@@ -49,8 +49,8 @@ def contact_sheet(images: np.ndarray, labels: Sequence[str] | None = None, cols:
     sheet = np.full((rows * (th + label_h), cols * tw, 3), 32, np.uint8)
     for v in range(V):
         r, c = divmod(v, cols)
-        tile = images[v] if scale == 1.0 else cv2.resize(images[v], (tw, th),
-                                                         interpolation=cv2.INTER_NEAREST)
+        tile = images[v] if scale == 1.0 else cv2.resize(np.ascontiguousarray(images[v]),
+                                                         (tw, th), interpolation=cv2.INTER_NEAREST)
         y0 = r * (th + label_h)
         sheet[y0:y0 + th, c * tw:(c + 1) * tw] = tile
         if labels is not None:
@@ -143,9 +143,11 @@ def material_sheet(views, material_names: Sequence[str] | None = None, max_width
 
 def part_sheet(views, table, max_width: int = 2400) -> np.ndarray:
     """Contact sheet of the views coloured by each material's decided part, with a legend."""
-    lut = np.zeros((len(table.rows) + 1, 3), np.uint8)
+    lut = np.zeros((len(table.rows) + 1, 4), np.uint8)     # RGB + padding: one uint32 per id
     for r in table.rows:
-        lut[r.material + 1] = PART_COLORS.get(r.part, (110, 110, 110))  # unseen: grey
-    sheet = contact_sheet(lut[views.mat_id], view_labels(views.cameras), max_width=max_width)
+        lut[r.material + 1, :3] = PART_COLORS.get(r.part, (110, 110, 110))  # unseen: grey
+    ids = np.asarray(views.mat_id)
+    rgb = lut.view(np.uint32).ravel().take(ids).view(np.uint8).reshape(*ids.shape, 4)[..., :3]
+    sheet = contact_sheet(rgb, view_labels(views.cameras), max_width=max_width)
     leg = legend(list(PART_NAMES), np.array([PART_COLORS[p] for p in PART_NAMES], np.uint8))
     return with_legend(sheet, leg)
