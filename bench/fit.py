@@ -158,7 +158,10 @@ def generated_vehicles(lib: Path, limit: int) -> list[Vehicle]:
 
 
 def build_catalog(work: Path, synth_lib: Path, tag: str, segmenter: str,
-                  elevations: tuple[float, ...] = (15.0,)) -> Path:
+                  elevations: tuple[float, ...] | None = None) -> Path:
+    """The bench's catalogue: the real models and the generated library built with the
+    build's options; ``elevations`` None: the build's default ring (the catalogue's tag then
+    names no elevation)."""
     import hashlib
 
     from ucad_cl.build import build
@@ -166,7 +169,9 @@ def build_catalog(work: Path, synth_lib: Path, tag: str, segmenter: str,
 
     if segmenter != "labeller":
         tag += "_" + hashlib.sha256(segmenter.encode()).hexdigest()[:8]
-    if elevations != (15.0,):
+    if elevations is None:
+        elevations = BuildOptions().elevations
+    elif tuple(elevations) != BuildOptions().elevations:
         tag += "_el" + "-".join(f"{e:g}" for e in elevations)
     cat = work / f"catalog_{tag}"
     t = time.perf_counter()
@@ -452,9 +457,9 @@ def main(argv=None) -> int:
     ap.add_argument("--segmenter", default="labeller",
                     help="the catalogue's part labeller (build --segmenter), e.g. "
                          "labeller:MODEL.onnx trained without the real models")
-    ap.add_argument("--elevations", type=float, nargs="+", default=[15.0], metavar="DEG",
-                    help="the catalogue's stored ring elevations (build --elevations; default "
-                         "15: the build's default; e.g. 5 15, a catalogue of its own)")
+    ap.add_argument("--elevations", type=float, nargs="+", default=None, metavar="DEG",
+                    help="the catalogue's stored ring elevations (build --elevations; default: "
+                         "the build's; e.g. 5 15, a catalogue of its own)")
     ap.add_argument("--ref-seed", type=int, default=REF_SEED,
                     help=f"reference draws: generator REF_SEED + index (default {REF_SEED})")
     ap.add_argument("--runs", type=int, default=1,
@@ -476,7 +481,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     synth_lib = generated_library(args.work, args.library)
     cat = build_catalog(args.work, synth_lib, f"{args.library}", args.segmenter,
-                        tuple(args.elevations))
+                        tuple(args.elevations) if args.elevations else None)
 
     from ucad_catalog.reader import CatalogReader
     from ucad_cl.jobs import content_sha256
