@@ -236,6 +236,37 @@ def test_retrieval_preselection_keeps_the_answer(catalogue, monkeypatch):
     assert [c.mesh_id for c in pre.candidates][:2] == [c.mesh_id for c in exact.candidates][:2]
 
 
+def test_retrieval_leaves_out_a_mesh_without_features_with_a_note(catalogue, tmp_path):
+    """A catalogue whose features object of one mesh is gone (a damaged copy): retrieval
+    searches the others, finds the right mesh, and the result says which mesh was left out;
+    fits of several photos with one reader read the stacked features once."""
+    import shutil
+    import sqlite3
+
+    import ucad_cl.fit as fit
+    from ucad_catalog.reader import CatalogReader
+    from ucad_cl.refphoto import render_reference
+
+    m, mesh, rows = _mesh(catalogue, 3)
+    gone = _mesh(catalogue, 0)[0].sha256
+    copy = tmp_path / "cat"
+    shutil.copytree(catalogue, copy)
+    with sqlite3.connect(copy / "catalog.sqlite") as con:
+        obj = con.execute("SELECT a.sha256 FROM artifacts a JOIN meshes x ON a.mesh_id=x.id "
+                          "WHERE x.sha256=? AND a.kind='features.npy'", (gone,)).fetchone()[0]
+    (copy / "objects" / obj[:2] / obj).unlink()
+    ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=50.0, elevation=12.0,
+                           seed=4, background="plain")
+    with CatalogReader(copy) as r:
+        res = fit.fit_photo(ref.image, mask=ref.mask, catalog=r)
+        table = r.feature_table()
+        again = fit.fit_photo(ref.image, mask=ref.mask, catalog=r)
+        assert r.feature_table() is table
+    assert res.mesh_id == again.mesh_id == m.sha256
+    assert gone not in [c.mesh_id for c in res.candidates]
+    assert any(f"left out of retrieval, e.g. {gone[:12]}" in n for n in res.notes), res.notes
+
+
 def test_fine_rerank_scores_match_the_meshes_own_renders(catalogue):
     """Retrieval's re-rank of the first meshes: each one's score is its stored view's HOG
     distance + FINE_WEIGHT x the finer HOG's distance, the stored view shaded from its maps

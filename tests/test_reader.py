@@ -104,6 +104,11 @@ for m in cat.meshes():
     rec["provenance"] = {k: v for k, v in e.provenance.items() if k != "run_started"}
     rec["artifact_kinds"] = sorted(cat.record(m.id)["artifacts"])
     out[m.id] = rec
+table = cat.feature_table()
+assert cat.feature_table() is table and table.skipped == ()
+assert [m.id for m in table.meshes] == [m.id for m in cat.meshes()]
+assert np.array_equal(table.feats, np.concatenate([arrays[f"{m.id}/features"]
+                                                   for m in cat.meshes()]))
 out["_rejected"] = [(m.path, m.reason) for m in cat.meshes("rejected")]
 cat.export(sys.argv[2] + "/cat.jsonl")
 cat.export(sys.argv[2] + "/cat.parquet")
@@ -164,6 +169,41 @@ def test_reader_installed_alone_reads_every_artifact(built, tmp_path):
     pq = pytest.importorskip("pyarrow.parquet")
     assert pq.read_table(tmp_path / "cat.parquet").num_rows == 5
     assert len((tmp_path / "cat.jsonl").read_text().splitlines()) == 5
+
+
+def test_feature_table_stacks_every_accepted_mesh_once(built, tmp_path):
+    """``feature_table``: the features objects (raw sqlite3 rows, np.load) stacked in the
+    listing's order with each row's mesh and view; the same object while nothing changed; a
+    mesh whose object is gone is left out with its reason, the others' rows unchanged."""
+    import shutil
+
+    _, cat, _ = built
+    with sqlite3.connect(cat / "catalog.sqlite") as con:
+        obj = dict(con.execute("SELECT m.sha256, a.sha256 FROM artifacts a JOIN meshes m ON "
+                               "a.mesh_id=m.id WHERE m.state='accepted' AND "
+                               "a.kind='features.npy'").fetchall())
+    with CatalogReader(cat) as r:
+        order = [m.sha256 for m in r.meshes()]
+        t = r.feature_table()
+        assert r.feature_table() is t and t.skipped == ()
+    assert len(order) == 3 and [m.sha256 for m in t.meshes] == order
+    want = [np.load(cat / "objects" / obj[s][:2] / obj[s]) for s in order]
+    assert t.feats.dtype == np.float32 and np.array_equal(t.feats, np.concatenate(want))
+    assert t.mesh.tolist() == [k for k, w in enumerate(want) for _ in range(len(w))]
+    assert t.view.tolist() == [v for w in want for v in range(len(w))]
+
+    copy = tmp_path / "cat"
+    shutil.copytree(cat, copy)
+    gone = order[1]
+    (copy / "objects" / obj[gone][:2] / obj[gone]).unlink()
+    with CatalogReader(copy) as r:
+        t2 = r.feature_table()
+    assert [m.sha256 for m in t2.meshes] == [order[0], order[2]]
+    assert len(t2.skipped) == 1 and t2.skipped[0][0] == gone
+    assert "features.npy unreadable" in t2.skipped[0][1]
+    assert np.array_equal(t2.feats, np.concatenate([want[0], want[2]]))
+    assert t2.mesh.tolist() == [k for k, w in enumerate([want[0], want[2]])
+                                for _ in range(len(w))]
 
 
 def brute_nearest(ring, az: float, el: float) -> int:

@@ -12,8 +12,8 @@ __version__ = "0.1.0"
 
 from ._db import SCHEMA_VERSION, CatalogError, options_hash  # noqa: E402
 from .entry import CatalogEntry, MaterialRow, ViewRow  # noqa: E402
-from .reader import (MIN_ID_PREFIX, CatalogReader, MeshEntry, MeshInfo, PartRow,  # noqa: E402
-                     ViewInfo, ViewRecord)
+from .reader import (MIN_ID_PREFIX, CatalogReader, FeatureTable, MeshEntry,  # noqa: E402
+                     MeshInfo, PartRow, ViewInfo, ViewRecord)
 from .store import Catalog  # noqa: E402
 
 
@@ -23,5 +23,5 @@ def open(path) -> CatalogReader:  # noqa: A001 - ucad_catalog.open(path), like g
 
 
 __all__ = ["MIN_ID_PREFIX", "SCHEMA_VERSION", "Catalog", "CatalogEntry", "CatalogError",
-           "CatalogReader", "MaterialRow", "MeshEntry", "MeshInfo", "PartRow", "ViewInfo", "ViewRecord",
+           "CatalogReader", "FeatureTable", "MaterialRow", "MeshEntry", "MeshInfo", "PartRow", "ViewInfo", "ViewRecord",
            "ViewRow", "open", "options_hash"]

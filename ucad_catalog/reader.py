@@ -153,6 +153,22 @@ class MeshEntry:
         return self.info.orientation
 
 
+@dataclass(frozen=True)
+class FeatureTable:
+    """The stored pose features of every accepted mesh that has readable ones, stacked for a
+    catalogue-wide search: ``feats`` (N, D) float32 rows; ``mesh`` (N,) int64, each row's index
+    into ``meshes``; ``view`` (N,) int64, its view index. Meshes in ``meshes()`` order (library
+    root, path, sha256), each mesh's rows in view order. ``skipped``: (sha256, why) of the
+    accepted meshes left out (no ``features.npy``: built with ``--no-features``; or its object
+    missing or unreadable)."""
+
+    meshes: list[MeshInfo]
+    feats: np.ndarray
+    mesh: np.ndarray
+    view: np.ndarray
+    skipped: tuple[tuple[str, str], ...] = ()
+
+
 _STATES = ("accepted", "rejected", None)
 _MESH_COLUMNS = ("sha256, library_root, path, size, mtime, state, reason, detail, n_triangles, "
                  "n_materials, file_to_norm, options_hash, run_id, timings, orientation, meta")
@@ -177,6 +193,7 @@ class CatalogReader:
         self._npz: tuple[str, dict] | None = None                 # last views.npz read
         self._edges: tuple[str, np.ndarray] | None = None         # last edge stack read
         self._feats: dict[str, np.ndarray] = {}                   # features by artifact sha
+        self._table: tuple[tuple, FeatureTable] | None = None     # (what it was built from, it)
 
     def close(self) -> None:
         self._conn.close()
@@ -422,6 +439,58 @@ class CatalogReader:
                                    "expected (V, D)")
             self._feats[path.name] = arr
         return self._feats[path.name]
+
+    def feature_table(self) -> FeatureTable:
+        """Every accepted mesh's pose features in one (N, D) array (``FeatureTable``), read
+        straight from the ``features.npy`` objects into it (held once, not also per mesh). The
+        reader keeps it and returns the same object while the accepted meshes and their feature
+        objects are the same (one query per call checks that), so a batch of searches builds
+        it once. CatalogError when a mesh's features are not (V, D) or D differs between meshes
+        (a catalogue mixing feature settings)."""
+        order = ", ".join(f"m.{c.strip()}" for c in MESH_ORDER.split(","))
+        with self.snapshot():
+            key = tuple(self._conn.execute(          # (mesh, its features object or None)
+                "SELECT m.sha256, a.sha256 FROM meshes m LEFT JOIN artifacts a ON "
+                "a.mesh_id=m.id AND a.kind='features.npy' WHERE m.state='accepted' "
+                f"ORDER BY {order}").fetchall())
+            if self._table is not None and self._table[0] == key:
+                return self._table[1]
+            metas = self.meshes()
+        objects = dict(key)
+        self._table = None                          # let the old rows go before reading anew
+        kept: list[MeshInfo] = []
+        blocks: list[np.ndarray] = []
+        skipped: list[tuple[str, str]] = []
+        for m in metas:
+            obj = objects.get(m.sha256)
+            if obj is None:
+                skipped.append((m.sha256, "no features.npy (built with --no-features)"))
+                continue
+            try:                                    # a view of the file: rows copied once below
+                arr = np.load(object_path(self.root, obj), mmap_mode="r", allow_pickle=False)
+            except (OSError, ValueError, EOFError) as exc:
+                skipped.append((m.sha256, f"features.npy unreadable ({exc})"))
+                continue
+            if arr.ndim != 2 or (blocks and arr.shape[1] != blocks[0].shape[1]):
+                want = f"(V, {blocks[0].shape[1]})" if blocks else "(V, D)"
+                raise CatalogError(f"mesh {m.sha256[:12]}: features.npy has shape {arr.shape}, "
+                                   f"expected {want} like the other meshes")
+            kept.append(m)
+            blocks.append(arr)
+        rows = [len(b) for b in blocks]
+        feats = np.empty((sum(rows), blocks[0].shape[1] if blocks else 0), np.float32)
+        at = 0
+        for b in blocks:
+            feats[at:at + len(b)] = b
+            at += len(b)
+        table = FeatureTable(
+            meshes=kept, feats=feats,
+            mesh=np.repeat(np.arange(len(kept), dtype=np.int64), rows),
+            view=np.concatenate([np.arange(n, dtype=np.int64) for n in rows]) if rows
+            else np.zeros(0, np.int64),
+            skipped=tuple(skipped))
+        self._table = (key, table)
+        return table
 
     def nearest_views(self, feature: np.ndarray, k: int,
                       sha: str | None = None) -> list[tuple[str, int, float]]:

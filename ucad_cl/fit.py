@@ -14,7 +14,9 @@
    says so); a box of uniform pixels (standard deviation under ``UNIFORM_STD`` levels) is
    refused as holding no vehicle.
 2. **Retrieval** (no ``mesh``): the photo's HOG feature against every stored view of every
-   accepted mesh: the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
+   accepted mesh (``CatalogReader.feature_table``: stacked once per reader, so a batch of
+   photos reads the catalogue's features once; meshes without readable features are left out
+   with a note): the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
    (the stored rows are unit vectors), then ``pose.search_catalog``'s exact float64 ranking of
    those; the first ``FINE_MESHES`` distinct meshes are re-ranked by a finer HOG (``FINE_HOG``:
    128 px crop, 8 px cells) of their best view and its neighbours, the stored views shaded
@@ -71,7 +73,7 @@ import numpy as np
 
 from ucad_catalog import CatalogError
 from ucad_catalog.parts import PART_MATERIALS, PART_NAMES
-from ucad_catalog.reader import CatalogReader
+from ucad_catalog.reader import CatalogReader, FeatureTable
 
 from .artifacts import CameraRing, Mesh
 from .cameras import pixel_rays
@@ -332,7 +334,7 @@ class _Fit:
         self.r, self.runtime = reader, runtime
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
-        self.db: tuple | None = None
+        self.db: FeatureTable | None = None
         self._t = time.perf_counter()
 
     def _lap(self, stage: str) -> None:
@@ -434,20 +436,21 @@ class _Fit:
         """[(sha, view)] of the first ``REFINE_MESHES`` distinct meshes by float32 dot product
         of the object's HOG with every stored row (the order the exact search refines; ties:
         the lower row), each with its best row: the seeds of ``_refined_object``."""
-        metas, db, mesh_of, view_of = self._database()
+        table = self._database()
         q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                               runtime=self.runtime)
         out: dict[int, int] = {}
-        for row in np.argsort(-_dot_scores(db, q), kind="stable"):
-            out.setdefault(int(mesh_of[row]), int(view_of[row]))
+        for row in np.argsort(-_dot_scores(table.feats, q), kind="stable"):
+            out.setdefault(int(table.mesh[row]), int(table.view[row]))
             if len(out) >= REFINE_MESHES:
                 break
-        return [(metas[k].sha256, v) for k, v in out.items()]
+        return [(table.meshes[k].sha256, v) for k, v in out.items()]
 
     def _pick_mesh(self, photo, obj: ObjectMask, key):
         if key is not None:
             return self._given(key), [], None
-        metas, db, mesh_of, view_of = self._database()
+        table = self._database()
+        metas, db, mesh_of, view_of = table.meshes, table.feats, table.mesh, table.view
         query, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                                   runtime=self.runtime)
         if len(db) > PRESELECT_ROWS:               # float32 dot products pick the rows that
@@ -511,23 +514,21 @@ class _Fit:
         return ([(k, v, s) for s, _, k, v in scored]
                 + [(mt.mesh, mt.view, mt.score) for mt in best[FINE_MESHES:]])
 
-    def _database(self):
-        """(accepted meshes, (N, D) float32 stored features, mesh index and view of each row),
-        built once per fit (with a box, the refinement's seeds and retrieval both use it)."""
+    def _database(self) -> FeatureTable:
+        """The catalogue's stacked features (``CatalogReader.feature_table``: built once per
+        reader, so a batch of photos reads them once); a note names the accepted meshes left
+        out of retrieval (no or unreadable features)."""
         if self.db is None:
-            metas = self.r.meshes()
-            feats, ids, views = [], [], []
-            for k, m in enumerate(metas):
-                try:
-                    f = np.asarray(self.r.features(m.sha256), np.float32)
-                except (CatalogError, KeyError, OSError):
-                    continue
-                ids.append(np.full(len(f), k))
-                views.append(np.arange(len(f)))
-                feats.append(f)
-            if not feats:
+            try:
+                self.db = self.r.feature_table()
+            except CatalogError as exc:
+                raise ValueError(str(exc)) from None
+            if not len(self.db.feats):
                 raise ValueError("the catalogue has no accepted mesh with stored features")
-            self.db = (metas, np.concatenate(feats), np.concatenate(ids), np.concatenate(views))
+            if self.db.skipped:
+                sha, why = self.db.skipped[0]
+                self.notes.append(f"{len(self.db.skipped)} accepted mesh(es) left out of "
+                                  f"retrieval, e.g. {sha[:12]}: {why}")
         return self.db
 
     def _load(self, meta) -> tuple[Mesh | None, str]:
