@@ -189,6 +189,7 @@ def test_feature_table_stacks_every_accepted_mesh_once(built, tmp_path):
     assert len(order) == 3 and [m.sha256 for m in t.meshes] == order
     want = [np.load(cat / "objects" / obj[s][:2] / obj[s]) for s in order]
     assert t.feats.dtype == np.float32 and np.array_equal(t.feats, np.concatenate(want))
+    assert not t.feats.flags.writeable                   # shared by every caller of the reader
     assert t.mesh.tolist() == [k for k, w in enumerate(want) for _ in range(len(w))]
     assert t.view.tolist() == [v for w in want for v in range(len(w))]
 

@@ -23,5 +23,5 @@ def open(path) -> CatalogReader:  # noqa: A001 - ucad_catalog.open(path), like g
 
 
 __all__ = ["MIN_ID_PREFIX", "SCHEMA_VERSION", "Catalog", "CatalogEntry", "CatalogError",
-           "CatalogReader", "FeatureTable", "MaterialRow", "MeshEntry", "MeshInfo", "PartRow", "ViewInfo", "ViewRecord",
-           "ViewRow", "open", "options_hash"]
+           "CatalogReader", "FeatureTable", "MaterialRow", "MeshEntry", "MeshInfo", "PartRow",
+           "ViewInfo", "ViewRecord", "ViewRow", "open", "options_hash"]

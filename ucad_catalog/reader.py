@@ -160,7 +160,8 @@ class FeatureTable:
     into ``meshes``; ``view`` (N,) int64, its view index. Meshes in ``meshes()`` order (library
     root, path, sha256), each mesh's rows in view order. ``skipped``: (sha256, why) of the
     accepted meshes left out (no ``features.npy``: built with ``--no-features``; or its object
-    missing or unreadable)."""
+    missing or unreadable). The arrays are read-only: the reader hands the same table to every
+    caller."""
 
     meshes: list[MeshInfo]
     feats: np.ndarray
@@ -489,6 +490,8 @@ class CatalogReader:
             view=np.concatenate([np.arange(n, dtype=np.int64) for n in rows]) if rows
             else np.zeros(0, np.int64),
             skipped=tuple(skipped))
+        for a in (table.feats, table.mesh, table.view):   # shared by every later call: read-only
+            a.flags.writeable = False
         self._table = (key, table)
         return table
 
