@@ -193,10 +193,15 @@ def test_feature_table_stacks_every_accepted_mesh_once(built, tmp_path):
     assert t.mesh.tolist() == [k for k, w in enumerate(want) for _ in range(len(w))]
     assert t.view.tolist() == [v for w in want for v in range(len(w))]
 
-    copy = tmp_path / "cat"
+    def obj_path(root, sha):
+        return root / "objects" / obj[sha][:2] / obj[sha]
+
+    copy = tmp_path / "cat"                   # one object gone, one in another layout
     shutil.copytree(cat, copy)
     gone = order[1]
-    (copy / "objects" / obj[gone][:2] / obj[gone]).unlink()
+    obj_path(copy, gone).unlink()
+    with open(obj_path(copy, order[0]), "wb") as f:          # float64, Fortran order: np.load
+        np.save(f, np.asfortranarray(want[0].astype(np.float64)))
     with CatalogReader(copy) as r:
         t2 = r.feature_table()
     assert [m.sha256 for m in t2.meshes] == [order[0], order[2]]
@@ -205,6 +210,16 @@ def test_feature_table_stacks_every_accepted_mesh_once(built, tmp_path):
     assert np.array_equal(t2.feats, np.concatenate([want[0], want[2]]))
     assert t2.mesh.tolist() == [k for k, w in enumerate([want[0], want[2]])
                                 for _ in range(len(w))]
+
+    short = tmp_path / "short"                # a truncated object: left out, not misread
+    shutil.copytree(cat, short)
+    data = obj_path(short, order[2]).read_bytes()
+    obj_path(short, order[2]).write_bytes(data[:-100])
+    with CatalogReader(short) as r:
+        t3 = r.feature_table()
+    assert [m.sha256 for m in t3.meshes] == order[:2]
+    assert t3.skipped[0][0] == order[2] and "bytes of data" in t3.skipped[0][1]
+    assert np.array_equal(t3.feats, np.concatenate(want[:2]))
 
 
 def brute_nearest(ring, az: float, el: float) -> int:

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Iterator, NamedTuple
 
 import numpy as np
+from numpy.lib import format as npy
 
 from .export import format_for, write_export
 from .exr import ViewStackFile
@@ -460,30 +461,42 @@ class CatalogReader:
         objects = dict(key)
         self._table = None                          # let the old rows go before reading anew
         kept: list[MeshInfo] = []
-        blocks: list[np.ndarray] = []
+        heads: list[tuple[Path, tuple[int, ...], bool]] = []    # path, shape, raw float32 rows
         skipped: list[tuple[str, str]] = []
         for m in metas:
             obj = objects.get(m.sha256)
             if obj is None:
                 skipped.append((m.sha256, "no features.npy (built with --no-features)"))
                 continue
-            try:                                    # a view of the file: rows copied once below
-                arr = np.load(object_path(self.root, obj), mmap_mode="r", allow_pickle=False)
+            path = object_path(self.root, obj)
+            try:
+                shape, raw = _npy_header(path)
             except (OSError, ValueError, EOFError) as exc:
                 skipped.append((m.sha256, f"features.npy unreadable ({exc})"))
                 continue
-            if arr.ndim != 2 or (blocks and arr.shape[1] != blocks[0].shape[1]):
-                want = f"(V, {blocks[0].shape[1]})" if blocks else "(V, D)"
-                raise CatalogError(f"mesh {m.sha256[:12]}: features.npy has shape {arr.shape}, "
+            if len(shape) != 2 or (heads and shape[1] != heads[0][1][1]):
+                want = f"(V, {heads[0][1][1]})" if heads else "(V, D)"
+                raise CatalogError(f"mesh {m.sha256[:12]}: features.npy has shape {shape}, "
                                    f"expected {want} like the other meshes")
             kept.append(m)
-            blocks.append(arr)
-        rows = [len(b) for b in blocks]
-        feats = np.empty((sum(rows), blocks[0].shape[1] if blocks else 0), np.float32)
+            heads.append((path, shape, raw))
+        rows = [shape[0] for _, shape, _ in heads]
+        feats = np.empty((sum(rows), heads[0][1][1] if heads else 0), np.float32)
         at = 0
-        for b in blocks:
-            feats[at:at + len(b)] = b
-            at += len(b)
+        for (path, shape, raw), m in zip(heads, kept):
+            block = feats[at:at + shape[0]]
+            try:
+                if raw:                             # the writer's format: straight into place
+                    with open(path, "rb") as f:
+                        f.seek(-block.nbytes, os.SEEK_END)
+                        if f.readinto(block.data.cast("B")) != block.nbytes:
+                            raise EOFError("short read")
+                else:
+                    block[...] = np.load(path, allow_pickle=False)
+            except (OSError, ValueError, EOFError) as exc:
+                raise CatalogError(f"mesh {m.sha256[:12]}: features.npy changed while it was "
+                                   f"read ({exc})") from None
+            at += shape[0]
         table = FeatureTable(
             meshes=kept, feats=feats,
             mesh=np.repeat(np.arange(len(kept), dtype=np.int64), rows),
@@ -618,3 +631,24 @@ def _spellings(path: str) -> set[str]:
     with contextlib.suppress(OSError, RuntimeError):
         out.add(str(Path(p).resolve()))
     return out
+
+
+def _npy_header(path: Path) -> tuple[tuple[int, ...], bool]:
+    """(shape, raw) of a ``.npy`` file: ``raw`` when its data are little-endian float32 in C
+    order, exactly filling the file after the header (so they can be read into place);
+    ValueError for a file that is not a ``.npy`` or is shorter than its header says."""
+    with open(path, "rb") as f:
+        version = npy.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = npy.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dtype = npy.read_array_header_2_0(f)
+        else:
+            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+            return tuple(arr.shape), False
+        data = os.fstat(f.fileno()).st_size - f.tell()
+    need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if data < need:
+        raise ValueError(f"{data} bytes of data, its header says {need}")
+    raw = dtype == np.dtype("<f4") and not fortran and data == need
+    return tuple(shape), bool(raw)
