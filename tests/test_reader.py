@@ -211,15 +211,19 @@ def test_feature_table_stacks_every_accepted_mesh_once(built, tmp_path):
     assert t2.mesh.tolist() == [k for k, w in enumerate([want[0], want[2]])
                                 for _ in range(len(w))]
 
-    short = tmp_path / "short"                # a truncated object: left out, not misread
+    short = tmp_path / "short"                # truncated, or not numbers: left out, not misread
     shutil.copytree(cat, short)
     data = obj_path(short, order[2]).read_bytes()
     obj_path(short, order[2]).write_bytes(data[:-100])
+    with open(obj_path(short, order[0]), "wb") as f:         # strings of the right shape
+        np.save(f, np.full(want[0].shape, "x"))
     with CatalogReader(short) as r:
         t3 = r.feature_table()
-    assert [m.sha256 for m in t3.meshes] == order[:2]
-    assert t3.skipped[0][0] == order[2] and "bytes of data" in t3.skipped[0][1]
-    assert np.array_equal(t3.feats, np.concatenate(want[:2]))
+    assert [m.sha256 for m in t3.meshes] == [order[1]]
+    assert dict(t3.skipped).keys() == {order[0], order[2]}
+    assert "not a real number type" in dict(t3.skipped)[order[0]]
+    assert "bytes of data" in dict(t3.skipped)[order[2]]
+    assert np.array_equal(t3.feats, want[1])
 
 
 def brute_nearest(ring, az: float, el: float) -> int:

@@ -636,7 +636,8 @@ def _spellings(path: str) -> set[str]:
 def _npy_header(path: Path) -> tuple[tuple[int, ...], bool]:
     """(shape, raw) of a ``.npy`` file: ``raw`` when its data are little-endian float32 in C
     order, exactly filling the file after the header (so they can be read into place);
-    ValueError for a file that is not a ``.npy`` or is shorter than its header says."""
+    ValueError for a file that is not a ``.npy``, holds no real numbers or is shorter than its
+    header says."""
     with open(path, "rb") as f:
         version = npy.read_magic(f)
         if version == (1, 0):
@@ -645,8 +646,12 @@ def _npy_header(path: Path) -> tuple[tuple[int, ...], bool]:
             shape, fortran, dtype = npy.read_array_header_2_0(f)
         else:
             arr = np.load(path, mmap_mode="r", allow_pickle=False)
+            if arr.dtype.kind not in "fiu":
+                raise ValueError(f"dtype {arr.dtype} is not a real number type")
             return tuple(arr.shape), False
         data = os.fstat(f.fileno()).st_size - f.tell()
+    if dtype.kind not in "fiu":
+        raise ValueError(f"dtype {dtype} is not a real number type")
     need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
     if data < need:
         raise ValueError(f"{data} bytes of data, its header says {need}")
