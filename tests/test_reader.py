@@ -192,6 +192,7 @@ def test_feature_table_stacks_every_accepted_mesh_once(built, tmp_path):
     assert not t.feats.flags.writeable                   # shared by every caller of the reader
     assert t.mesh.tolist() == [k for k, w in enumerate(want) for _ in range(len(w))]
     assert t.view.tolist() == [v for w in want for v in range(len(w))]
+    assert all(np.array_equal(t.rows_of(k), w) for k, w in enumerate(want))
 
     def obj_path(root, sha):
         return root / "objects" / obj[sha][:2] / obj[sha]

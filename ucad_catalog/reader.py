@@ -170,6 +170,11 @@ class FeatureTable:
     view: np.ndarray
     skipped: tuple[tuple[str, str], ...] = ()
 
+    def rows_of(self, k: int) -> np.ndarray:
+        """(V, D) rows of ``meshes[k]`` (a read-only view of ``feats``)."""
+        lo, hi = np.searchsorted(self.mesh, [k, k + 1])
+        return self.feats[lo:hi]
+
 
 _STATES = ("accepted", "rejected", None)
 _MESH_COLUMNS = ("sha256, library_root, path, size, mtime, state, reason, detail, n_triangles, "

@@ -485,6 +485,7 @@ class _Fit:
         q_fine, _ = query_features(photo, ex, mask=obj.mask, runtime=self.runtime)
         qf = unit_rows(q_fine[None])[0][0]
         q = unit_rows(np.asarray(query)[None])[0][0]
+        table = self._database()                   # mt.mesh indexes its meshes (= metas)
         imgs, masks, rows = [], [], []
         for mt in best[:FINE_MESHES]:
             sha = metas[mt.mesh].sha256
@@ -493,7 +494,7 @@ class _Fit:
                           if v.elevation == views[mt.view].elevation)
             at = [i for _, i in ring].index(mt.view)
             sel = [ring[(at + d) % len(ring)][1] for d in range(-FINE_VIEWS, FINE_VIEWS + 1)]
-            d = 2.0 - 2.0 * unit_rows(np.asarray(self.r.features(sha))[sel])[0] @ q
+            d = 2.0 - 2.0 * unit_rows(table.rows_of(mt.mesh)[sel])[0] @ q
             albedo = np.full((metas[mt.mesh].n_materials + 1, 3), 0.8)
             for row in self.r.parts(sha):
                 albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
