@@ -267,6 +267,50 @@ def test_retrieval_leaves_out_a_mesh_without_features_with_a_note(catalogue, tmp
     assert any(f"left out of retrieval, e.g. {gone[:12]}" in n for n in res.notes), res.notes
 
 
+def test_retrieval_through_the_search_index_keeps_the_answer(catalogue, tmp_path, monkeypatch):
+    """With the build's search index (used from INDEX_FROM rows: here from 0), retrieval
+    ranks the INDEX_ROWS rows nearest in its projection (24 of the 60 here) read in full: the same mesh, view and candidates as the
+    search of every stored row (the same catalogue without its index), and no note."""
+    import shutil
+
+    import ucad_cl.fit as fit
+    from ucad_catalog.reader import CatalogReader
+    from ucad_cl.refphoto import render_reference
+
+    m, mesh, rows = _mesh(catalogue, 3)
+    plain = tmp_path / "cat"
+    shutil.copytree(catalogue, plain)
+    (plain / "search_index.npz").unlink()
+    ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=50.0, elevation=12.0,
+                           seed=4, background="plain")
+    with CatalogReader(plain) as r:
+        assert r.search_index()[1].startswith("no search index")
+        every = fit.fit_photo(ref.image, mask=ref.mask, catalog=r)
+    monkeypatch.setattr(fit, "INDEX_ROWS", 24)
+    monkeypatch.setattr(fit, "INDEX_FROM", 0)          # the index even for 60 rows
+    with CatalogReader(catalogue) as r:
+        assert r.search_index()[0] is not None
+        indexed = fit.fit_photo(ref.image, mask=ref.mask, catalog=r)
+    assert indexed.mesh_id == every.mesh_id == m.sha256
+    assert [(c.mesh_id, c.view) for c in indexed.candidates] == \
+        [(c.mesh_id, c.view) for c in every.candidates]
+    assert not [n for n in indexed.notes if "search index" in n or "left out" in n]
+
+    import sqlite3                           # an object gone after indexing: said, then every row
+    damaged = tmp_path / "damaged"
+    shutil.copytree(catalogue, damaged)
+    gone = _mesh(catalogue, 0)[0].sha256
+    with sqlite3.connect(damaged / "catalog.sqlite") as con:
+        obj = con.execute("SELECT a.sha256 FROM artifacts a JOIN meshes x ON a.mesh_id=x.id "
+                          "WHERE x.sha256=? AND a.kind='features.npy'", (gone,)).fetchone()[0]
+    (damaged / "objects" / obj[:2] / obj).unlink()
+    monkeypatch.setattr(fit, "INDEX_ROWS", 10 ** 6)     # every row: the gone one is read
+    res = fit.fit_photo(ref.image, mask=ref.mask, catalog=damaged)
+    assert res.mesh_id == m.sha256
+    assert any(n.startswith(f"search index not used (mesh {gone[:12]}") for n in res.notes)
+    assert any(f"left out of retrieval, e.g. {gone[:12]}" in n for n in res.notes), res.notes
+
+
 def test_fine_rerank_scores_match_the_meshes_own_renders(catalogue):
     """Retrieval's re-rank of the first meshes: each one's score is its stored view's HOG
     distance + FINE_WEIGHT x the finer HOG's distance, the stored view shaded from its maps

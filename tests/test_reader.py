@@ -227,6 +227,83 @@ def test_feature_table_stacks_every_accepted_mesh_once(built, tmp_path):
     assert np.array_equal(t3.feats, want[1])
 
 
+def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
+    """The build's ``search_index.npz``: the projections are (row - mean) @ axes of every stored
+    row, the axes an orthonormal basis of the fitting rows' top principal subspace (their
+    variances = NumPy's largest covariance eigenvalues), ``preselect`` the nearest projections
+    (brute force, ties to the lower row), ``rows`` the stored rows; a catalogue whose meshes
+    changed has a stale index (not used) until its writer refreshes it; a damaged file is not
+    used; an object damaged after indexing is an error naming the mesh."""
+    import shutil
+
+    from ucad_catalog import Catalog
+    from ucad_catalog.searchindex import FIT_STRIDE
+
+    _, cat, _ = built
+    assert (cat / "search_index.npz").is_file()
+    with CatalogReader(cat) as r:
+        t = r.feature_table()
+        idx, why = r.search_index()
+        assert why == "" and r.search_index()[0] is idx
+    assert [m.sha256 for m in idx.meshes] == [m.sha256 for m in t.meshes]
+    assert np.array_equal(idx.mesh, t.mesh) and np.array_equal(idx.view, t.view)
+    X = t.feats.astype(np.float64)
+    fit_rows = np.concatenate([t.rows_of(k)[::FIT_STRIDE] for k in range(len(t.meshes))])
+    d = idx.axes.shape[1]
+    assert d == min(64, len(fit_rows)) and np.allclose(idx.mean, fit_rows.mean(0), atol=1e-7)
+    assert np.allclose(idx.axes.T @ idx.axes, np.eye(d), atol=1e-9)
+    cov = np.cov(fit_rows.astype(np.float64), rowvar=False, bias=True)
+    top = np.sort(np.linalg.eigvalsh(cov))[::-1][:d]
+    assert np.allclose(np.diag(idx.axes.T @ cov @ idx.axes), top, rtol=1e-6, atol=1e-12)
+    assert np.allclose(idx.proj, (X - idx.mean) @ idx.axes, atol=1e-5)
+    q = X[7] + np.random.default_rng(0).normal(0, 0.02, X.shape[1])
+    p = ((q / np.linalg.norm(q) - idx.mean) @ idx.axes).astype(np.float32)
+    dist = ((idx.proj - p) ** 2).sum(1)
+    want = sorted(sorted(range(len(dist)), key=lambda i: (dist[i], i))[:10])
+    assert idx.preselect(q, 10).tolist() == want and 7 in want
+    assert idx.preselect(q, 10 ** 6).tolist() == list(range(len(X)))
+    rows = np.array([len(X) - 1, 0, 20, 19])
+    assert np.array_equal(idx.rows(rows), t.feats[rows])
+    assert np.array_equal(idx.rows_of(2), t.rows_of(2))
+
+    copy = tmp_path / "cat"                  # a mesh gone: stale until the writer refreshes
+    shutil.copytree(cat, copy)
+    with sqlite3.connect(copy / "catalog.sqlite") as con:
+        con.execute("PRAGMA foreign_keys=ON")
+        con.execute("DELETE FROM meshes WHERE sha256=?", (t.meshes[0].sha256,))
+    with CatalogReader(copy) as r:
+        assert r.search_index() == (None, "the search index is stale (meshes changed since "
+                                          "it was written)")
+    killed = copy / ".tmp-search_index.npz.99999.deadbeef"      # a killed writer's file
+    killed.write_bytes(b"partial")
+    with Catalog.open(copy, create=False) as w:
+        assert w.write_search_index().startswith(f"search index: {len(X) - 16} rows of 2 ")
+        assert not killed.exists()
+        assert w.write_search_index() == "search index: fresh"
+    with CatalogReader(copy) as r:
+        idx2, _ = r.search_index()
+    assert [m.sha256 for m in idx2.meshes] == [m.sha256 for m in t.meshes[1:]]
+    assert np.array_equal(idx2.rows(np.arange(len(idx2.mesh))), t.feats[16:])
+
+    (copy / "search_index.npz").write_bytes(b"PK\x03\x04 not a zip")
+    with CatalogReader(copy) as r:
+        index, why = r.search_index()
+    assert index is None and why.startswith("the search index cannot be read")
+
+    shutil.copy(cat / "search_index.npz", copy / "search_index.npz")   # fresh for `cat` only
+    damaged = idx.paths[1]
+    back = damaged.read_bytes()
+    try:
+        damaged.write_bytes(back[:len(back) // 2])          # its last rows gone
+        with pytest.raises(CatalogError, match=f"mesh {idx.meshes[1].sha256[:12]}: features"):
+            idx.rows(np.array([16, 31]))
+        damaged.unlink()
+        with pytest.raises(CatalogError, match=f"mesh {idx.meshes[1].sha256[:12]}: features"):
+            idx.rows_of(1)
+    finally:
+        damaged.write_bytes(back)
+
+
 def brute_nearest(ring, az: float, el: float) -> int:
     """Smallest angle between unit viewing directions, ties to the lower index (loop)."""
     def unit(a, e):

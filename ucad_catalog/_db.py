@@ -5,6 +5,7 @@ Layout of a catalogue directory ``ROOT`` (see ``ucad_catalog/SCHEMA.md``)::
     ROOT/catalog.sqlite            SQLite index, WAL mode
     ROOT/objects/<sha[:2]>/<sha>   artifacts, named by the sha256 of their bytes
     ROOT/write.lock                held (flock) by the single writer while it is open
+    ROOT/search_index.npz          derived, optional: the features projected for retrieval
 
 Nothing here imports OpenCL.
 """
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+from numpy.lib import format as npy
 
 SCHEMA_VERSION = 2
 UPGRADABLE = {1: """
@@ -32,6 +34,7 @@ FORMAT_NAME = "ucad-catalog"
 DB_NAME = "catalog.sqlite"
 OBJECTS_DIR = "objects"
 LOCK_NAME = "write.lock"
+SEARCH_INDEX = "search_index.npz"   # derived: projected features for retrieval (searchindex.py)
 
 
 # the artifact kinds the build writes (SCHEMA.md, "Artifact kinds", is tested against this);
@@ -208,6 +211,15 @@ def locate_db(path: str | Path) -> tuple[Path, Path]:
 # the one order of meshes everywhere (reader listings, exports): independent of commit order,
 # so builds with any number of workers list and export the same rows
 MESH_ORDER = "library_root, path, sha256"
+
+
+def feature_key(conn: sqlite3.Connection) -> tuple[tuple[str, str | None], ...]:
+    """(mesh sha256, its ``features.npy`` object sha256 or None) of every accepted mesh, in
+    ``MESH_ORDER``: what the stacked features (``FeatureTable``, the search index) depend on."""
+    order = ", ".join(f"m.{c.strip()}" for c in MESH_ORDER.split(","))
+    return tuple(conn.execute(
+        "SELECT m.sha256, a.sha256 FROM meshes m LEFT JOIN artifacts a ON a.mesh_id=m.id AND "
+        f"a.kind='features.npy' WHERE m.state='accepted' ORDER BY {order}").fetchall())
 
 
 def mesh_records(conn: sqlite3.Connection, where: str = "", args: tuple = ()) -> list[dict]:
@@ -395,3 +407,29 @@ def verify_catalog(conn: sqlite3.Connection, root: Path, rehash: bool = True) ->
                 unreferenced.append((f"{shard.name}/{obj.name}", obj.stat().st_size))
     return {"problems": problems, "unreferenced": unreferenced, "tmp_files": tmp_files,
             "objects": len(live), "bytes": total}
+
+
+def npy_header(path: Path) -> tuple[tuple[int, ...], bool]:
+    """(shape, raw) of a ``.npy`` file: ``raw`` when its data are little-endian float32 in C
+    order, exactly filling the file after the header (so they can be read into place);
+    ValueError for a file that is not a ``.npy``, holds no real numbers or is shorter than its
+    header says."""
+    with open(path, "rb") as f:
+        version = npy.read_magic(f)
+        if version == (1, 0):
+            shape, fortran, dtype = npy.read_array_header_1_0(f)
+        elif version == (2, 0):
+            shape, fortran, dtype = npy.read_array_header_2_0(f)
+        else:
+            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+            if arr.dtype.kind not in "fiu":
+                raise ValueError(f"dtype {arr.dtype} is not a real number type")
+            return tuple(arr.shape), False
+        data = os.fstat(f.fileno()).st_size - f.tell()
+    if dtype.kind not in "fiu":
+        raise ValueError(f"dtype {dtype} is not a real number type")
+    need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if data < need:
+        raise ValueError(f"{data} bytes of data, its header says {need}")
+    raw = dtype == np.dtype("<f4") and not fortran and data == need
+    return tuple(shape), bool(raw)

@@ -39,12 +39,13 @@ from pathlib import Path
 from typing import Iterator, NamedTuple
 
 import numpy as np
-from numpy.lib import format as npy
 
 from .export import format_for, write_export
 from .exr import ViewStackFile
 from ._db import (MESH_ORDER, RECENT_RUNS, CatalogError, catalog_status, check_catalog_db,
-                  locate_db, mesh_records, object_path, run_rows, verify_catalog)
+                  feature_key, locate_db, mesh_records, npy_header, object_path, run_rows,
+                  verify_catalog)
+from .searchindex import SearchIndex, load_search_index
 
 MIN_ID_PREFIX = 8          # hex digits of a sha256 prefix accepted as a mesh id
 _OPEN_STACKS = 8           # view-stack headers kept per reader
@@ -201,6 +202,7 @@ class CatalogReader:
         self._edges: tuple[str, np.ndarray] | None = None         # last edge stack read
         self._feats: dict[str, np.ndarray] = {}                   # features by artifact sha
         self._table: tuple[tuple, FeatureTable] | None = None     # (what it was built from, it)
+        self._index: tuple[tuple, tuple[SearchIndex | None, str]] | None = None   # the same
 
     def close(self) -> None:
         self._conn.close()
@@ -454,12 +456,8 @@ class CatalogReader:
         objects are the same (one query per call checks that), so a batch of searches builds
         it once. CatalogError when a mesh's features are not (V, D) or D differs between meshes
         (a catalogue mixing feature settings)."""
-        order = ", ".join(f"m.{c.strip()}" for c in MESH_ORDER.split(","))
         with self.snapshot():
-            key = tuple(self._conn.execute(          # (mesh, its features object or None)
-                "SELECT m.sha256, a.sha256 FROM meshes m LEFT JOIN artifacts a ON "
-                "a.mesh_id=m.id AND a.kind='features.npy' WHERE m.state='accepted' "
-                f"ORDER BY {order}").fetchall())
+            key = feature_key(self._conn)           # (mesh, its features object or None)
             if self._table is not None and self._table[0] == key:
                 return self._table[1]
             metas = self.meshes()
@@ -475,7 +473,7 @@ class CatalogReader:
                 continue
             path = object_path(self.root, obj)
             try:
-                shape, raw = _npy_header(path)
+                shape, raw = npy_header(path)
             except (OSError, ValueError, EOFError) as exc:
                 skipped.append((m.sha256, f"features.npy unreadable ({exc})"))
                 continue
@@ -512,6 +510,19 @@ class CatalogReader:
             a.flags.writeable = False
         self._table = (key, table)
         return table
+
+    def search_index(self) -> tuple[SearchIndex | None, str]:
+        """(the catalogue's search index, '') when it is fresh (``ucad_catalog.searchindex``:
+        every accepted mesh's features projected, written by each build), else (None, why: no
+        index, stale, unreadable). Kept per reader while the feature key is the same."""
+        with self.snapshot():
+            key = feature_key(self._conn)
+            if self._index is not None and self._index[0] == key:
+                return self._index[1]
+            metas = self.meshes()
+        objects = {m: object_path(self.root, o) for m, o in key if o is not None}
+        self._index = (key, load_search_index(self.root, key, metas, objects))
+        return self._index[1]
 
     def nearest_views(self, feature: np.ndarray, k: int,
                       sha: str | None = None) -> list[tuple[str, int, float]]:
@@ -636,29 +647,3 @@ def _spellings(path: str) -> set[str]:
     with contextlib.suppress(OSError, RuntimeError):
         out.add(str(Path(p).resolve()))
     return out
-
-
-def _npy_header(path: Path) -> tuple[tuple[int, ...], bool]:
-    """(shape, raw) of a ``.npy`` file: ``raw`` when its data are little-endian float32 in C
-    order, exactly filling the file after the header (so they can be read into place);
-    ValueError for a file that is not a ``.npy``, holds no real numbers or is shorter than its
-    header says."""
-    with open(path, "rb") as f:
-        version = npy.read_magic(f)
-        if version == (1, 0):
-            shape, fortran, dtype = npy.read_array_header_1_0(f)
-        elif version == (2, 0):
-            shape, fortran, dtype = npy.read_array_header_2_0(f)
-        else:
-            arr = np.load(path, mmap_mode="r", allow_pickle=False)
-            if arr.dtype.kind not in "fiu":
-                raise ValueError(f"dtype {arr.dtype} is not a real number type")
-            return tuple(arr.shape), False
-        data = os.fstat(f.fileno()).st_size - f.tell()
-    if dtype.kind not in "fiu":
-        raise ValueError(f"dtype {dtype} is not a real number type")
-    need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-    if data < need:
-        raise ValueError(f"{data} bytes of data, its header says {need}")
-    raw = dtype == np.dtype("<f4") and not fortran and data == need
-    return tuple(shape), bool(raw)

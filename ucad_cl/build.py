@@ -362,6 +362,9 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
                         num_cpus=None if ray_address else workers, on_skip=sink.skip,
                         known=known, summary=summary, loader=loader)
             shutil.rmtree(staging, ignore_errors=True)
+            t_index = time.perf_counter()           # retrieval's index of the features now
+            line = cat.write_search_index()         # (part of the run's wall time)
+            sink.log.write(f"{line} in {time.perf_counter() - t_index:.1f} s")
             _finish_summary(summary, t_start, resource)
             summary.superseded_mb = cat.superseded_bytes / 2**20
             cat.finish_run(summary.run_id, {

@@ -43,6 +43,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ucad_catalog.searchindex import fit_pca
+
 from .runtime import Runtime, get_runtime
 from .abi import DIST_PARAMS, GATHER_PARAMS, K_MAX, MERGE_PARAMS, TOPK_PARAMS
 
@@ -107,7 +109,7 @@ class FeatureIndex:
             if self.rerank and not 1 <= self.rerank <= min(K_MAX, self.n_rows):
                 raise ValueError(f"rerank must be 0 or in 1..min(N={self.n_rows}, {K_MAX}), "
                                  f"got {rerank}")
-            self.pca_mean, self.pca_axes = _fit_pca(x, pca_dims)
+            self.pca_mean, self.pca_axes = fit_pca(x, pca_dims)
             stored = np.concatenate([(x[i:i + UPLOAD_ROWS].astype(np.float64) - self.pca_mean)
                                      @ self.pca_axes for i in range(0, self.n_rows, UPLOAD_ROWS)])
         else:
@@ -341,24 +343,3 @@ def _check_query_range(qbuf: np.ndarray, dim_pad: int) -> None:
 def _unscale_dists(d: np.ndarray, exp: int) -> np.ndarray:
     out = np.ldexp(d.astype(np.float64), 2 * exp)
     return np.minimum(out, np.finfo(np.float32).max).astype(np.float32)
-
-
-def _fit_pca(x: np.ndarray, dims: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (D,) and top-``dims`` principal axes (D, dims), float64.
-
-    Axes are eigenvectors of the covariance, largest eigenvalue first; each axis's sign makes
-    its largest-magnitude entry positive (first such entry on ties), so the fit is deterministic.
-    """
-    n = x.shape[0]
-    mean = sum(x[i:i + UPLOAD_ROWS].astype(np.float64).sum(0) for i in range(0, n, UPLOAD_ROWS)) / n
-    cov = np.zeros((x.shape[1], x.shape[1]))
-    for i in range(0, n, UPLOAD_ROWS):
-        c = x[i:i + UPLOAD_ROWS].astype(np.float64) - mean
-        cov += c.T @ c
-    cov /= n
-    vals, vecs = np.linalg.eigh(cov)
-    order = np.argsort(-vals, kind="stable")[:dims]
-    axes = vecs[:, order]
-    pivot = np.argmax(np.abs(axes), axis=0)
-    axes *= np.where(axes[pivot, np.arange(dims)] < 0, -1.0, 1.0)
-    return mean, np.ascontiguousarray(axes)

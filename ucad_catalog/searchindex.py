@@ -1,0 +1,261 @@
+"""The catalogue's search index: every accepted mesh's pose features on their first principal
+axes, one derived file ``ROOT/search_index.npz`` that lets a retrieval read a few rows in full
+instead of all of them.
+
+Why: a photo's retrieval (``ucad_cl.fit``) compares its HOG with every stored view. Over 1,003
+meshes those rows are 72,216 x 1,764 float32 (510 MB) in 1,003 ``features.npy`` objects, and a
+process that searches once (one ``ucad-index fit`` call) spent 0.6-1.7 s reading them (the page
+cache decides). The index holds their projections on ``DIMS`` axes (18 MB over 1,003 meshes);
+``SearchIndex.preselect`` keeps the rows nearest to the query there, and only those are read in
+full (``SearchIndex.rows``) for the exact ranking that follows.
+
+**Contents** (``np.savez``, no pickle): ``key`` (the feature key's sha256, ``feature_key_hash``),
+``mean`` (D,) and ``axes`` (D, DIMS) float64 (``fit_pca`` of every ``FIT_STRIDE``-th row),
+``proj`` (N, DIMS) float32 = (row - mean) @ axes of every row, ``counts`` (M,) int64: rows of
+each mesh of the key that has features, in key order (``MESH_ORDER``), ``meshes`` (M,) their
+sha256, ``skipped``: JSON of [(sha256, why)] of the accepted meshes left out (no or unreadable
+features).
+
+**Freshness.** The feature key is the list of (accepted mesh, its ``features.npy`` object or
+None) in ``MESH_ORDER``; the index is fresh iff its ``key`` is the hash of the catalogue's key
+now. A stale, missing or unreadable index is not used: retrieval then reads every row, as
+without one. ``ucad-index build`` writes it at the end of each run (atomically: temporary
+file, fsync, rename), so deleting it loses nothing; ``gc`` and ``verify`` do not look at it.
+
+No OpenCL here.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import uuid
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ._db import (SEARCH_INDEX, TMP_PREFIX, CatalogError, canonical_json, npy_header,
+                  object_path)
+
+if TYPE_CHECKING:
+    from .reader import MeshInfo
+
+DIMS = 64          # principal axes kept (the fit's top 20 meshes were identical to the exact
+#                    preselection's for 160 of 160 photos at 64 and at 128 axes: docs/FIT.md)
+FIT_STRIDE = 4     # every 4th row fits the axes (1,003 meshes: 1.8 s instead of ~7 s)
+FIT_CHUNK = 8192   # rows per float64 block of the covariance
+_UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)   # np.load of a bad .npz
+
+
+def fit_pca(x: np.ndarray, dims: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (D,) and top-``dims`` principal axes (D, dims), float64, of the rows of ``x``.
+
+    Axes are eigenvectors of the covariance, largest eigenvalue first; each axis's sign makes
+    its largest-magnitude entry positive (first such entry on ties), so the fit is deterministic.
+    """
+    n = x.shape[0]
+    mean = sum(x[i:i + FIT_CHUNK].astype(np.float64).sum(0) for i in range(0, n, FIT_CHUNK)) / n
+    cov = np.zeros((x.shape[1], x.shape[1]))
+    for i in range(0, n, FIT_CHUNK):
+        c = x[i:i + FIT_CHUNK].astype(np.float64) - mean
+        cov += c.T @ c
+    cov /= n
+    vals, vecs = np.linalg.eigh(cov)
+    order = np.argsort(-vals, kind="stable")[:dims]
+    axes = vecs[:, order]
+    pivot = np.argmax(np.abs(axes), axis=0)
+    axes *= np.where(axes[pivot, np.arange(dims)] < 0, -1.0, 1.0)
+    return mean, np.ascontiguousarray(axes)
+
+
+def feature_key_hash(key) -> str:
+    """sha256 (hex) of a feature key: [(mesh sha256, features object sha256 or None)]."""
+    return hashlib.sha256(canonical_json([list(p) for p in key]).encode()).hexdigest()
+
+
+def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) -> str:
+    """Write ``root/SEARCH_INDEX`` for the feature key ``key`` (``_db.feature_key`` of the
+    catalogue now: the writer's, under its lock) unless the one there is fresh for it; a line
+    saying what was done. Each
+    ``features.npy`` is read twice, one mesh at a time (every ``FIT_STRIDE``-th row of each
+    fits the axes, then every row is projected), so memory stays at the projections and the
+    fitting rows. Meshes without readable (V, D) float features are left out (``skipped``); with
+    no rows at all the old index is removed."""
+    root = Path(root)
+    path = root / SEARCH_INDEX
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if str(z["key"]) == feature_key_hash(key):
+                    return "search index: fresh"
+        except _UNREADABLE:
+            pass                                   # unreadable: written anew
+    items: list[tuple[str, Path, tuple[int, ...]]] = []
+    skipped: list[tuple[str, str]] = []
+    for sha, obj in key:
+        if obj is None:
+            skipped.append((sha, "no features.npy (built with --no-features)"))
+            continue
+        try:
+            shape, _ = npy_header(object_path(root, obj))
+        except (OSError, ValueError, EOFError) as exc:
+            skipped.append((sha, f"features.npy unreadable ({exc})"))
+            continue
+        if len(shape) != 2 or (items and shape[1] != items[0][2][1]) or not shape[0]:
+            skipped.append((sha, f"features.npy has shape {shape}"))
+            continue
+        items.append((sha, object_path(root, obj), shape))
+    for old in root.glob(f"{TMP_PREFIX}{SEARCH_INDEX}.*"):    # a killed writer's (one writer
+        old.unlink(missing_ok=True)                           # at a time)
+    if not items:
+        path.unlink(missing_ok=True)
+        return "search index: no features to index"
+    fit = np.concatenate([np.load(p, allow_pickle=False)[::FIT_STRIDE].astype(np.float32)
+                          for _, p, _ in items])
+    dims = min(dims, fit.shape[1], len(fit))
+    mean, axes = fit_pca(fit, dims)
+    del fit
+    counts = np.array([shape[0] for _, _, shape in items], np.int64)
+    proj = np.empty((int(counts.sum()), dims), np.float32)
+    at = 0
+    for (_, p, _), n in zip(items, counts):
+        proj[at:at + n] = (np.load(p, allow_pickle=False).astype(np.float64) - mean) @ axes
+        at += n
+    tmp = path.with_name(f"{TMP_PREFIX}{SEARCH_INDEX}.{os.getpid()}.{uuid.uuid4().hex[:8]}")
+    try:
+        with open(tmp, "wb") as f:
+            np.savez(f, key=np.array(feature_key_hash(key)), mean=mean, axes=axes, proj=proj,
+                     counts=counts, meshes=np.array([sha for sha, _, _ in items], "U64"),
+                     skipped=np.array(json.dumps([list(x) for x in skipped])))
+            f.flush()
+            if durable:
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return (f"search index: {len(proj)} rows of {len(items)} meshes on {dims} axes "
+            f"({path.stat().st_size / 2**20:.1f} MB)")
+
+
+@dataclass
+class SearchIndex:
+    """A fresh search index (``CatalogReader.search_index()``): ``meshes`` (the accepted meshes
+    with features, ``feature_table`` order), ``mesh``/``view`` (N,) of every row as in
+    ``FeatureTable``, ``proj`` (N, d) float32, ``mean`` (D,), ``axes`` (D, d), ``skipped`` as in
+    ``FeatureTable``; ``paths``: each mesh's ``features.npy`` object. Arrays are read-only."""
+
+    meshes: list["MeshInfo"]
+    mesh: np.ndarray
+    view: np.ndarray
+    proj: np.ndarray
+    mean: np.ndarray
+    axes: np.ndarray
+    paths: list[Path]
+    skipped: tuple[tuple[str, str], ...] = ()
+    sq_norms: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # |proj|^2
+    _start: dict[int, int] = field(default_factory=dict, repr=False)   # data offset per mesh
+
+    def preselect(self, query: np.ndarray, n: int) -> np.ndarray:
+        """Ascending row numbers of the ``n`` rows nearest to ``query`` (D,), made unit, by
+        squared distance of the projections (float32, expanded as |x|^2 - 2 x.p + |p|^2; ties:
+        the lower row)."""
+        q = np.asarray(query, np.float64)
+        q = q / max(float(np.linalg.norm(q)), 1e-30)
+        p = ((q - self.mean) @ self.axes).astype(np.float32)
+        d = self.sq_norms - 2.0 * (self.proj @ p) + p @ p     # float32, |x|^2 - 2 x.p + |p|^2
+        if n >= len(d):
+            return np.arange(len(d), dtype=np.int64)
+        keep = np.argpartition(d, n - 1)[:n]
+        cut = d[keep].max()                         # ties at the cut: the lower rows
+        below, at = np.flatnonzero(d < cut), np.flatnonzero(d == cut)
+        return np.sort(np.concatenate([below, at[:n - len(below)]]))
+
+    def rows(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), D) float32 full rows, read from the meshes' ``features.npy`` objects
+        (CatalogError when one is gone or no longer what the index says)."""
+        rows = np.asarray(rows, np.int64)
+        out = np.empty((len(rows), self.mean.shape[0]), np.float32)
+        order = np.argsort(self.mesh[rows], kind="stable")
+        meshes = self.mesh[rows][order]
+        cuts = np.flatnonzero(np.diff(meshes)) + 1
+        for sel in np.split(order, cuts):
+            if len(sel):
+                self._read(int(self.mesh[rows[sel[0]]]), self.view[rows[sel]], out, sel)
+        return out
+
+    def rows_of(self, k: int) -> np.ndarray:
+        """(V, D) float32 rows of ``meshes[k]``, read from its object."""
+        lo, hi = np.searchsorted(self.mesh, [k, k + 1])
+        out = np.empty((int(hi - lo), self.mean.shape[0]), np.float32)
+        self._read(k, np.arange(hi - lo), out, np.arange(hi - lo))
+        return out
+
+    def _read(self, k: int, views: np.ndarray, out: np.ndarray, at: np.ndarray) -> None:
+        """Rows ``views`` of mesh ``k`` into ``out[at]``: each row read in place (one pread)
+        when the object holds raw float32 rows (its data offset found once per index), else
+        through np.load."""
+        path = self.paths[k]
+        lo, hi = np.searchsorted(self.mesh, [k, k + 1])
+        n, D = int(hi - lo), self.mean.shape[0]
+        try:
+            if k not in self._start:
+                shape, raw = npy_header(path)
+                if shape != (n, D):
+                    raise ValueError(f"shape {shape}, the index says {(n, D)}")
+                self._start[k] = path.stat().st_size - n * D * 4 if raw else -1
+            start = self._start[k]
+            if start < 0:
+                out[at] = np.load(path, allow_pickle=False)[views]
+                return
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                for i, v in zip(at, views):
+                    if os.preadv(fd, [out[i].data.cast("B")], start + int(v) * D * 4) != D * 4:
+                        raise EOFError("short read")
+            finally:
+                os.close(fd)
+        except (OSError, ValueError, EOFError) as exc:
+            raise CatalogError(f"mesh {self.meshes[k].sha256[:12]}: features.npy cannot be "
+                               f"read as the search index says ({exc})") from None
+
+
+def load_search_index(root: Path, key, metas: list["MeshInfo"],
+                      objects: dict[str, Path]) -> tuple[SearchIndex | None, str]:
+    """(the index at ``root``, '') when it is fresh for ``key`` (the catalogue's feature key
+    now), else (None, why). ``metas``: the accepted meshes (``MESH_ORDER``); ``objects``: sha256
+    -> path of its features object."""
+    path = Path(root) / SEARCH_INDEX
+    if not path.is_file():
+        return None, "no search index (built before it existed: the next build writes it)"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["key"]) != feature_key_hash(key):
+                return None, "the search index is stale (meshes changed since it was written)"
+            mean, axes, proj = z["mean"], z["axes"], z["proj"]
+            counts, shas = z["counts"], [str(s) for s in z["meshes"]]
+            skipped = tuple(tuple(s) for s in json.loads(str(z["skipped"])))
+    except _UNREADABLE as exc:
+        return None, f"the search index cannot be read ({exc})"
+    by_sha = {m.sha256: m for m in metas}
+    ok = (mean.ndim == 1 and axes.shape[:1] == mean.shape and proj.ndim == 2
+          and proj.shape[1] == axes.shape[1] and counts.shape == (len(shas),)
+          and int(counts.sum()) == len(proj) and all(s in by_sha and s in objects for s in shas))
+    if not ok:
+        return None, "the search index is inconsistent with the catalogue"
+    idx = SearchIndex(
+        meshes=[by_sha[s] for s in shas],
+        mesh=np.repeat(np.arange(len(shas), dtype=np.int64), counts),
+        view=np.concatenate([np.arange(n, dtype=np.int64) for n in counts]),
+        proj=proj, mean=mean, axes=axes, paths=[objects[s] for s in shas],
+        skipped=skipped, sq_norms=np.einsum("ij,ij->i", proj, proj))   # type: ignore[arg-type]
+    for a in (idx.mesh, idx.view, idx.proj, idx.mean, idx.axes, idx.sq_norms):
+        a.flags.writeable = False
+    return idx, ""
+
+
+__all__ = ["DIMS", "SearchIndex", "feature_key_hash", "fit_pca", "load_search_index",
+           "write_search_index"]
