@@ -269,8 +269,10 @@ def test_retrieval_leaves_out_a_mesh_without_features_with_a_note(catalogue, tmp
 
 def test_retrieval_through_the_search_index_keeps_the_answer(catalogue, tmp_path, monkeypatch):
     """With the build's search index (used from INDEX_FROM rows: here from 0), retrieval
-    ranks the INDEX_ROWS rows nearest in its projection (24 of the 60 here) read in full: the same mesh, view and candidates as the
-    search of every stored row (the same catalogue without its index), and no note."""
+    ranks the INDEX_ROWS rows nearest in its projection (24 of the 60 here) read in full: the
+    same mesh, view and candidates as the search of every stored row (the same catalogue
+    without its index, which a note says), and no note; an object gone after indexing: a note,
+    and every row read instead."""
     import shutil
 
     import ucad_cl.fit as fit
@@ -283,11 +285,13 @@ def test_retrieval_through_the_search_index_keeps_the_answer(catalogue, tmp_path
     (plain / "search_index.npz").unlink()
     ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=50.0, elevation=12.0,
                            seed=4, background="plain")
+    monkeypatch.setattr(fit, "INDEX_FROM", 0)          # the index even for 60 rows
     with CatalogReader(plain) as r:
         assert r.search_index()[1].startswith("no search index")
         every = fit.fit_photo(ref.image, mask=ref.mask, catalog=r)
+    assert any(n.startswith("no search index") and "every stored row read" in n
+               for n in every.notes), every.notes
     monkeypatch.setattr(fit, "INDEX_ROWS", 24)
-    monkeypatch.setattr(fit, "INDEX_FROM", 0)          # the index even for 60 rows
     with CatalogReader(catalogue) as r:
         assert r.search_index()[0] is not None
         indexed = fit.fit_photo(ref.image, mask=ref.mask, catalog=r)

@@ -437,8 +437,9 @@ class _Fit:
 
     def _first_views(self, photo, obj: ObjectMask) -> list[tuple[str, int]]:
         """[(sha, view)] of the first ``REFINE_MESHES`` distinct meshes by float32 dot product
-        of the object's HOG with every stored row (the order the exact search refines; ties:
-        the lower row), each with its best row: the seeds of ``_refined_object``."""
+        of the object's HOG with the stored rows retrieval searches (``_search_rows``: the
+        order the exact search refines; ties: the lower row), each with its best row: the seeds
+        of ``_refined_object``."""
         q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                               runtime=self.runtime)
         metas, db, mesh_of, view_of = self._search_rows(q)
@@ -525,11 +526,14 @@ class _Fit:
         photos reads them once."""
         if self.db is None:
             try:
-                index, _ = self.r.search_index()
+                index, why = self.r.search_index()
             except CatalogError as exc:
                 raise ValueError(str(exc)) from None
             if index is None or len(index.mesh) < INDEX_FROM:
                 self.db = self._table()
+                if index is None and len(self.db.mesh) >= INDEX_FROM:
+                    self.notes.append(f"{why}: every stored row read (`ucad-index build` on "
+                                      "the same library writes the index)")
             else:
                 self.db = index
                 self._note_skipped(index.skipped)
