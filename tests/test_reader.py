@@ -232,8 +232,9 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
     row, the axes an orthonormal basis of the fitting rows' top principal subspace (their
     variances = NumPy's largest covariance eigenvalues), ``preselect`` the nearest projections
     (brute force, ties to the lower row), ``rows`` the stored rows; a catalogue whose meshes
-    changed has a stale index (not used) until its writer refreshes it; a damaged file is not
-    used; an object damaged after indexing is an error naming the mesh."""
+    changed has a stale index (not used) until its writer refreshes it (removing a killed
+    writer's temporary file); a damaged file or a zip bomb is not used; an object damaged after
+    indexing is an error naming the mesh."""
     import shutil
 
     from ucad_catalog import Catalog
@@ -289,6 +290,13 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
     with CatalogReader(copy) as r:
         index, why = r.search_index()
     assert index is None and why.startswith("the search index cannot be read")
+
+    import zipfile                           # a compressed member far larger than the file
+    with zipfile.ZipFile(copy / "search_index.npz", "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("proj.npy", b"\0" * 10 ** 7)
+    with CatalogReader(copy) as r:
+        index, why = r.search_index()
+    assert index is None and "more than the file's" in why
 
     shutil.copy(cat / "search_index.npz", copy / "search_index.npz")   # fresh for `cat` only
     damaged = idx.paths[1]

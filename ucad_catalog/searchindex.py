@@ -232,6 +232,10 @@ def load_search_index(root: Path, key, metas: list["MeshInfo"],
     if not path.is_file():
         return None, "no search index (built before it existed: the next build writes it)"
     try:
+        with zipfile.ZipFile(path) as zf:           # the writer stores, never compresses: a
+            declared = sum(i.file_size for i in zf.infolist())    # member larger than the
+        if declared > path.stat().st_size:                       # file is not ours (a bomb)
+            raise ValueError(f"its members declare {declared} bytes, more than the file's")
         with np.load(path, allow_pickle=False) as z:
             if str(z["key"]) != feature_key_hash(key):
                 return None, "the search index is stale (meshes changed since it was written)"
