@@ -82,12 +82,26 @@ def test_build_labels_rejections_and_skip(library, tmp_path, runtime):
     assert s3.processed == 10 and len(catalogue_content(cat)) == 10
 
 
-def test_changed_file_is_reprocessed(library, tmp_path, runtime):
+def test_changed_file_is_reprocessed(library, tmp_path, runtime, monkeypatch):
+    """A changed file is processed again, the others skipped; the search index follows every
+    build (fresh, holding the new mesh); a build whose index process fails (killed) still
+    finishes, says so in its log, and leaves the index stale (not used)."""
+    import ucad_cl.build as build_mod
+    from ucad_catalog.reader import CatalogReader
+
+    def index_meshes(cat):
+        with CatalogReader(cat) as r:
+            idx, why = r.search_index()
+            return (None if idx is None else {m.sha256 for m in idx.meshes}), why, \
+                {m.sha256 for m in r.meshes()}
+
     lib = tmp_path / "lib"
     shutil.copytree(library, lib)
     cat = tmp_path / "cat"
     build(lib, cat, OPTS, progress=False, log=lambda *a: None)
     before = catalogue_content(cat)
+    indexed, _, accepted = index_meshes(cat)
+    assert indexed == accepted and len(accepted) == 8
     victim = sorted(lib.glob("synth_*.glb"))[0]
     from ucad_cl.synth import make_vehicle
     make_vehicle(99, "bus").scene.export(victim)
@@ -95,6 +109,18 @@ def test_changed_file_is_reprocessed(library, tmp_path, runtime):
     assert s.processed == 1 and s.skipped == 9
     after = catalogue_content(cat)
     assert len(after) == len(before) and set(after) != set(before)
+    indexed, _, accepted = index_meshes(cat)
+    assert indexed == accepted and accepted != {k for k, v in before.items()
+                                                if v["state"] == "accepted"}
+
+    make_vehicle(98, "van").scene.export(victim)
+    monkeypatch.setattr(build_mod, "INDEX_TIMEOUT", 0.001)    # its process killed at once
+    s = build(lib, cat, OPTS, progress=False, log=lambda *a: None)
+    assert s.processed == 1
+    log = sorted((cat / "logs").glob("run-*.log"))[-1].read_text()
+    assert "search index not written: its process ran over 0.001 s" in log and "finished:" in log
+    indexed, why, _ = index_meshes(cat)
+    assert indexed is None and "stale" in why
 
 
 def _build_cmd(library, cat):

@@ -26,9 +26,12 @@ No OpenCL here.
 """
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
+import resource
+import sqlite3
 import uuid
 import zipfile
 from dataclasses import dataclass, field
@@ -37,30 +40,33 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ._db import (SEARCH_INDEX, TMP_PREFIX, CatalogError, canonical_json, npy_header,
-                  object_path)
+from ._db import (SEARCH_INDEX, TMP_PREFIX, CatalogError, canonical_json, check_catalog_db,
+                  feature_key, locate_db, npy_header, object_path)
 
 if TYPE_CHECKING:
     from .reader import MeshInfo
 
 DIMS = 64          # principal axes kept (the fit's top 20 meshes were identical to the exact
 #                    preselection's for 160 of 160 photos at 64 and at 128 axes: docs/FIT.md)
-FIT_STRIDE = 4     # every 4th row fits the axes (1,003 meshes: 1.8 s instead of ~7 s)
-FIT_CHUNK = 8192   # rows per float64 block of the covariance
+FIT_STRIDE = 4     # every 4th row (or sparser) of each mesh fits the axes ...
+FIT_ROWS = 16384   # ... at most about this many in all (memory: FIT_ROWS x D x 4 bytes)
+FIT_CHUNK = 8192   # rows per float64 block of the covariance (search.FeatureIndex's fits)
+INDEX_CHUNK = 1024  # ... of the search index's fit (its memory: ~15 MB a block)
 _UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)   # np.load of a bad .npz
 
 
-def fit_pca(x: np.ndarray, dims: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (D,) and top-``dims`` principal axes (D, dims), float64, of the rows of ``x``.
+def fit_pca(x: np.ndarray, dims: int, chunk: int = FIT_CHUNK) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (D,) and top-``dims`` principal axes (D, dims), float64, of the rows of ``x``
+    (summed in float64 blocks of ``chunk`` rows).
 
     Axes are eigenvectors of the covariance, largest eigenvalue first; each axis's sign makes
     its largest-magnitude entry positive (first such entry on ties), so the fit is deterministic.
     """
     n = x.shape[0]
-    mean = sum(x[i:i + FIT_CHUNK].astype(np.float64).sum(0) for i in range(0, n, FIT_CHUNK)) / n
+    mean = sum(x[i:i + chunk].astype(np.float64).sum(0) for i in range(0, n, chunk)) / n
     cov = np.zeros((x.shape[1], x.shape[1]))
-    for i in range(0, n, FIT_CHUNK):
-        c = x[i:i + FIT_CHUNK].astype(np.float64) - mean
+    for i in range(0, n, chunk):
+        c = x[i:i + chunk].astype(np.float64) - mean
         cov += c.T @ c
     cov /= n
     vals, vecs = np.linalg.eigh(cov)
@@ -79,11 +85,13 @@ def feature_key_hash(key) -> str:
 def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) -> str:
     """Write ``root/SEARCH_INDEX`` for the feature key ``key`` (``_db.feature_key`` of the
     catalogue now: the writer's, under its lock) unless the one there is fresh for it; a line
-    saying what was done. Each
-    ``features.npy`` is read twice, one mesh at a time (every ``FIT_STRIDE``-th row of each
-    fits the axes, then every row is projected), so memory stays at the projections and the
-    fitting rows. Meshes without readable (V, D) float features are left out (``skipped``); with
-    no rows at all the old index is removed."""
+    saying what was done. Each ``features.npy`` is read twice, one mesh at a time (every
+    ``FIT_STRIDE``-th row of each, or sparser so that about ``FIT_ROWS`` rows in all, fits the
+    axes; then every row is projected), so memory stays at the projections and the fitting
+    rows (~0.3 GB over 1,003 meshes: the build runs this in a process of its own, ``main``,
+    so that its driver stays small). Meshes
+    without readable (V, D) float features are left out (``skipped``); with no rows at all the
+    old index is removed."""
     root = Path(root)
     path = root / SEARCH_INDEX
     if path.is_file():
@@ -113,10 +121,11 @@ def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) 
     if not items:
         path.unlink(missing_ok=True)
         return "search index: no features to index"
-    fit = np.concatenate([np.load(p, allow_pickle=False)[::FIT_STRIDE].astype(np.float32)
+    stride = max(FIT_STRIDE, -(-sum(shape[0] for _, _, shape in items) // FIT_ROWS))
+    fit = np.concatenate([np.load(p, allow_pickle=False)[::stride].astype(np.float32)
                           for _, p, _ in items])
     dims = min(dims, fit.shape[1], len(fit))
-    mean, axes = fit_pca(fit, dims)
+    mean, axes = fit_pca(fit, dims, INDEX_CHUNK)
     del fit
     counts = np.array([shape[0] for _, _, shape in items], np.int64)
     proj = np.empty((int(counts.sum()), dims), np.float32)
@@ -261,5 +270,32 @@ def load_search_index(root: Path, key, metas: list["MeshInfo"],
     return idx, ""
 
 
-__all__ = ["DIMS", "SearchIndex", "feature_key_hash", "fit_pca", "load_search_index",
+def main(argv: list[str] | None = None) -> int:
+    """``main([ROOT, "--no-fsync"?])``: bring ROOT's search index up to date and print what was
+    done; 1 with one line on an error. The build runs it in a process of its own while it holds
+    the writer lock (``ucad_cl.build``); run alone, it must not race a build."""
+    ap = argparse.ArgumentParser(prog="ucad_catalog.searchindex",
+                                 description=main.__doc__.splitlines()[0] if main.__doc__ else "")
+    ap.add_argument("root", type=Path)
+    ap.add_argument("--no-fsync", action="store_true", help="skip the fsync (a non-durable build)")
+    args = ap.parse_args(argv)
+    try:
+        root, db = locate_db(args.root)
+        conn = sqlite3.connect(f"{db.resolve().as_uri()}?mode=ro", uri=True, timeout=30.0)
+        try:
+            check_catalog_db(conn, db)
+            key = feature_key(conn)
+        finally:
+            conn.close()
+        line = write_search_index(root, key, durable=not args.no_fsync)
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        print(f"{line}; peak {peak:.0f} MB")
+    except (CatalogError, OSError, sqlite3.Error, MemoryError) as exc:
+        print(f"search index not written: {type(exc).__name__}: {exc}")
+        return 1
+    return 0
+
+
+__all__ = ["DIMS", "SearchIndex", "feature_key_hash", "fit_pca", "load_search_index", "main",
            "write_search_index"]
+
