@@ -10,7 +10,8 @@ cache decides). The index holds their projections on ``DIMS`` axes (18 MB over 1
 full (``SearchIndex.rows``) for the exact ranking that follows.
 
 **Contents** (``np.savez``, no pickle): ``key`` (the feature key's sha256, ``feature_key_hash``),
-``mean`` (D,) and ``axes`` (D, DIMS) float64 (``fit_pca`` of every ``FIT_STRIDE``-th row),
+``mean`` (D,) and ``axes`` (D, DIMS) float64 (``fit_pca`` of every ``FIT_STRIDE``-th row of
+each mesh, sparser beyond ``FIT_ROWS`` rows),
 ``proj`` (N, DIMS) float32 = (row - mean) @ axes of every row, ``counts`` (M,) int64: rows of
 each mesh of the key that has features, in key order (``MESH_ORDER``), ``meshes`` (M,) their
 sha256, ``skipped``: JSON of [(sha256, why)] of the accepted meshes left out (no or unreadable
@@ -19,8 +20,9 @@ features).
 **Freshness.** The feature key is the list of (accepted mesh, its ``features.npy`` object or
 None) in ``MESH_ORDER``; the index is fresh iff its ``key`` is the hash of the catalogue's key
 now. A stale, missing or unreadable index is not used: retrieval then reads every row, as
-without one. ``ucad-index build`` writes it at the end of each run (atomically: temporary
-file, fsync, rename), so deleting it loses nothing; ``gc`` and ``verify`` do not look at it.
+without one. ``ucad-index build`` writes it at the end of each run, in a process of its own
+(``main``; atomically: temporary file, fsync, rename), so deleting it loses nothing; ``gc`` and
+``verify`` do not look at it.
 
 No OpenCL here.
 """
@@ -89,9 +91,8 @@ def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) 
     ``FIT_STRIDE``-th row of each, or sparser so that about ``FIT_ROWS`` rows in all, fits the
     axes; then every row is projected), so memory stays at the projections and the fitting
     rows (~0.3 GB over 1,003 meshes: the build runs this in a process of its own, ``main``,
-    so that its driver stays small). Meshes
-    without readable (V, D) float features are left out (``skipped``); with no rows at all the
-    old index is removed."""
+    so that its driver stays small). Meshes without readable (V, D) float features are left
+    out (``skipped``); with no rows at all the old index is removed."""
     root = Path(root)
     path = root / SEARCH_INDEX
     if path.is_file():
@@ -290,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
         line = write_search_index(root, key, durable=not args.no_fsync)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         print(f"{line}; peak {peak:.0f} MB")
-    except (CatalogError, OSError, sqlite3.Error, MemoryError) as exc:
+    except (CatalogError, OSError, ValueError, EOFError, sqlite3.Error, MemoryError) as exc:
         print(f"search index not written: {type(exc).__name__}: {exc}")
         return 1
     return 0

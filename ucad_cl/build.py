@@ -61,7 +61,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import resource
 import shutil
 import sqlite3
@@ -366,10 +365,8 @@ def build(library: str | os.PathLike, catalog: str | os.PathLike,
                         num_cpus=None if ray_address else workers, on_skip=sink.skip,
                         known=known, summary=summary, loader=loader)
             shutil.rmtree(staging, ignore_errors=True)
-            line, index_mb = _write_search_index(cat)   # (part of the run's wall time)
-            sink.log.write(line)
-            _finish_summary(summary, t_start, resource)
-            summary.peak_rss_mb = max(summary.peak_rss_mb, summary.peak_driver_mb + index_mb)
+            sink.log.write(_write_search_index(cat))   # (part of the run's wall time; its
+            _finish_summary(summary, t_start, resource)  # peak memory is in its own line)
             summary.superseded_mb = cat.superseded_bytes / 2**20
             cat.finish_run(summary.run_id, {
                 "skipped": summary.skipped, "failed": summary.failed, "retried": summary.retried,
@@ -485,11 +482,12 @@ class _Sink:
         self.log.write(f"skipped {printable(ref.path)}: content {sha[:12]} already catalogued")
 
 
-def _write_search_index(cat: Catalog) -> tuple[str, float]:
-    """(a line for the run log, peak MB): the catalogue's search index brought up to date
-    (``ucad_catalog.searchindex``) in a process of its own, so that the driver stays small
-    (the index's fit holds ~0.3 GB over 1,000 meshes). A failure is logged, not raised:
-    without a fresh index retrieval reads every stored row, as before the index existed."""
+def _write_search_index(cat: Catalog) -> str:
+    """A line for the run log: the catalogue's search index brought up to date
+    (``ucad_catalog.searchindex``) in a process of its own, after the workers, so that the
+    driver stays small (the index's fit holds ~0.3 GB over 1,000 meshes; its peak is in the
+    line, not in the summary's process-tree peak). A failure is logged, not raised: without a
+    fresh index retrieval reads every stored row, as before the index existed."""
     cmd = [sys.executable, "-c", "import sys; from ucad_catalog.searchindex import main; "
            "sys.exit(main(sys.argv[1:]))", str(cat.root)] + ([] if cat.durable else
                                                            ["--no-fsync"])
@@ -497,16 +495,15 @@ def _write_search_index(cat: Catalog) -> tuple[str, float]:
     try:
         run = subprocess.run(cmd, capture_output=True, text=True, timeout=INDEX_TIMEOUT)
     except subprocess.TimeoutExpired:
-        return f"search index not written: its process ran over {INDEX_TIMEOUT:g} s", 0.0
+        return f"search index not written: its process ran over {INDEX_TIMEOUT:g} s"
     except OSError as exc:
-        return f"search index not written: {exc}", 0.0
+        return f"search index not written: {exc}"
     last = (run.stdout.strip().splitlines() or [""])[-1]
     if run.returncode:
         why = last or (run.stderr.strip().splitlines() or [f"exit status {run.returncode}"])[-1]
-        return (why if why.startswith("search index not written") else
-                f"search index not written: {why}"), 0.0
-    peak = re.search(r"; peak (\d+) MB$", last)
-    return f"{last} in {time.perf_counter() - t:.1f} s", float(peak.group(1)) if peak else 0.0
+        return why if why.startswith("search index not written") else \
+            f"search index not written: {why}"
+    return f"{last} in {time.perf_counter() - t:.1f} s"
 
 
 def _finish_summary(summary: BuildSummary, t_start: float, resource) -> None:
