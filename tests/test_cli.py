@@ -176,6 +176,7 @@ def test_status_text_and_json_agree(catalogue, capsys):
     for reason, n in st["by_reason"].items():
         assert f"rejected {reason:<24} {n}" in out
     assert "flagged  uncertain_orientation    1" in out
+    assert f"  search index: {st['search_index']}" in out
     rows = out.split("recent runs:\n", 1)[1].splitlines()[1:]
     assert [int(r.split()[0]) for r in rows] == [r["id"] for r in st["runs"]]
     assert "stopped: disk_full" in rows[1] and rows[0].split()[3] == "ray"

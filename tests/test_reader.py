@@ -245,7 +245,7 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
     with CatalogReader(cat) as r:
         t = r.feature_table()
         idx, why = r.search_index()
-        assert why == "" and r.search_index()[0] is idx
+        assert why == "" and r.search_index()[0] is idx and r.status()["search_index"] == "fresh"
     assert [m.sha256 for m in idx.meshes] == [m.sha256 for m in t.meshes]
     assert np.array_equal(idx.mesh, t.mesh) and np.array_equal(idx.view, t.view)
     X = t.feats.astype(np.float64)
@@ -275,6 +275,7 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
     with CatalogReader(copy) as r:
         assert r.search_index() == (None, "the search index is stale (meshes changed since "
                                           "it was written)")
+        assert r.status()["search_index"] == "stale"
     killed = copy / ".tmp-search_index.npz.99999.deadbeef"      # a killed writer's file
     killed.write_bytes(b"partial")
     with Catalog.open(copy, create=False) as w:
@@ -289,6 +290,7 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
     (copy / "search_index.npz").write_bytes(b"PK\x03\x04 not a zip")
     with CatalogReader(copy) as r:
         index, why = r.search_index()
+        assert r.status()["search_index"] == "unreadable"
     assert index is None and why.startswith("the search index cannot be read")
 
     import zipfile                           # a compressed member far larger than the file
@@ -296,7 +298,11 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
         zf.writestr("proj.npy", b"\0" * 10 ** 7)
     with CatalogReader(copy) as r:
         index, why = r.search_index()
+        assert r.status()["search_index"] == "unreadable"
     assert index is None and "more than the file's" in why
+    (copy / "search_index.npz").unlink()
+    with CatalogReader(copy) as r:
+        assert r.status()["search_index"] == "none" and r.search_index()[0] is None
 
     shutil.copy(cat / "search_index.npz", copy / "search_index.npz")   # fresh for `cat` only
     damaged = idx.paths[1]

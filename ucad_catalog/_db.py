@@ -16,6 +16,7 @@ import hashlib
 import json
 import os
 import sqlite3
+import zipfile
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -35,6 +36,7 @@ DB_NAME = "catalog.sqlite"
 OBJECTS_DIR = "objects"
 LOCK_NAME = "write.lock"
 SEARCH_INDEX = "search_index.npz"   # derived: projected features for retrieval (searchindex.py)
+INDEX_UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)  # np.load of a bad .npz
 
 
 # the artifact kinds the build writes (SCHEMA.md, "Artifact kinds", is tested against this);
@@ -222,6 +224,26 @@ def feature_key(conn: sqlite3.Connection) -> tuple[tuple[str, str | None], ...]:
         f"a.kind='features.npy' WHERE m.state='accepted' ORDER BY {order}").fetchall())
 
 
+def feature_key_hash(key) -> str:
+    """sha256 (hex) of a feature key: [(mesh sha256, features object sha256 or None)]."""
+    return hashlib.sha256(canonical_json([list(p) for p in key]).encode()).hexdigest()
+
+
+def search_index_key(root: Path) -> str | None:
+    """The ``key`` stored in ``root/SEARCH_INDEX`` (None when there is no index); ValueError
+    (or OSError, zipfile.BadZipFile) when it cannot be read, or when its members declare more
+    bytes than the file holds (the writer only stores: a compressed bomb is refused unread)."""
+    path = Path(root) / SEARCH_INDEX
+    if not path.is_file():
+        return None
+    with zipfile.ZipFile(path) as zf:
+        declared = sum(i.file_size for i in zf.infolist())
+    if declared > path.stat().st_size:
+        raise ValueError(f"its members declare {declared} bytes, more than the file's")
+    with np.load(path, allow_pickle=False) as z:
+        return str(z["key"])
+
+
 def mesh_records(conn: sqlite3.Connection, where: str = "", args: tuple = ()) -> list[dict]:
     """Full plain-JSON records of meshes (in ``MESH_ORDER``), ``CatalogReader.record``'s format.
     ``id`` is the internal row id (commit order); the public id is ``sha256``."""
@@ -321,11 +343,18 @@ def catalog_status(conn: sqlite3.Connection, root: Path, recent: int = RECENT_RU
                                       "(SELECT DISTINCT sha256, bytes FROM artifacts)").fetchone()
         n_runs = conn.execute("SELECT count(*) FROM runs").fetchone()[0]
         runs = run_rows(conn, max(int(recent), 1))
+        key = feature_key(conn)
+    try:
+        stored = search_index_key(root)
+        index = ("none" if stored is None else
+                 "fresh" if stored == feature_key_hash(key) else "stale")
+    except INDEX_UNREADABLE:
+        index = "unreadable"
     return {"root": str(root), "schema_version": SCHEMA_VERSION,
             "meshes": sum(by_state.values()), "by_state": by_state,
             "by_reason": by_reason, "flagged": flagged, "objects": n_obj,
             "object_bytes": n_bytes, "n_runs": n_runs, "runs": runs[:max(int(recent), 0)],
-            "last_run": runs[0] if runs else None}
+            "last_run": runs[0] if runs else None, "search_index": index}
 
 
 def remove_stale_exports(out: Path) -> None:

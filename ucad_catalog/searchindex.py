@@ -29,21 +29,20 @@ No OpenCL here.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import resource
 import sqlite3
 import uuid
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ._db import (SEARCH_INDEX, TMP_PREFIX, CatalogError, canonical_json, check_catalog_db,
-                  feature_key, locate_db, npy_header, object_path)
+from ._db import (INDEX_UNREADABLE, SEARCH_INDEX, TMP_PREFIX, CatalogError, check_catalog_db,
+                  feature_key, feature_key_hash, locate_db, npy_header, object_path,
+                  search_index_key)
 
 if TYPE_CHECKING:
     from .reader import MeshInfo
@@ -54,7 +53,6 @@ FIT_STRIDE = 4     # every 4th row (or sparser) of each mesh fits the axes ...
 FIT_ROWS = 16384   # ... at most about this many in all (memory: FIT_ROWS x D x 4 bytes)
 FIT_CHUNK = 8192   # rows per float64 block of the covariance (search.FeatureIndex's fits)
 INDEX_CHUNK = 1024  # ... of the search index's fit (its memory: ~15 MB a block)
-_UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)   # np.load of a bad .npz
 
 
 def fit_pca(x: np.ndarray, dims: int, chunk: int = FIT_CHUNK) -> tuple[np.ndarray, np.ndarray]:
@@ -79,11 +77,6 @@ def fit_pca(x: np.ndarray, dims: int, chunk: int = FIT_CHUNK) -> tuple[np.ndarra
     return mean, np.ascontiguousarray(axes)
 
 
-def feature_key_hash(key) -> str:
-    """sha256 (hex) of a feature key: [(mesh sha256, features object sha256 or None)]."""
-    return hashlib.sha256(canonical_json([list(p) for p in key]).encode()).hexdigest()
-
-
 def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) -> str:
     """Write ``root/SEARCH_INDEX`` for the feature key ``key`` (``_db.feature_key`` of the
     catalogue now: the writer's, under its lock) unless the one there is fresh for it; a line
@@ -95,13 +88,11 @@ def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) 
     out (``skipped``); with no rows at all the old index is removed."""
     root = Path(root)
     path = root / SEARCH_INDEX
-    if path.is_file():
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                if str(z["key"]) == feature_key_hash(key):
-                    return "search index: fresh"
-        except _UNREADABLE:
-            pass                                   # unreadable: written anew
+    try:
+        if search_index_key(root) == feature_key_hash(key):
+            return "search index: fresh"
+    except INDEX_UNREADABLE:
+        pass                                       # unreadable: written anew
     items: list[tuple[str, Path, tuple[int, ...]]] = []
     skipped: list[tuple[str, str]] = []
     for sha, obj in key:
@@ -242,17 +233,15 @@ def load_search_index(root: Path, key, metas: list["MeshInfo"],
     if not path.is_file():
         return None, "no search index (built before it existed: the next build writes it)"
     try:
-        with zipfile.ZipFile(path) as zf:           # the writer stores, never compresses: a
-            declared = sum(i.file_size for i in zf.infolist())    # member larger than the
-        if declared > path.stat().st_size:                       # file is not ours (a bomb)
-            raise ValueError(f"its members declare {declared} bytes, more than the file's")
-        with np.load(path, allow_pickle=False) as z:
+        if search_index_key(root) != feature_key_hash(key):   # (a bomb refused unread)
+            return None, "the search index is stale (meshes changed since it was written)"
+        with np.load(path, allow_pickle=False) as z:     # (again: a build may have replaced it)
             if str(z["key"]) != feature_key_hash(key):
                 return None, "the search index is stale (meshes changed since it was written)"
             mean, axes, proj = z["mean"], z["axes"], z["proj"]
             counts, shas = z["counts"], [str(s) for s in z["meshes"]]
             skipped = tuple(tuple(s) for s in json.loads(str(z["skipped"])))
-    except _UNREADABLE as exc:
+    except INDEX_UNREADABLE as exc:
         return None, f"the search index cannot be read ({exc})"
     by_sha = {m.sha256: m for m in metas}
     ok = (mean.ndim == 1 and axes.shape[:1] == mean.shape and proj.ndim == 2
@@ -297,6 +286,5 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["DIMS", "SearchIndex", "feature_key_hash", "fit_pca", "load_search_index", "main",
-           "write_search_index"]
+__all__ = ["DIMS", "SearchIndex", "fit_pca", "load_search_index", "main", "write_search_index"]
 

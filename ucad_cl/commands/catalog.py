@@ -76,6 +76,8 @@ def run_status(args) -> int:
         if n:
             print(f"    flagged  {reason:<24} {n}  (accepted; ucad-index show ID prints why)")
     print(f"  objects: {st['objects']} ({st['object_bytes'] / 2**20:.1f} MiB)")
+    print(f"  search index: {st['search_index']}" + ("" if st["search_index"] == "fresh" else
+          "  (retrieval reads every stored row; `ucad-index build` writes it anew)"))
     print("  recent runs:")
     print(f"    {'run':>4} {'started':>19} {'engine':>6} {'processed':>9} {'skipped':>7} {'meshes/s':>8}")
     for run in st["runs"]:
