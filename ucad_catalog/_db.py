@@ -229,6 +229,26 @@ def feature_key_hash(key) -> str:
     return hashlib.sha256(canonical_json([list(p) for p in key]).encode()).hexdigest()
 
 
+def feature_objects(root: Path, key) -> tuple[list[tuple[str, Path, tuple[int, ...], bool]],
+                                               list[tuple[str, str]]]:
+    """The ``features.npy`` objects of a feature key (``feature_key``), in its order:
+    [(mesh sha256, path, shape, raw)] of those whose header reads (``npy_header``), and
+    [(mesh sha256, why)] of the others (no object: built with --no-features; unreadable)."""
+    items, skipped = [], []
+    for sha, obj in key:
+        if obj is None:
+            skipped.append((sha, "no features.npy (built with --no-features)"))
+            continue
+        path = object_path(root, obj)
+        try:
+            shape, raw = npy_header(path)
+        except (OSError, ValueError, EOFError) as exc:
+            skipped.append((sha, f"features.npy unreadable ({exc})"))
+            continue
+        items.append((sha, path, shape, raw))
+    return items, skipped
+
+
 def search_index_key(root: Path) -> str | None:
     """The ``key`` stored in ``root/SEARCH_INDEX`` (None when there is no index); ValueError
     (or OSError, zipfile.BadZipFile) when it cannot be read, or when its members declare more

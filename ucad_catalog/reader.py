@@ -43,7 +43,7 @@ import numpy as np
 from .export import format_for, write_export
 from .exr import ViewStackFile
 from ._db import (MESH_ORDER, RECENT_RUNS, CatalogError, catalog_status, check_catalog_db,
-                  feature_key, locate_db, mesh_records, npy_header, object_path, run_rows,
+                  feature_key, feature_objects, locate_db, mesh_records, object_path, run_rows,
                   verify_catalog)
 from .searchindex import SearchIndex, load_search_index
 
@@ -461,27 +461,17 @@ class CatalogReader:
             if self._table is not None and self._table[0] == key:
                 return self._table[1]
             metas = self.meshes()
-        objects = dict(key)
         self._table = None                          # let the old rows go before reading anew
+        by_sha = {m.sha256: m for m in metas}       # key and metas: the accepted meshes, in order
         kept: list[MeshInfo] = []
         heads: list[tuple[Path, tuple[int, ...], bool]] = []    # path, shape, raw float32 rows
-        skipped: list[tuple[str, str]] = []
-        for m in metas:
-            obj = objects.get(m.sha256)
-            if obj is None:
-                skipped.append((m.sha256, "no features.npy (built with --no-features)"))
-                continue
-            path = object_path(self.root, obj)
-            try:
-                shape, raw = npy_header(path)
-            except (OSError, ValueError, EOFError) as exc:
-                skipped.append((m.sha256, f"features.npy unreadable ({exc})"))
-                continue
+        items, skipped = feature_objects(self.root, key)
+        for sha, path, shape, raw in items:
             if len(shape) != 2 or (heads and shape[1] != heads[0][1][1]):
                 want = f"(V, {heads[0][1][1]})" if heads else "(V, D)"
-                raise CatalogError(f"mesh {m.sha256[:12]}: features.npy has shape {shape}, "
+                raise CatalogError(f"mesh {sha[:12]}: features.npy has shape {shape}, "
                                    f"expected {want} like the other meshes")
-            kept.append(m)
+            kept.append(by_sha[sha])
             heads.append((path, shape, raw))
         rows = [shape[0] for _, shape, _ in heads]
         feats = np.empty((sum(rows), heads[0][1][1] if heads else 0), np.float32)

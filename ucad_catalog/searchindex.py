@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ._db import (INDEX_UNREADABLE, SEARCH_INDEX, TMP_PREFIX, CatalogError, check_catalog_db,
-                  feature_key, feature_key_hash, locate_db, npy_header, object_path,
+                  feature_key, feature_key_hash, feature_objects, locate_db, npy_header,
                   search_index_key)
 
 if TYPE_CHECKING:
@@ -93,21 +93,15 @@ def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) 
             return "search index: fresh"
     except INDEX_UNREADABLE:
         pass                                       # unreadable: written anew
+    readable, skipped = feature_objects(root, key)
     items: list[tuple[str, Path, tuple[int, ...]]] = []
-    skipped: list[tuple[str, str]] = []
-    for sha, obj in key:
-        if obj is None:
-            skipped.append((sha, "no features.npy (built with --no-features)"))
-            continue
-        try:
-            shape, _ = npy_header(object_path(root, obj))
-        except (OSError, ValueError, EOFError) as exc:
-            skipped.append((sha, f"features.npy unreadable ({exc})"))
-            continue
+    for sha, p, shape, _ in readable:
         if len(shape) != 2 or (items and shape[1] != items[0][2][1]) or not shape[0]:
             skipped.append((sha, f"features.npy has shape {shape}"))
-            continue
-        items.append((sha, object_path(root, obj), shape))
+        else:
+            items.append((sha, p, shape))
+    order = {sha: i for i, (sha, _) in enumerate(key)}        # the key's order, as before
+    skipped.sort(key=lambda s: order[s[0]])
     for old in root.glob(f"{TMP_PREFIX}{SEARCH_INDEX}.*"):    # a killed writer's (one writer
         old.unlink(missing_ok=True)                           # at a time)
     if not items:
