@@ -249,18 +249,32 @@ def feature_objects(root: Path, key) -> tuple[list[tuple[str, Path, tuple[int, .
     return items, skipped
 
 
-def search_index_key(root: Path) -> str | None:
-    """The ``key`` stored in ``root/SEARCH_INDEX`` (None when there is no index); ValueError
-    (or OSError, zipfile.BadZipFile) when it cannot be read, or when its members declare more
-    bytes than the file holds (the writer only stores: a compressed bomb is refused unread)."""
+def open_search_index(root: Path):
+    """``root/SEARCH_INDEX`` opened (``np.load``: a ``NpzFile``, to be closed; members are read
+    when asked for), or None when there is none; ValueError (or OSError, zipfile.BadZipFile)
+    when it cannot be read, or when its members declare more bytes than the file holds (the
+    writer only stores: a compressed bomb is refused before any member is inflated)."""
     path = Path(root) / SEARCH_INDEX
     if not path.is_file():
         return None
-    with zipfile.ZipFile(path) as zf:
-        declared = sum(i.file_size for i in zf.infolist())
-    if declared > path.stat().st_size:
-        raise ValueError(f"its members declare {declared} bytes, more than the file's")
-    with np.load(path, allow_pickle=False) as z:
+    z = np.load(path, allow_pickle=False)
+    try:
+        declared = sum(i.file_size for i in z.zip.infolist())
+        if declared > os.fstat(z.fid.fileno()).st_size:
+            raise ValueError(f"its members declare {declared} bytes, more than the file's")
+    except BaseException:
+        z.close()
+        raise
+    return z
+
+
+def search_index_key(root: Path) -> str | None:
+    """The ``key`` stored in ``root/SEARCH_INDEX`` (None when there is none; errors as
+    ``open_search_index``)."""
+    z = open_search_index(root)
+    if z is None:
+        return None
+    with z:
         return str(z["key"])
 
 

@@ -42,7 +42,7 @@ import numpy as np
 
 from ._db import (INDEX_UNREADABLE, SEARCH_INDEX, TMP_PREFIX, CatalogError, check_catalog_db,
                   feature_key, feature_key_hash, feature_objects, locate_db, npy_header,
-                  search_index_key)
+                  open_search_index, search_index_key)
 
 if TYPE_CHECKING:
     from .reader import MeshInfo
@@ -223,13 +223,11 @@ def load_search_index(root: Path, key, metas: list["MeshInfo"],
     """(the index at ``root``, '') when it is fresh for ``key`` (the catalogue's feature key
     now), else (None, why). ``metas``: the accepted meshes (``MESH_ORDER``); ``objects``: sha256
     -> path of its features object."""
-    path = Path(root) / SEARCH_INDEX
-    if not path.is_file():
-        return None, "no search index (built before it existed: the next build writes it)"
     try:
-        if search_index_key(root) != feature_key_hash(key):   # (a bomb refused unread)
-            return None, "the search index is stale (meshes changed since it was written)"
-        with np.load(path, allow_pickle=False) as z:     # (again: a build may have replaced it)
+        z = open_search_index(root)
+        if z is None:
+            return None, "no search index (built before it existed: the next build writes it)"
+        with z:
             if str(z["key"]) != feature_key_hash(key):
                 return None, "the search index is stale (meshes changed since it was written)"
             mean, axes, proj = z["mean"], z["axes"], z["proj"]
