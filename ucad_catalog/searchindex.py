@@ -151,8 +151,11 @@ class SearchIndex:
     axes: np.ndarray
     paths: list[Path]
     skipped: tuple[tuple[str, str], ...] = ()
-    sq_norms: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # |proj|^2
+    sq_norms: np.ndarray = field(init=False, repr=False)              # |proj|^2 per row
     _start: dict[int, int] = field(default_factory=dict, repr=False)   # data offset per mesh
+
+    def __post_init__(self) -> None:
+        self.sq_norms = np.einsum("ij,ij->i", self.proj, self.proj)
 
     def preselect(self, query: np.ndarray, n: int) -> np.ndarray:
         """Ascending row numbers of the ``n`` rows nearest to ``query`` (D,), made unit, by
@@ -246,7 +249,7 @@ def load_search_index(root: Path, key, metas: list["MeshInfo"],
         mesh=np.repeat(np.arange(len(shas), dtype=np.int64), counts),
         view=np.concatenate([np.arange(n, dtype=np.int64) for n in counts]),
         proj=proj, mean=mean, axes=axes, paths=[objects[s] for s in shas],
-        skipped=skipped, sq_norms=np.einsum("ij,ij->i", proj, proj))   # type: ignore[arg-type]
+        skipped=skipped)   # type: ignore[arg-type]
     for a in (idx.mesh, idx.view, idx.proj, idx.mean, idx.axes, idx.sq_norms):
         a.flags.writeable = False
     return idx, ""
