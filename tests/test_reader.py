@@ -265,7 +265,8 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
     assert idx.preselect(q, 10 ** 6).tolist() == list(range(len(X)))
     rows = np.array([len(X) - 1, 0, 20, 19])
     assert np.array_equal(idx.rows(rows), t.feats[rows])
-    assert np.array_equal(idx.rows_of(2), t.rows_of(2))
+    assert np.array_equal(idx.rows(np.arange(32, 48)), t.rows_of(2))
+    assert np.array_equal(t.rows(rows), t.feats[rows])
 
     copy = tmp_path / "cat"                  # a mesh gone: stale until the writer refreshes
     shutil.copytree(cat, copy)
@@ -313,7 +314,7 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
             idx.rows(np.array([16, 31]))
         damaged.unlink()
         with pytest.raises(CatalogError, match=f"mesh {idx.meshes[1].sha256[:12]}: features"):
-            idx.rows_of(1)
+            idx.rows(np.arange(16, 32))
     finally:
         damaged.write_bytes(back)
 

@@ -176,6 +176,10 @@ class FeatureTable:
         lo, hi = np.searchsorted(self.mesh, [k, k + 1])
         return self.feats[lo:hi]
 
+    def rows(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), D) rows by row number (a copy; as ``SearchIndex.rows``)."""
+        return self.feats[np.asarray(rows, np.int64)]
+
 
 _STATES = ("accepted", "rejected", None)
 _MESH_COLUMNS = ("sha256, library_root, path, size, mtime, state, reason, detail, n_triangles, "

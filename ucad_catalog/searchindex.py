@@ -185,13 +185,6 @@ class SearchIndex:
                 self._read(int(self.mesh[rows[sel[0]]]), self.view[rows[sel]], out, sel)
         return out
 
-    def rows_of(self, k: int) -> np.ndarray:
-        """(V, D) float32 rows of ``meshes[k]``, read from its object."""
-        lo, hi = np.searchsorted(self.mesh, [k, k + 1])
-        out = np.empty((int(hi - lo), self.mean.shape[0]), np.float32)
-        self._read(k, np.arange(hi - lo), out, np.arange(hi - lo))
-        return out
-
     def _read(self, k: int, views: np.ndarray, out: np.ndarray, at: np.ndarray) -> None:
         """Rows ``views`` of mesh ``k`` into ``out[at]``: each row read in place (one pread)
         when the object holds raw float32 rows (its data offset found once per index), else

@@ -497,7 +497,8 @@ class _Fit:
                           if v.elevation == views[mt.view].elevation)
             at = [i for _, i in ring].index(mt.view)
             sel = [ring[(at + d) % len(ring)][1] for d in range(-FINE_VIEWS, FINE_VIEWS + 1)]
-            d = 2.0 - 2.0 * unit_rows(table.rows_of(mt.mesh)[sel])[0] @ q
+            first = int(np.searchsorted(table.mesh, mt.mesh))    # its rows, in view order
+            d = 2.0 - 2.0 * unit_rows(table.rows(first + np.asarray(sel)))[0] @ q
             albedo = np.full((metas[mt.mesh].n_materials + 1, 3), 0.8)
             for row in self.r.parts(sha):
                 albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
