@@ -227,7 +227,7 @@ def test_feature_table_stacks_every_accepted_mesh_once(built, tmp_path):
     assert np.array_equal(t3.feats, want[1])
 
 
-def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
+def test_search_index_projects_every_row_and_goes_stale(built, tmp_path, capsys):
     """The build's ``search_index.npz``: the projections are (row - mean) @ axes of every stored
     row, the axes an orthonormal basis of the fitting rows' top principal subspace (their
     variances = NumPy's largest covariance eigenvalues), ``preselect`` the nearest projections
@@ -237,7 +237,7 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
     indexing is an error naming the mesh."""
     import shutil
 
-    from ucad_catalog import Catalog
+    from ucad_catalog import searchindex
     from ucad_catalog.searchindex import FIT_STRIDE
 
     _, cat, _ = built
@@ -279,10 +279,11 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path):
         assert r.status()["search_index"] == "stale"
     killed = copy / ".tmp-search_index.npz.99999.deadbeef"      # a killed writer's file
     killed.write_bytes(b"partial")
-    with Catalog.open(copy, create=False) as w:
-        assert w.write_search_index().startswith(f"search index: {len(X) - 16} rows of 2 ")
-        assert not killed.exists()
-        assert w.write_search_index() == "search index: fresh"
+    assert searchindex.main([str(copy)]) == 0                 # what the build runs
+    assert capsys.readouterr().out.startswith(f"search index: {len(X) - 16} rows of 2 ")
+    assert not killed.exists()
+    assert searchindex.main([str(copy), "--no-fsync"]) == 0
+    assert capsys.readouterr().out.startswith("search index: fresh; peak ")
     with CatalogReader(copy) as r:
         idx2, _ = r.search_index()
     assert [m.sha256 for m in idx2.meshes] == [m.sha256 for m in t.meshes[1:]]

@@ -34,11 +34,10 @@ import numpy as np
 
 from ._db import (DB_NAME, FORMAT_NAME, LOCK_NAME, OBJECTS_DIR, RECENT_RUNS, SCHEMA_SQL,
                   SCHEMA_VERSION, TMP_PREFIX, CatalogError, canonical_json, catalog_status,
-                  check_catalog_db, feature_key, is_sha256, mesh_records, object_path,
-                  options_hash, printable, verify_catalog)
+                  check_catalog_db, is_sha256, mesh_records, object_path, options_hash, printable,
+                  verify_catalog)
 from .entry import CatalogEntry
 from .export import format_for, write_export
-from .searchindex import write_search_index
 
 try:                                   # POSIX advisory lock for the single-writer rule
     import fcntl
@@ -298,11 +297,6 @@ class Catalog:
             if not any(shard.iterdir()):
                 shard.rmdir()
         return {"objects_removed": removed, "tmp_removed": tmp_removed, "bytes_freed": freed}
-
-    def write_search_index(self) -> str:
-        """Bring ``ROOT/search_index.npz`` up to date with the accepted meshes' features
-        (``searchindex.write_search_index``; nothing when it is fresh); a line for the log."""
-        return write_search_index(self.root, feature_key(self._db), durable=self.durable)
 
     def verify_report(self, rehash: bool = True) -> dict:
         """The full consistency report (``_db.verify_catalog``), unreferenced objects included."""
