@@ -51,11 +51,10 @@ DIMS = 64          # principal axes kept (the fit's top 20 meshes were identical
 #                    preselection's for 160 of 160 photos at 64 and at 128 axes: docs/FIT.md)
 FIT_STRIDE = 4     # every 4th row (or sparser) of each mesh fits the axes ...
 FIT_ROWS = 16384   # ... at most about this many in all (memory: FIT_ROWS x D x 4 bytes)
-FIT_CHUNK = 8192   # rows per float64 block of the covariance (search.FeatureIndex's fits)
-INDEX_CHUNK = 1024  # ... of the search index's fit (its memory: ~15 MB a block)
+INDEX_CHUNK = 1024  # rows per float64 block of the index's covariance (~15 MB a block)
 
 
-def fit_pca(x: np.ndarray, dims: int, chunk: int = FIT_CHUNK) -> tuple[np.ndarray, np.ndarray]:
+def fit_pca(x: np.ndarray, dims: int, chunk: int) -> tuple[np.ndarray, np.ndarray]:
     """Mean (D,) and top-``dims`` principal axes (D, dims), float64, of the rows of ``x``
     (summed in float64 blocks of ``chunk`` rows).
 

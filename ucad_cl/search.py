@@ -109,7 +109,7 @@ class FeatureIndex:
             if self.rerank and not 1 <= self.rerank <= min(K_MAX, self.n_rows):
                 raise ValueError(f"rerank must be 0 or in 1..min(N={self.n_rows}, {K_MAX}), "
                                  f"got {rerank}")
-            self.pca_mean, self.pca_axes = fit_pca(x, pca_dims)
+            self.pca_mean, self.pca_axes = fit_pca(x, pca_dims, UPLOAD_ROWS)
             stored = np.concatenate([(x[i:i + UPLOAD_ROWS].astype(np.float64) - self.pca_mean)
                                      @ self.pca_axes for i in range(0, self.n_rows, UPLOAD_ROWS)])
         else:
