@@ -479,6 +479,38 @@ def test_hostile_inputs_get_one_line(catalogue, photo, tmp_path, capsys):
                                      str(path), "--box", *b]))
 
 
+def test_damaged_catalogue_and_unwritable_out_get_one_line(catalogue, photo, tmp_path, capsys):
+    """A view stack that is truncated or gone (read inside the fit, after retrieval) and an
+    output folder that cannot be made: one line and exit 2, no traceback."""
+    import shutil
+    import sqlite3
+
+    from ucad_cl.cli import main
+
+    path, box, m = photo
+    b = [str(v) for v in box]
+    damaged = tmp_path / "damaged"
+    shutil.copytree(catalogue, damaged)
+    with sqlite3.connect(damaged / "catalog.sqlite") as con:
+        obj = con.execute("SELECT a.sha256 FROM artifacts a JOIN meshes x ON a.mesh_id=x.id "
+                          "WHERE x.sha256=? AND a.kind='views.exr'", (m.sha256,)).fetchone()[0]
+    stack = damaged / "objects" / obj[:2] / obj
+    args = ["fit", str(path), "--box", *b, "--catalog", str(damaged), "--mesh", m.sha256[:12],
+            "--out", str(tmp_path / "o")]
+    stack.write_bytes(stack.read_bytes()[:200])
+    err = _one_line_error(capsys, 2, main(args))
+    assert "catalogue is damaged" in err and m.sha256[:12] in err, err
+    stack.unlink()
+    err = _one_line_error(capsys, 2, main(args))
+    assert "catalogue is damaged" in err and obj in err, err
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    err = _one_line_error(capsys, 2, main(["fit", str(path), "--box", *b, "--catalog",
+                                           str(catalogue), "--mesh", m.sha256[:12],
+                                           "--out", str(blocker / "o")]))
+    assert "cannot write the outputs" in err, err
+
+
 def test_grayscale_and_16_bit_photos_are_converted(photo, catalogue, tmp_path, capsys):
     import cv2
 

@@ -473,6 +473,14 @@ def test_one_part_decoder_equals_openexr(tmp_path):
         g = ViewStackFile(tmp_path / "corrupt.exr")
         for v in range(g.n_views):
             g.read(v)
+    whole = (tmp_path / "ZIP_COMPRESSION-4.exr").read_bytes()   # cut anywhere: ValueError
+    cut = tmp_path / "cut.exr"
+    for n in sorted(set(range(0, 600)) | set(range(600, len(whole), 7))):
+        cut.write_bytes(whole[:n])
+        with pytest.raises(ValueError, match="cut.exr"):
+            g = ViewStackFile(cut)
+            for v in range(g.n_views):
+                g.read(v)
 
 
 # ---------------------------------------------------------------------------- command line

@@ -189,7 +189,7 @@ class ViewStackFile:
             raise ValueError(f"{self.path}: cannot read the view stack ({exc})") from None
         try:
             self.parts, self._multipart = _parse_headers(self._data)
-        except (IndexError, ValueError, UnicodeDecodeError) as exc:
+        except (IndexError, ValueError, UnicodeDecodeError, struct.error) as exc:
             raise ValueError(f"{self.path}: not a readable OpenEXR view stack ({exc})") from None
         self._fallback: Any = None                  # OpenEXR parts, when the fast path cannot
 
@@ -209,7 +209,7 @@ class ViewStackFile:
             return self._read_with_openexr(view, channels)
         try:
             return self._decode(view, part, channels)
-        except (ValueError, IndexError, zlib.error) as exc:
+        except (ValueError, IndexError, zlib.error, struct.error) as exc:
             raise ValueError(f"{self.path}: view {view}: corrupt chunk data ({exc})") from None
 
     # -- internals

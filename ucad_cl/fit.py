@@ -277,15 +277,29 @@ def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
     """Fit the part materials of the catalogued vehicle in ``photo`` ((H, W, 3) uint8 RGB),
     given by ``box`` (x0, y0, x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W) bool), against
     ``catalog`` (a path or an open reader); ``mesh`` (id, id prefix, path or file name) skips
-    retrieval. ValueError with a one-line message for bad input (see the module docstring)."""
+    retrieval. ValueError with a one-line message for bad input (see the module docstring),
+    a damaged catalogue included (an object unreadable or gone: "the catalogue ...")."""
     if isinstance(catalog, CatalogReader):
-        return _Fit(catalog, runtime).run(photo, box, mask, mesh, segmenter)
+        return _run(catalog, runtime, photo, box, mask, mesh, segmenter)
     try:
         reader = CatalogReader(catalog)
     except CatalogError as exc:
         raise ValueError(str(exc)) from None
     with reader:
+        return _run(reader, runtime, photo, box, mask, mesh, segmenter)
+
+
+def _run(reader: CatalogReader, runtime, photo, box, mask, mesh, segmenter) -> FitResult:
+    """``_Fit.run`` with the catalogue's read errors met anywhere in the fit turned into the
+    one-line ValueError (the CLI prints it, never a traceback)."""
+    try:
         return _Fit(reader, runtime).run(photo, box, mask, mesh, segmenter)
+    except CatalogError as exc:
+        raise ValueError(f"the catalogue is damaged: {exc}") from None
+    except OSError as exc:
+        where = f" ({exc.filename})" if exc.filename else ""
+        raise ValueError(f"the catalogue cannot be read{where}: "
+                         f"{exc.strerror or exc}") from None
 
 
 def catalog_ring(reader: CatalogReader, key: str) -> PoseRing:
@@ -580,12 +594,12 @@ class _Fit:
         if not src.is_file():
             return None, (f"the mesh file is not at {src} (it moved or was deleted): fitted on "
                           "the nearest stored view, no GLB")
-        if content_sha256(src) != meta.sha256:
-            return None, (f"{src} changed since it was catalogued: fitted on the nearest stored "
-                          "view, no GLB")
         try:
+            if content_sha256(src) != meta.sha256:
+                return None, (f"{src} changed since it was catalogued: fitted on the nearest "
+                              "stored view, no GLB")
             mesh = in_frame(load_mesh(src, orientation=None), meta.file_to_norm)
-        except (IngestError, ValueError) as exc:
+        except (IngestError, ValueError, OSError) as exc:
             return None, f"{src} cannot be read ({exc}): fitted on the nearest stored view"
         if len(mesh.materials) != meta.n_materials:
             return None, (f"{src}: {len(mesh.materials)} materials, the catalogue has "

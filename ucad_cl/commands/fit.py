@@ -143,7 +143,11 @@ def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter)
     image = read_image(photo)
     mask = read_mask(mask_path, image.shape[:2]) if mask_path is not None else None
     res = fit_photo(image, box=box, mask=mask, catalog=reader, mesh=mesh, segmenter=segmenter)
-    out = write_outputs(res, out_dir, photo.stem)
+    try:
+        out = write_outputs(res, out_dir, photo.stem)
+    except OSError as exc:
+        raise ValueError(f"cannot write the outputs to {out_dir}: {exc.strerror or exc}"
+                         ) from None
     return res, out
 
 
