@@ -249,3 +249,62 @@ def test_real_vehicle_material_maps_at_4x(ring):
     assert set(np.unique(out.face_material)) == set(np.unique(mesh.face_material))
     agree, _ = agreement(mesh, out, ring)
     assert agree >= 0.98, agree
+
+
+# ----------------------------------------------------------------------------- render proxy
+
+def _proxy_reference(mesh: Mesh, cells: int):
+    """render_proxy's rule written plainly (a dict of cells, one vertex at a time): (the kept
+    faces as input-vertex triples of representatives, the kept face mask)."""
+    V = np.asarray(mesh.vertices, np.float64)
+    lo = V.min(axis=0)
+    side = np.linalg.norm(V.max(axis=0) - lo) / cells
+    first: dict = {}
+    rep = np.empty(len(V), np.int64)
+    for i, v in enumerate(V):
+        cell = tuple(int(c) for c in np.minimum(np.floor((v - lo) / side), cells))
+        rep[i] = first.setdefault(cell, i)
+    G = rep[np.asarray(mesh.faces, np.int64)]
+    keep = np.array([len(set(g)) == 3 for g in G.tolist()])
+    return G[keep], keep
+
+
+def test_render_proxy_is_the_clustering_rule_and_moves_vertices_within_a_cell(ring):
+    """Against a plain re-implementation: the same faces (as positions), in the same order,
+    with their materials and nodes; every proxy vertex is an input vertex; no corner moves
+    more than sqrt(3) / cells of the diagonal; silhouettes at 160 px all but unchanged."""
+    from ucad_cl.decimate import render_proxy
+    from ucad_cl.synth import make_vehicle
+
+    mesh = make_vehicle(7, target_triangles=20_000).mesh()
+    mesh.face_node = np.arange(mesh.n_faces, dtype=np.int32) % 5
+    cells = 128
+    out = render_proxy(mesh, cells)
+    want, keep = _proxy_reference(mesh, cells)
+    assert 0 < out.n_faces == len(want) < mesh.n_faces
+    assert np.array_equal(out.vertices[out.faces], mesh.vertices[want])
+    assert np.array_equal(out.face_material, mesh.face_material[keep])
+    assert np.array_equal(out.face_node, mesh.face_node[keep])
+    assert np.unique(out.faces).size == len(out.vertices)           # compact
+    diag = np.linalg.norm(np.ptp(mesh.vertices, axis=0))
+    moved = np.linalg.norm(out.vertices[out.faces] - mesh.vertices[mesh.faces[keep]], axis=-1)
+    assert moved.max() <= np.sqrt(3.0) * diag / cells
+    assert out.materials is mesh.materials and out.sha256 == mesh.sha256
+    agree, silhouette = agreement(mesh, out, ring)
+    assert silhouette <= 0.002 and agree >= 0.95, (silhouette, agree)
+    again = render_proxy(mesh, cells)                                # deterministic
+    assert np.array_equal(again.vertices, out.vertices) and np.array_equal(again.faces, out.faces)
+
+
+def test_render_proxy_returns_the_mesh_when_nothing_or_everything_would_go():
+    from ucad_cl.decimate import render_proxy
+
+    V, F = grid(6)
+    mesh = make_mesh(V, F, np.zeros(len(F), int))
+    assert render_proxy(mesh, 10_000) is mesh            # one vertex per cell: nothing dropped
+    assert not _proxy_reference(mesh, 1)[1].any() and render_proxy(mesh, 1) is mesh   # all
+    flat = make_mesh(np.zeros((3, 3)), [[0, 1, 2]], [0])
+    assert render_proxy(flat, 64) is flat                # a zero-size box
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="cells"):
+            render_proxy(mesh, bad)

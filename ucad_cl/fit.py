@@ -78,6 +78,7 @@ from ucad_catalog.searchindex import SearchIndex
 
 from .artifacts import CameraRing, Mesh
 from .cameras import pixel_rays
+from .decimate import render_proxy
 from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
 from .features import HogExtractor, unit_rows
 from .foreground import ObjectMask, check_image, mask_box, object_mask, refine_with_silhouette
@@ -111,6 +112,8 @@ NEUTRAL_PARTS = ("wheel",)  # white balance: tyres are taken as neutral grey ...
 TYRE_LUMA = 0.2             # ... when their fitted luminance is at most this (tyres are dark;
 #                             a light "tyre" means its mask landed on something else)
 RERANK_POSE = 1             # retrieval: the first meshes posed; the best pose score wins
+POSE_PROXY_FROM = 150_000   # meshes over this many triangles are posed on a render proxy ...
+POSE_PROXY_CELLS = 256      # ... clustered on diagonal / 256 (decimate.render_proxy; docs/FIT.md)
 CANDIDATES = 5              # distinct meshes listed by retrieval
 INDEX_FROM = 32768          # retrieval reads the search index (if fresh) over this many rows ...
 INDEX_ROWS = 4096           # ... and keeps the rows nearest in its projections (docs/FIT.md)
@@ -648,8 +651,11 @@ class _Fit:
     # -- pose
     def _refined_pose(self, photo, mesh, sha, given: dict) -> tuple[FitPose, float]:
         """The pose search's best pose and its score (lower is better); ``given``: the box
-        or the object's mask."""
+        or the object's mask. A mesh over ``POSE_PROXY_FROM`` triangles is searched on its
+        ``render_proxy`` (the caller renders the fit with the mesh itself)."""
         ring = catalog_ring(self.r, sha)
+        if mesh.n_faces > POSE_PROXY_FROM:        # silhouettes at RING_SIDE px: a proxy will do
+            mesh = render_proxy(mesh, POSE_PROXY_CELLS)
         est = estimate_pose(photo, mesh, coarse=ring, top=1, runtime=self.runtime, **given)
         c = est.best
         assert c.K is not None and c.w2c is not None
