@@ -51,7 +51,9 @@ time of ``fit_photo`` (median, 90th percentile over photos; each photo's time is
 alike the answer and the truth are in outline (``ring_iou``: the mean silhouette IoU of their
 stored views; >= ``LOOKALIKE_IOU`` counts as an outline look-alike, which no descriptor of the
 photo's outline can tell apart), and top-1 counting those as right: an explanation of the
-misses, not the goal's measure.
+misses, not the goal's measure. Then the pose lines: the fitted camera against the photo's
+(``mesh given``, and ``end to end`` where the mesh was right): median |azimuth error| and the
+signed elevation error (fitted - true), overall and by the photo's elevation (``POSE_BINS``).
 
 Held out: the generated rows are held out from everything learned or tuned. The real rows are
 not held out from the labeller (the shipped labeller is trained with every real model's
@@ -89,6 +91,7 @@ SCORED = ("body", "wheel", "rim", "plate", "interior")
 MIN_TRUE_PIXELS = 30
 TWINS = {"ferrari_458_nodraco.glb": "ferrari_458.glb"}
 LOOKALIKE_IOU = 0.9             # ring silhouette IoU above which a wrong answer is an outline twin
+POSE_BINS = ((0.0, 8.0), (8.0, 20.0), (20.0, 90.0))   # photo elevations of the pose line, deg
 PAPER_S_PER_MATERIAL = 35.0     # UrbanCAD supplement 8.5: 300 epochs, RTX 3090
 ROWS = ("end to end", "mesh given", "oracle", "baseline", "baseline (true masks)")
 
@@ -116,6 +119,9 @@ class Score:
     stages: dict = field(default_factory=dict)   # fit_photo's seconds per stage
     exposure: float = float("nan")  # the exposure factor the scores were taken at
     lookalike: float = float("nan")  # a wrong answer's ring silhouette IoU with the truth
+    az_err: float = float("nan")     # |fitted - true azimuth| of the pose, degrees
+    el_err: float = float("nan")     # fitted - true elevation of the pose, degrees (signed)
+    photo_el: float = float("nan")   # the photo's true camera elevation, degrees
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -359,6 +365,8 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
         if key is None and not sc.top1:
             sc.lookalike = ring_iou(reader, res.mesh_id, mesh_id)
         sc.stages = dict(res.seconds)
+        sc.az_err = abs((res.pose.azimuth - ref.azimuth + 180.0) % 360.0 - 180.0)
+        sc.el_err = res.pose.elevation - ref.elevation
         sc.fitted = sum(1 for f in res.parts.values()
                         if f.status == "fitted" or f.reason.startswith("two colours"))
         out[row] = sc
@@ -373,6 +381,8 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
     bc, bp = flat_baseline(ref.image, opm)
     out["baseline (true masks)"] = score_colors(bc, ref, pixels)
     out["baseline (true masks)"].psnr = bp
+    for sc in out.values():
+        sc.photo_el = ref.elevation
     return out
 
 
@@ -406,6 +416,24 @@ def lookalike_line(results: list[tuple[Vehicle, dict]], threshold: float = LOOKA
             f"truth over the stored ring: median {_q(iou, 50):.3f}, min {_q(iou, 0):.3f}; "
             f"{near} at >= {threshold:.2f} (outline look-alikes); top-1 counting those as right: "
             f"{100 * (right + near) / max(n, 1):.0f} % (not the goal's measure)")
+
+
+def pose_line(results: list[tuple[Vehicle, dict]], row: str = "mesh given") -> str:
+    """The fitted pose against the photo's camera (the row's right-mesh photos): median
+    azimuth error and signed elevation error, overall and by the photo's elevation."""
+    sc = [(r[row].photo_el, r[row]) for _, r in results
+          if row in r and np.isfinite(r[row].el_err)]
+    if row == "end to end":
+        sc = [(e, s) for e, s in sc if s.top1 == 1.0]
+
+    def part(items) -> str:
+        az = [s.az_err for _, s in items]
+        el = [s.el_err for _, s in items]
+        return (f"{len(items)} photos, |azimuth error| {_q(az, 50):.1f}, elevation error "
+                f"{_q(el, 50):+.1f} (|.| {_q(np.abs(el), 50):.1f}, p90 {_q(np.abs(el), 90):.1f})")
+    bins = [(lo, hi, [(e, s) for e, s in sc if lo <= e < hi]) for lo, hi in POSE_BINS]
+    return (f"pose ({row}, deg): {part(sc)}; by the photo's elevation: " + "; ".join(
+        f"{lo:g}-{hi:g}: {part(items)}" for lo, hi, items in bins if items))
 
 
 def part_table(results: list[tuple[Vehicle, dict]]) -> str:
@@ -559,6 +587,8 @@ def main(argv=None) -> int:
     print(part_table(results) + "\n")
     for subset in ("real", "generated"):
         print(f"{subset}: " + lookalike_line([x for x in results if x[0].source == subset]))
+    for row in ("mesh given", "end to end"):
+        print(pose_line(results, row))
     edge = sum(1 for _, r in results for x in r.values()
                if np.isfinite(x.exposure) and not 2 ** -5.9 < x.exposure < 2 ** 5.9)
     if edge:
