@@ -78,8 +78,8 @@ from ucad_catalog.searchindex import SearchIndex
 
 from .artifacts import CameraRing, Mesh
 from .cameras import pixel_rays
-from .decimate import render_proxy
 from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
+from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import ObjectMask, check_image, mask_box, object_mask, refine_with_silhouette
 from .ingest import IngestError, load_mesh
@@ -293,16 +293,15 @@ def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
 
 
 def _run(reader: CatalogReader, runtime, photo, box, mask, mesh, segmenter) -> FitResult:
-    """``_Fit.run`` with the catalogue's read errors met anywhere in the fit turned into the
-    one-line ValueError (the CLI prints it, never a traceback)."""
+    """``_Fit.run`` with the catalogue's read errors (and any file read error) met anywhere in
+    the fit turned into the one-line ValueError (the CLI prints it, never a traceback)."""
     try:
         return _Fit(reader, runtime).run(photo, box, mask, mesh, segmenter)
     except CatalogError as exc:
         raise ValueError(f"the catalogue is damaged: {exc}") from None
-    except OSError as exc:
-        where = f" ({exc.filename})" if exc.filename else ""
-        raise ValueError(f"the catalogue cannot be read{where}: "
-                         f"{exc.strerror or exc}") from None
+    except OSError as exc:                     # a file the fit reads that the reader did not wrap
+        where = f" {exc.filename}" if exc.filename else ""
+        raise ValueError(f"cannot read{where}: {exc.strerror or exc}") from None
 
 
 def catalog_ring(reader: CatalogReader, key: str) -> PoseRing:
