@@ -51,9 +51,10 @@ time of ``fit_photo`` (median, 90th percentile over photos; each photo's time is
 alike the answer and the truth are in outline (``ring_iou``: the mean silhouette IoU of their
 stored views; >= ``LOOKALIKE_IOU`` counts as an outline look-alike, which no descriptor of the
 photo's outline can tell apart), and top-1 counting those as right: an explanation of the
-misses, not the goal's measure. Then the pose lines: the fitted camera against the photo's
-(``mesh given``, and ``end to end`` where the mesh was right): median |azimuth error| and the
-signed elevation error (fitted - true), overall and by the photo's elevation (``POSE_BINS``).
+misses, not the goal's measure, and top-1 by the photo's elevation (``POSE_BINS``). Then the
+pose lines: the fitted camera against the photo's (``mesh given``, and ``end to end`` where the
+mesh was right): median |azimuth error| and the signed elevation error (fitted - true), overall
+and by the photo's elevation.
 
 Held out: the generated rows are held out from everything learned or tuned. The real rows are
 not held out from the labeller (the shipped labeller is trained with every real model's
@@ -436,6 +437,18 @@ def pose_line(results: list[tuple[Vehicle, dict]], row: str = "mesh given") -> s
         f"{lo:g}-{hi:g}: {part(items)}" for lo, hi, items in bins if items))
 
 
+def top1_by_elevation(results: list[tuple[Vehicle, dict]]) -> str:
+    """End-to-end top-1 by the photo's elevation (``POSE_BINS``): right / photos."""
+    sc = [r["end to end"] for _, r in results
+          if "end to end" in r and np.isfinite(r["end to end"].top1)]
+    cells = []
+    for lo, hi in POSE_BINS:
+        x = [s.top1 for s in sc if lo <= s.photo_el < hi]
+        if x:
+            cells.append(f"{lo:g}-{hi:g} deg: {sum(x):.0f}/{len(x)}")
+    return "top-1 by the photo's elevation: " + "; ".join(cells)
+
+
 def part_table(results: list[tuple[Vehicle, dict]]) -> str:
     """Median CIEDE2000 of each scored part per row (photos where it is scored)."""
     lines = ["| median dE per part (photos) | " + " | ".join(SCORED) + " |",
@@ -587,6 +600,7 @@ def main(argv=None) -> int:
     print(part_table(results) + "\n")
     for subset in ("real", "generated"):
         print(f"{subset}: " + lookalike_line([x for x in results if x[0].source == subset]))
+        print(f"{subset}: " + top1_by_elevation([x for x in results if x[0].source == subset]))
     for row in ("mesh given", "end to end"):
         print(pose_line(results, row))
     edge = sum(1 for _, r in results for x in r.values()
