@@ -70,6 +70,8 @@ def main() -> None:
     ap.add_argument("--library", type=Path, default=Path("/tmp/ucad-bench-library"))
     ap.add_argument("--catalog", type=Path, default=Path("/tmp/ucad-bench-catalog"))
     ap.add_argument("--azimuth-step", type=float, default=5.0)
+    ap.add_argument("--elevations", type=float, nargs="+", default=[15.0], metavar="DEG",
+                    help="the stored rings' elevations (build --elevations; default 15)")
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--label-meshes", type=int, default=20,
                     help="meshes for the orientation and labelling rows (0: skip)")
@@ -90,7 +92,7 @@ def main() -> None:
         orient_row(lib, args)
         label_row(lib, args)
     opts = BuildOptions(azimuth_step=args.azimuth_step, size=args.size,
-                        segmenter=args.segmenter)
+                        elevations=tuple(args.elevations), segmenter=args.segmenter)
     rows, orient_ms = [], []
     for w in args.workers:
         cat = args.catalog / f"w{w}"
