@@ -337,6 +337,7 @@ def _prior_props(part: str) -> tuple[float, float, float]:
 def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
             runs: int = 1) -> dict[str, Score]:
     from ucad_cl.fit import fit_photo
+    from ucad_cl.pose import az_diff
 
     pixels = true_pixels(ref)
     out: dict[str, Score] = {}
@@ -366,7 +367,7 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
         if key is None and not sc.top1:
             sc.lookalike = ring_iou(reader, res.mesh_id, mesh_id)
         sc.stages = dict(res.seconds)
-        sc.az_err = abs((res.pose.azimuth - ref.azimuth + 180.0) % 360.0 - 180.0)
+        sc.az_err = az_diff(res.pose.azimuth, ref.azimuth)
         sc.el_err = res.pose.elevation - ref.elevation
         sc.fitted = sum(1 for f in res.parts.values()
                         if f.status == "fitted" or f.reason.startswith("two colours"))
@@ -422,17 +423,15 @@ def lookalike_line(results: list[tuple[Vehicle, dict]], threshold: float = LOOKA
 def pose_line(results: list[tuple[Vehicle, dict]], row: str = "mesh given") -> str:
     """The fitted pose against the photo's camera (the row's right-mesh photos): median
     azimuth error and signed elevation error, overall and by the photo's elevation."""
-    sc = [(r[row].photo_el, r[row]) for _, r in results
-          if row in r and np.isfinite(r[row].el_err)]
-    if row == "end to end":
-        sc = [(e, s) for e, s in sc if s.top1 == 1.0]
+    sc = [r[row] for _, r in results if row in r and np.isfinite(r[row].el_err)
+          and (row != "end to end" or r[row].top1 == 1.0)]
 
     def part(items) -> str:
-        az = [s.az_err for _, s in items]
-        el = [s.el_err for _, s in items]
+        az = [s.az_err for s in items]
+        el = [s.el_err for s in items]
         return (f"{len(items)} photos, |azimuth error| {_q(az, 50):.1f}, elevation error "
                 f"{_q(el, 50):+.1f} (|.| {_q(np.abs(el), 50):.1f}, p90 {_q(np.abs(el), 90):.1f})")
-    bins = [(lo, hi, [(e, s) for e, s in sc if lo <= e < hi]) for lo, hi in POSE_BINS]
+    bins = [(lo, hi, [s for s in sc if lo <= s.photo_el < hi]) for lo, hi in POSE_BINS]
     return (f"pose ({row}, deg): {part(sc)}; by the photo's elevation: " + "; ".join(
         f"{lo:g}-{hi:g}: {part(items)}" for lo, hi, items in bins if items))
 
