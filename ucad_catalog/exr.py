@@ -57,58 +57,140 @@ CONVENTIONS = ("canonical frame: right-handed, +Y up, front +X, right side +Z, b
 
 def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_norm=None,
                       mesh_sha256: str | None = None) -> Path:
-    """Write ``views`` (a ViewSet) to ``path`` atomically (temporary name, then rename)."""
-    import OpenEXR
+    """Write ``views`` (a ViewSet) to ``path`` atomically (temporary name, then rename).
 
-    path = Path(path)
+    Encoded here, not by OpenEXR's writer (``_encode``): the same multi-part scanline file, its
+    headers byte for byte those OpenEXR writes for these attributes (tests/test_exr.py), ZIP
+    chunks deflated by ISA-L at level 1 (the ``isal`` package) instead of libdeflate at level
+    4: 72 views at 256 px in ~35 ms against ~80 ms (~40 of them the Python binding's own cost),
+    files ~2 % larger. Any OpenEXR reader decodes them; the bytes are deterministic for a given
+    ISA-L (its x86 kernels emit one stream from SSE4.2 up)."""
     cams = views.cameras
     names = material_names if material_names is not None else (
         [m.name for m in mesh.materials] if mesh is not None else [])
     f2n = np.asarray(file_to_norm if file_to_norm is not None else (
         mesh.file_to_norm if mesh is not None else np.eye(4)), np.float64)
     sha = mesh_sha256 or (mesh.sha256 if mesh is not None else "")
-    parts = []
     H, W = views.mat_id.shape[1:]
-    display = (np.array([0, 0], np.int32), np.array([W - 1, H - 1], np.int32))
+    parts = []
     for v in range(views.n_views):
         # the object's box (material id > 0); an empty view stores its top-left pixel
         y0, y1, x0, x1 = nonzero_box(views.mat_id[v]) or (0, 1, 0, 1)
-        header = {
-            "dataWindow": (np.array([x0, y0], np.int32), np.array([x1 - 1, y1 - 1], np.int32)),
-            "displayWindow": display,
-            "compression": OpenEXR.ZIP_COMPRESSION,
-            "type": OpenEXR.scanlineimage,
-            "ucad:formatVersion": FORMAT_VERSION,
-            "ucad:K": np.asarray(cams.K, np.float64),
-            "ucad:w2c": np.asarray(cams.w2c[v], np.float64),
-            "worldToCamera": np.asarray(cams.w2c[v], np.float32),
-            "ucad:fileToNorm": f2n,
-            "ucad:view": v,
-            "ucad:azimuth": float(cams.azimuth[v]),
-            "ucad:elevation": float(cams.elevation[v]),
-            "ucad:distance": float(cams.distance),
-            "ucad:near": float(cams.near),
-            "ucad:meshSha256": sha,
-            "ucad:conventions": CONVENTIONS,
+        attrs = {
+            "dataWindow": _box2i(x0, y0, x1 - 1, y1 - 1),
+            "displayWindow": _box2i(0, 0, W - 1, H - 1),
+            "name": _string(f"view_{v:03d}"),
+            "ucad:formatVersion": _int(FORMAT_VERSION),
+            "ucad:K": ("m33d", np.asarray(cams.K, "<f8").tobytes()),
+            "ucad:w2c": ("m44d", np.asarray(cams.w2c[v], "<f8").tobytes()),
+            "worldToCamera": ("m44f", np.asarray(cams.w2c[v], "<f4").tobytes()),
+            "ucad:fileToNorm": ("m44d", np.asarray(f2n, "<f8").tobytes()),
+            "ucad:view": _int(v),
+            "ucad:azimuth": _float(cams.azimuth[v]),
+            "ucad:elevation": _float(cams.elevation[v]),
+            "ucad:distance": _float(cams.distance),
+            "ucad:near": _float(cams.near),
+            "ucad:meshSha256": _string(sha),
+            "ucad:conventions": _string(CONVENTIONS),
         }
         if v == 0:
-            header["ucad:materials"] = json.dumps(list(names), ensure_ascii=False)
+            attrs["ucad:materials"] = _string(json.dumps(list(names), ensure_ascii=False))
         box = (slice(y0, y1), slice(x0, x1))
-        channels = {
-            "tri": OpenEXR.Channel(np.ascontiguousarray(views.tri_id[v][box], np.uint32)),
-            "mat": OpenEXR.Channel(np.ascontiguousarray(views.mat_id[v][box], np.uint32)),
-            "Z": OpenEXR.Channel(np.ascontiguousarray(views.depth[v][box], np.float32)),
-        }
-        parts.append(OpenEXR.Part(header, channels, f"view_{v:03d}"))
+        lines = np.stack([np.asarray(views.depth[v][box], "<f4").view("<u4"),   # channels in
+                          np.asarray(views.mat_id[v][box], "<u4"),             # name order:
+                          np.asarray(views.tri_id[v][box], "<u4")], axis=1)    # Z, mat, tri
+        parts.append((attrs, y0, lines))
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        OpenEXR.File(parts).write(str(tmp))
+        tmp.write_bytes(_encode(parts))
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+# -- the writer: OpenEXR 2's multi-part scanline layout (openexr.com, "OpenEXR File Layout").
+# Magic, version 2 with the multi-part flag; per part a header (attributes sorted by name:
+# name, type, size, value), an empty header ending the list; per part its chunk offsets
+# (uint64, absolute); the chunks (part, first line, packed size, data). A ZIP chunk holds 16
+# lines, each line its channels' values in channel-name order; its data is zlib of the bytes
+# split into even and odd halves, each byte then replaced by (b[i] - b[i-1] + 128) mod 256,
+# or the plain bytes when that is not smaller (as OpenEXR does; ``_unzip`` undoes it).
+_CHANNELS = (("Z", 2), ("mat", 0), ("tri", 0))          # name, pixel type (2 FLOAT, 0 UINT)
+_ZIP, _ZIP_LINES, _MULTIPART = 3, 16, 0x1000
+
+
+def _encode(parts: list[tuple[dict, int, np.ndarray]]) -> bytes:
+    """The file's bytes for [(attributes, first line, (h, 3, w) uint32 lines)]."""
+    try:
+        from isal import isal_zlib
+    except ImportError:                                  # pragma: no cover - a broken install
+        raise RuntimeError("writing view stacks needs the isal package (pip install isal)") \
+            from None
+    chlist = b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", t, 0, 1, 1)
+                      for n, t in _CHANNELS) + b"\0"
+    common = {"channels": ("chlist", chlist), "compression": ("compression", bytes([_ZIP])),
+              "lineOrder": ("lineOrder", b"\0"), "pixelAspectRatio": _float(1.0),
+              "screenWindowCenter": ("v2f", struct.pack("<2f", 0, 0)),
+              "screenWindowWidth": _float(1.0), "type": _string("scanlineimage")}
+    headers, chunks = [], []
+    for attrs, _, lines in parts:
+        packed = [isal_zlib.compress(pre, 1) for pre in _zip_ready(lines)]
+        flat = lines.reshape(len(lines), -1)
+        for k, data in enumerate(packed):           # not smaller: the plain bytes
+            plain = flat[k * _ZIP_LINES:(k + 1) * _ZIP_LINES]
+            if len(data) >= plain.nbytes:
+                packed[k] = plain.tobytes()
+        chunks.append(packed)
+        a = {**common, **attrs, "chunkCount": _int(len(packed))}
+        headers.append(b"".join(k.encode() + b"\0" + t.encode() + b"\0"
+                                + struct.pack("<i", len(val)) + val
+                                for k, (t, val) in sorted(a.items())) + b"\0")
+    head = _MAGIC + struct.pack("<I", 2 | _MULTIPART) + b"".join(headers) + b"\0"
+    at = len(head) + 8 * sum(len(c) for c in chunks)
+    offsets, body = [], []
+    for p, ((_, y0, _), cs) in enumerate(zip(parts, chunks)):
+        for k, data in enumerate(cs):
+            offsets.append(at)
+            body.append(struct.pack("<3i", p, y0 + k * _ZIP_LINES, len(data)) + data)
+            at += 12 + len(data)
+    return head + np.asarray(offsets, "<u8").tobytes() + b"".join(body)
+
+
+def _zip_ready(lines: np.ndarray) -> list[np.ndarray]:
+    """Each chunk's bytes interleaved and predicted (OpenEXR's ZIP preprocessing), the full
+    chunks in one NumPy pass."""
+    h = len(lines)
+    b = np.ascontiguousarray(lines).view(np.uint8).reshape(h, -1)
+    full = h // _ZIP_LINES
+    out = []
+    for block in ([b[:full * _ZIP_LINES].reshape(full, -1)] if full else []) + (
+            [b[full * _ZIP_LINES:].reshape(1, -1)] if h % _ZIP_LINES else []):
+        t = np.concatenate([block[:, 0::2], block[:, 1::2]], axis=1)
+        d = t.copy()
+        d[:, 1:] -= t[:, :-1]
+        d[:, 1:] += 128                                 # mod 256, as OpenEXR's predictor
+        out.extend(d)
+    return out
+
+
+def _int(x) -> tuple[str, bytes]:
+    return "int", struct.pack("<i", int(x))
+
+
+def _float(x) -> tuple[str, bytes]:
+    return "float", struct.pack("<f", float(x))
+
+
+def _string(s: str) -> tuple[str, bytes]:
+    return "string", s.encode()
+
+
+def _box2i(x0, y0, x1, y1) -> tuple[str, bytes]:
+    return "box2i", struct.pack("<4i", x0, y0, x1, y1)
 
 
 def _full_image(part, name: str, dtype) -> np.ndarray:
