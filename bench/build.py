@@ -4,7 +4,8 @@ Generates (once, cached in --library) a library of procedural vehicles of about 
 triangles with the usual messy share, then builds it with the local engine at each --workers
 count into a fresh catalogue, sampling the resident memory of the whole process tree (driver +
 workers) every 0.5 s to show it stays flat. Defaults are the acceptance configuration:
-1,000 vehicles, 50k triangles, 72 views x 256 px, the default (learned labeller) segmenter.
+1,000 vehicles, 50k triangles, the build's rings (default: 15 and 5 deg, 144 views x 256 px;
+``--elevations 15`` is issue 24's 72-view configuration), the default (learned labeller) segmenter.
 
 Orientation row (issue 10's "orientation per 50k-triangle mesh"): ``ucad_cl.orient.
 estimate_orientation`` alone, process CPU ms per mesh (median of 3 runs each) on the same
@@ -70,8 +71,9 @@ def main() -> None:
     ap.add_argument("--library", type=Path, default=Path("/tmp/ucad-bench-library"))
     ap.add_argument("--catalog", type=Path, default=Path("/tmp/ucad-bench-catalog"))
     ap.add_argument("--azimuth-step", type=float, default=5.0)
-    ap.add_argument("--elevations", type=float, nargs="+", default=[15.0], metavar="DEG",
-                    help="the stored rings' elevations (build --elevations; default 15)")
+    ap.add_argument("--elevations", type=float, nargs="+", default=None, metavar="DEG",
+                    help="the stored rings' elevations (build --elevations; default the build's, "
+                         "15 5; 15 alone is issue 24's 72-view configuration)")
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--label-meshes", type=int, default=20,
                     help="meshes for the orientation and labelling rows (0: skip)")
@@ -92,7 +94,11 @@ def main() -> None:
         orient_row(lib, args)
         label_row(lib, args)
     opts = BuildOptions(azimuth_step=args.azimuth_step, size=args.size,
-                        elevations=tuple(args.elevations), segmenter=args.segmenter)
+                        elevations=tuple(args.elevations or BuildOptions.elevations),
+                        segmenter=args.segmenter)
+    print(f"rings: elevations {' '.join(f'{e:g}' for e in opts.elevations)} deg, "
+          f"{int(round(360 / opts.azimuth_step)) * len(opts.elevations)} views of {opts.size} px "
+          "a mesh")
     rows, orient_ms = [], []
     for w in args.workers:
         cat = args.catalog / f"w{w}"

@@ -125,7 +125,7 @@ def test_changed_file_is_reprocessed(library, tmp_path, runtime, monkeypatch):
 
 def _build_cmd(library, cat):
     return [sys.executable, "-m", "ucad_cl.cli", "build", str(library), "--catalog", str(cat),
-            "--azimuth-step", "45", "--size", "96"]
+            "--azimuth-step", "45", "--elevations", "15", "--size", "96"]   # = OPTS
 
 
 def test_sigkill_resume_equals_uninterrupted_build(library, tmp_path, runtime):
@@ -382,3 +382,44 @@ def test_driver_loads_neither_opencl_nor_onnxruntime(tmp_path):
     from ucad_cl.runtime import create_runtime
     rt = create_runtime()
     assert rt.info is not None and (spec, why) == (rt.info.spec, rt.why)
+
+
+def test_second_ring_is_stored_for_retrieval_and_leaves_labels_alone(library, tmp_path,
+                                                                     runtime):
+    """The default rings (15 then 5 deg): the label ring's results are those of a 15 deg
+    build alone (part rows, parts sheet, edges, verdicts), its views and features are the first
+    rows of the stack; the 5 deg ring follows with views and features of its own, no edges."""
+    from dataclasses import replace
+
+    from ucad_catalog.reader import CatalogReader
+
+    assert BuildOptions().elevations == (15.0, 5.0)
+    one, two = tmp_path / "one", tmp_path / "two"
+    build(library, one, OPTS, progress=False, log=lambda *a: None)
+    build(library, two, replace(OPTS, elevations=(15.0, 5.0)), progress=False,
+          log=lambda *a: None)
+    a, b = catalogue_content(one), catalogue_content(two)
+    assert a.keys() == b.keys()
+    n = 8                                               # views a ring (45 deg azimuth step)
+    with CatalogReader(one) as r1, CatalogReader(two) as r2:
+        for sha, rec in a.items():
+            assert (rec["state"], rec["reason"], rec["materials"]) == \
+                (b[sha]["state"], b[sha]["reason"], b[sha]["materials"])
+            if rec["state"] != "accepted":
+                continue
+            arts1, arts2 = dict(rec["artifacts"]), dict(b[sha]["artifacts"])
+            assert arts1["parts.png"] == arts2["parts.png"]
+            assert arts1["edges.npy.gz"] == arts2["edges.npy.gz"]
+            assert (rec["views"], b[sha]["views"]) == (n, 2 * n)
+            assert [v.elevation for v in r2.views(sha)] == [15.0] * n + [5.0] * n
+            f1, f2 = r1.features(sha), r2.features(sha)
+            assert f2.shape[0] == 2 * n and np.array_equal(f1, f2[:n])
+            assert not np.allclose(f2[:n], f2[n:])
+            for v in (0, 3):
+                x, y = r1.view(sha, v), r2.view(sha, v)
+                assert np.array_equal(x.tri_id, y.tri_id) and np.array_equal(x.depth, y.depth)
+            low = r2.view(sha, n + 3)
+            assert low.elevation == 5.0 and np.isfinite(low.depth).any()
+            assert r2.edges(sha).shape[0] == n
+            with pytest.raises(Exception, match="label ring"):
+                r2.edges(sha, n)

@@ -45,7 +45,9 @@ ARTIFACT_KINDS = {
     "views.exr": "the view stack: tri, mat, Z per view + cameras (ucad_catalog.exr, format 2)",
     "views.npz": "fallback view stack: NumPy .npz with tri_id u32, mat_id u16, depth f32, "
                  "each (V, H, W)",
-    "edges.npy.gz": "Canny edges of the material maps: gzip of an .npy (V, H, ceil(W/8)) uint8, "
+    "edges.npy.gz": "Canny edges of the material maps of the label ring (the first "
+                    "`--elevations` ring, views 0..V-1; the build's default stores 2V views, the "
+                    "second ring without edges): gzip of an .npy (V, H, ceil(W/8)) uint8, "
                     "np.packbits(edges > 0, axis=-1); unpack with np.unpackbits(axis=-1, count=W)",
     "features.npy": "(V, D) float32 pose features (HOG of the shaded views), np.save, no pickle",
     "parts.png": "contact sheet of up to 24 views coloured by part, legend on the right (PNG)",

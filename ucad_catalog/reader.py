@@ -437,8 +437,8 @@ class CatalogReader:
         if index is None:
             return np.unpackbits(packed, axis=-1, count=width).astype(bool)
         if not 0 <= int(index) < packed.shape[0]:
-            raise CatalogError(f"mesh {sha[:12]} has no edge map {index} "
-                               f"({packed.shape[0]} views)")
+            raise CatalogError(f"mesh {sha[:12]} has no edge map {index} (edges are stored "
+                               f"for the label ring's {packed.shape[0]} views, the first)")
         return np.unpackbits(packed[int(index)], axis=-1, count=width).astype(bool)
 
     def features(self, key: str) -> np.ndarray:

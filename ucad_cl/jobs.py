@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from .build import BuildSummary
 
 
-CODE_VERSION = "17"       # bump when a change alters results: it enters the options hash
+CODE_VERSION = "18"       # bump when a change alters results: it enters the options hash
 
 
 @dataclass(frozen=True)
@@ -34,7 +34,7 @@ class BuildOptions:
     """Everything that affects what is stored. Angles in degrees, sizes in pixels."""
 
     azimuth_step: float = 5.0
-    elevations: tuple[float, ...] = (15.0,)
+    elevations: tuple[float, ...] = (15.0, 5.0)   # the first: the label ring (pipeline.py)
     fov_deg: float = 40.0
     size: int = 256
     segmenter: str = "labeller"         # 'labeller[:MODEL]' | 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG'

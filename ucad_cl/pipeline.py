@@ -7,7 +7,14 @@ rejections are ``ucad_cl.jobs`` (no stage imports, so the driver stays small).
 ``.load_entry(ref, sha)`` -> the mesh (ingest, under the worker's limits) or a rejection;
 ``.process_entry(ref, mesh, seconds, staging)`` -> ingest -> [decimate] -> filter -> render ->
 filter by views -> edges -> segment -> classify (+ curators' label overrides) -> features ->
-``CatalogEntry``. Artifacts go to ``staging`` (EXR) or stay bytes; their kinds are
+``CatalogEntry``.
+
+Rings: every stored ring (``BuildOptions.elevations``) is rendered, written and described
+(features); the *label ring*, the first elevation's views (stored first, so their indices are the
+stack's), is what the view filter, the edges, the segmenter, the classifier and the parts sheet
+see. The
+default stores 15 deg (the label ring) then 5 deg (for retrieval and pose of photos taken from
+low down, docs/FIT.md), and labels are those of a 15 deg ring alone. Artifacts go to ``staging`` (EXR) or stay bytes; their kinds are
 ``ucad_catalog._db.ARTIFACT_KINDS``.
 
 The loader is a seam: ``Pipeline(options, loader=...)`` replaces ``ingest.load_mesh`` (a picklable
@@ -62,6 +69,7 @@ class Pipeline:
         self.labels = LabelOverrides.from_items(options.label_overrides)
         self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
                               fov_deg=options.fov_deg, size=options.size)
+        self.label_views = slice(0, len(self.ring.azimuth) // len(options.elevations))
         self.segmenter = segmenter_from_spec(options.segmenter, runtime)
         self.extractor = None
         if options.features:
@@ -135,8 +143,9 @@ class Pipeline:
         if not verdict.accepted:
             return rejected(verdict)
         views = render_views(mesh, self.ring, runtime=self.runtime)
+        labelled = views.select(self.label_views)          # the label ring (module docstring)
         lap("render")
-        verdict = filter_views(mesh, views, dominant_fraction=o.dominant_fraction,
+        verdict = filter_views(mesh, labelled, dominant_fraction=o.dominant_fraction,
                                min_visible_materials=o.min_visible_materials)
         lap("filter")
         if not verdict.accepted:
@@ -148,13 +157,13 @@ class Pipeline:
         artifacts["views.exr"] = exr
         lap("write")
         if o.edges:
-            edges = material_edges(views, runtime=self.runtime).edges
+            edges = material_edges(labelled, runtime=self.runtime).edges
             artifacts["edges.npy.gz"] = npy_gz_bytes(np.packbits(edges > 0, axis=-1))
             lap("edges")
-        masks = self.segmenter.segment(mesh, views)
+        masks = self.segmenter.segment(mesh, labelled)
         lap("segment")
-        table = classify_parts(mesh, views, masks, threshold=o.threshold, priors=name_priors(mesh),
-                               runtime=self.runtime)
+        table = classify_parts(mesh, labelled, masks, threshold=o.threshold,
+                               priors=name_priors(mesh), runtime=self.runtime)
         fixes = self.labels.for_mesh(ref.path, mesh.sha256)
         if fixes:                                   # curators' corrections win (curation.py)
             table, missing = apply_label_overrides(table, mesh, fixes)
@@ -165,7 +174,7 @@ class Pipeline:
             feats = view_features(self.extractor, images, views).feats
             artifacts["features.npy"] = npy_bytes(feats.astype(np.float32))
             lap("features")
-        artifacts["parts.png"] = parts_sheet_png(views, table)
+        artifacts["parts.png"] = parts_sheet_png(labelled, table)
         lap("write")
         visible = views.material_counts()[:, 1:].sum(axis=1)
         view_stats = [{"visible_pixels": int(visible[v]),

@@ -4,6 +4,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from ..jobs import BuildOptions
 from ..segment import segmenter_help
 from .render import add_camera_args, add_orientation_args, orientation_from_args
 
@@ -74,7 +75,12 @@ def register(sub) -> None:
     p.add_argument("--quiet", "-q", action="store_true",
                    help="no progress bar and no summary: only warnings and errors (stderr); the "
                         "run log still records everything")
-    add_camera_args(p)
+    add_camera_args(p, BuildOptions.elevations,
+                    ": one ring of M views each, stored in this order. The first is the label "
+                    "ring: the view filter, Canny edges, the segmenter and the classifier see its "
+                    "views only; every ring is stored with features, and retrieval and pose "
+                    "search read them all (the 5 deg ring finds photos taken from low down: "
+                    "docs/FIT.md)")
     add_orientation_args(p)
     p.add_argument("--labels-file", type=Path, default=None, metavar="FILE",
                    help="curators' label corrections: JSON {\"PATH or SHA256\": {\"MATERIAL\": "

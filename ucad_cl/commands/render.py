@@ -6,13 +6,15 @@ import sys
 from pathlib import Path
 
 
-def add_camera_args(p) -> None:
-    """Camera-ring options shared by the commands that render."""
+def add_camera_args(p, elevations=(15.0,), elevations_help: str = "") -> None:
+    """Camera-ring options shared by the commands that render (``elevations``: the default
+    rings, with ``elevations_help`` said after them)."""
     g = p.add_argument_group("cameras")
     g.add_argument("--azimuth-step", type=float, default=5.0, metavar="DEG",
                    help="azimuth step in degrees; M = 360/step views per elevation (default 5 -> 72)")
-    g.add_argument("--elevations", type=float, nargs="+", default=[15.0], metavar="DEG",
-                   help="camera elevations in degrees (default 15)")
+    g.add_argument("--elevations", type=float, nargs="+", default=list(elevations),
+                   metavar="DEG", help="camera elevations in degrees (default "
+                   f"{' '.join(f'{e:g}' for e in elevations)}){elevations_help}")
     g.add_argument("--fov", type=float, default=40.0, metavar="DEG",
                    help="field of view in degrees (default 40); the distance is fitted to it")
     g.add_argument("--size", type=int, default=256, metavar="PX",
