@@ -7,15 +7,14 @@ rejections are ``ucad_cl.jobs`` (no stage imports, so the driver stays small).
 ``.load_entry(ref, sha)`` -> the mesh (ingest, under the worker's limits) or a rejection;
 ``.process_entry(ref, mesh, seconds, staging)`` -> ingest -> [decimate] -> filter -> render ->
 filter by views -> edges -> segment -> classify (+ curators' label overrides) -> features ->
-``CatalogEntry``.
+``CatalogEntry``. Artifacts go to ``staging`` (EXR) or stay bytes; their kinds are
+``ucad_catalog._db.ARTIFACT_KINDS``.
 
 Rings: every stored ring (``BuildOptions.elevations``) is rendered, written and described
 (features); the *label ring*, the first elevation's views (stored first, so their indices are the
 stack's), is what the view filter, the edges, the segmenter, the classifier and the parts sheet
-see. The
-default stores 15 deg (the label ring) then 5 deg (for retrieval and pose of photos taken from
-low down, docs/FIT.md), and labels are those of a 15 deg ring alone. Artifacts go to ``staging`` (EXR) or stay bytes; their kinds are
-``ucad_catalog._db.ARTIFACT_KINDS``.
+see. The default stores 15 deg (the label ring) then 5 deg (for retrieval and pose of photos
+taken from low down, docs/FIT.md), so labels are those of a 15 deg ring alone.
 
 The loader is a seam: ``Pipeline(options, loader=...)`` replaces ``ingest.load_mesh`` (a picklable
 module-level function ``loader(path, *, budgets, orientation) -> Mesh``; the pipeline orients
