@@ -44,7 +44,8 @@ def run(args) -> int:
         for m in accepted[:4]:
             stem = Path(m.path).stem
             views, meta = read_viewset_exr(r.artifact_path(m.sha256, "views.exr"))
-            views = views.select(np.arange(0, views.n_views, max(1, views.n_views // 12)))
+            ring = int(np.count_nonzero(views.cameras.elevation == views.cameras.elevation[0]))
+            views = views.select(np.arange(0, ring, max(1, ring // 12)))   # the label ring
             write_png(sheets / f"{stem}.materials.png", material_sheet(views, meta["materials"]))
             (sheets / f"{stem}.parts.png").write_bytes(r.artifact_path(m.sha256, "parts.png").read_bytes())
         rejected = r.meshes(state="rejected")
