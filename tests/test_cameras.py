@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from ucad_cl.cameras import camera_position, make_ring, pixel_rays
+from ucad_cl.cameras import camera_position, label_ring, make_ring, pixel_rays
 
 
 def project(ring, v, X):
@@ -18,6 +18,8 @@ def test_azimuth_and_elevation_conventions():
     ring = make_ring(azimuth_step=90, elevations=(0.0, 30.0), size=(64, 48))
     assert ring.n_views == 8 and list(ring.azimuth[:4]) == [0, 90, 180, 270]
     assert list(ring.elevation) == [0.0] * 4 + [30.0] * 4              # elevation-major
+    assert label_ring(ring) == slice(0, 4)                             # the first ring labels
+    assert label_ring(make_ring(azimuth_step=45, elevations=(15.0,))) == slice(0, 8)
     for v in range(8):
         R = ring.w2c[v, :3, :3]
         assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)

@@ -62,8 +62,8 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
     Encoded here, not by OpenEXR's writer (``_encode``): the same multi-part scanline file, its
     headers byte for byte those OpenEXR writes for these attributes (tests/test_exr.py), ZIP
     chunks deflated by ISA-L at level 1 (the ``isal`` package) instead of libdeflate at level
-    4: 72 views at 256 px in ~35 ms against ~80 ms (~40 of them the Python binding's own cost),
-    files ~2 % larger. Any OpenEXR reader decodes them; the bytes are deterministic for a given
+    4: 72 views at 256 px in ~40 ms against ~80 ms (~40 of them the Python binding's own cost),
+    files 2-5 % larger. Any OpenEXR reader decodes them; the bytes are deterministic for a given
     ISA-L (its x86 kernels emit one stream from SSE4.2 up)."""
     cams = views.cameras
     names = material_names if material_names is not None else (

@@ -17,6 +17,7 @@ import numpy as np
 from .artifacts import CameraRing
 
 BOUND_RADIUS = 0.5      # canonical bounding sphere radius (bbox diagonal 1)
+BUILD_ELEVATIONS = (15.0, 5.0)   # the build's stored rings, the label ring first (label_ring)
 MAX_SIZE = 8192         # the rasterizer's fixed-point range is proven for images up to this size
 
 
@@ -93,3 +94,10 @@ def pixel_rays(K: np.ndarray, w2c: np.ndarray, width: int, height: int):
     d = d_cam @ R                       # R^T d for each row
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     return -R.T @ t, d
+
+
+def label_ring(ring: CameraRing) -> slice:
+    """The views of a stack's label ring: its first ring (views are stored ring by ring,
+    elevation-major, the first ring labelling: docs/CONVENTIONS.md), i.e. views 0 .. M - 1 with
+    M the number of azimuths a ring holds."""
+    return slice(0, int(np.unique(np.asarray(ring.azimuth)).size))

@@ -18,6 +18,7 @@ from ucad_catalog.entry import CatalogEntry
 
 from . import reasons
 from .artifacts import Verdict
+from .cameras import BUILD_ELEVATIONS
 from .ingest import Budgets, IngestError, mesh_identity, unreadable_identity
 from .curation import LabelOverrides, mesh_options_hash
 from .orient import parse_mode
@@ -34,7 +35,7 @@ class BuildOptions:
     """Everything that affects what is stored. Angles in degrees, sizes in pixels."""
 
     azimuth_step: float = 5.0
-    elevations: tuple[float, ...] = (15.0, 5.0)   # the first: the label ring (pipeline.py)
+    elevations: tuple[float, ...] = BUILD_ELEVATIONS   # the first: the label ring
     fov_deg: float = 40.0
     size: int = 256
     segmenter: str = "labeller"         # 'labeller[:MODEL]' | 'prior' | 'masks:DIR' | 'onnx:MODEL:CONFIG'

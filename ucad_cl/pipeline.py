@@ -35,7 +35,7 @@ from ucad_catalog.entry import CatalogEntry
 from ucad_catalog.exr import write_viewset_exr
 
 from .artifacts import Verdict
-from .cameras import make_ring
+from .cameras import label_ring, make_ring
 from .classify import classify_parts
 from .curation import LabelOverrides, apply_label_overrides
 from .decimate import decimate
@@ -68,7 +68,7 @@ class Pipeline:
         self.labels = LabelOverrides.from_items(options.label_overrides)
         self.ring = make_ring(azimuth_step=options.azimuth_step, elevations=options.elevations,
                               fov_deg=options.fov_deg, size=options.size)
-        self.label_views = slice(0, len(self.ring.azimuth) // len(options.elevations))
+        self.label_views = label_ring(self.ring)
         self.segmenter = segmenter_from_spec(options.segmenter, runtime)
         self.extractor = None
         if options.features:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..jobs import BuildOptions
+from ..cameras import BUILD_ELEVATIONS
 from ..segment import segmenter_help
 from .render import add_camera_args, add_orientation_args, orientation_from_args
 
@@ -75,7 +75,7 @@ def register(sub) -> None:
     p.add_argument("--quiet", "-q", action="store_true",
                    help="no progress bar and no summary: only warnings and errors (stderr); the "
                         "run log still records everything")
-    add_camera_args(p, BuildOptions.elevations,
+    add_camera_args(p, BUILD_ELEVATIONS,
                     ": one ring of M views each, stored in this order. The first is the label "
                     "ring: the view filter, Canny edges, the segmenter and the classifier see its "
                     "views only; every ring is stored with features, and retrieval and pose "

@@ -25,6 +25,7 @@ def run(args) -> int:
     from ucad_catalog.reader import CatalogReader
 
     from ..build import BuildOptions, build
+    from ..cameras import label_ring
     from ..sheets import material_sheet, write_png
     from ..synth import write_library
     from .build import print_summary
@@ -44,7 +45,7 @@ def run(args) -> int:
         for m in accepted[:4]:
             stem = Path(m.path).stem
             views, meta = read_viewset_exr(r.artifact_path(m.sha256, "views.exr"))
-            ring = int(np.count_nonzero(views.cameras.elevation == views.cameras.elevation[0]))
+            ring = label_ring(views.cameras).stop
             views = views.select(np.arange(0, ring, max(1, ring // 12)))   # the label ring
             write_png(sheets / f"{stem}.materials.png", material_sheet(views, meta["materials"]))
             (sheets / f"{stem}.parts.png").write_bytes(r.artifact_path(m.sha256, "parts.png").read_bytes())
