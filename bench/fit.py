@@ -1,6 +1,6 @@
 """Benchmark: the fit (``ucad_cl.fit``) on photo-like references of real and generated vehicles.
 
-    .venv/bin/python bench/fit.py            # ~4-5 min on 2 cores (first run: + the catalogue)
+    .venv/bin/python bench/fit.py            # ~2.5 min on 2 idle cores (first run: + the catalogue)
     .venv/bin/python bench/fit.py --quick    # a smoke run (~1 min)
 
 References (``ucad_cl.refphoto``: Embree ray casts, not the project's renderer) of
@@ -28,7 +28,11 @@ Rows (every reference is fitted by each):
 
 * ``end to end``: ``fit_photo(photo, box=...)``: retrieval over the whole catalogue, the
   estimated pose, the catalogue's own part labels;
-* ``mesh given``: the same with ``mesh=`` the reference's mesh (no retrieval);
+* ``true object mask``: the same with ``mask=`` the reference's true object mask instead of the
+  box (what a user with a photo segmenter, e.g. the paper's Grounded SAM, passes as ``--mask``):
+  retrieval and pose without GrabCut's errors, so the object mask's share of the end-to-end
+  error is visible;
+* ``mesh given``: the same as ``end to end`` with ``mesh=`` the reference's mesh (no retrieval);
 * ``oracle``: true labels and pose: the reference's part map at its true camera, normals from the
   rasterizer at that camera, each part eroded as the fit erodes it (``fit.MARGIN``), then
   ``light.fit_light`` and ``light.balance`` (on ``fit.NEUTRAL_PARTS``) on those pixels, as
@@ -94,7 +98,8 @@ TWINS = {"ferrari_458_nodraco.glb": "ferrari_458.glb"}
 LOOKALIKE_IOU = 0.9             # ring silhouette IoU above which a wrong answer is an outline twin
 POSE_BINS = ((0.0, 8.0), (8.0, 20.0), (20.0, 90.0))   # photo elevations of the pose line, deg
 PAPER_S_PER_MATERIAL = 35.0     # UrbanCAD supplement 8.5: 300 epochs, RTX 3090
-ROWS = ("end to end", "mesh given", "oracle", "baseline", "baseline (true masks)")
+ROWS = ("end to end", "true object mask", "mesh given", "oracle", "baseline",
+        "baseline (true masks)")
 
 
 @dataclass
@@ -341,21 +346,22 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
 
     pixels = true_pixels(ref)
     out: dict[str, Score] = {}
-    for row, key in (("end to end", None), ("mesh given", mesh_id)):
+    for row, key in (("end to end", None), ("true object mask", None), ("mesh given", mesh_id)):
+        given = {"mask": ref.mask} if row == "true object mask" else {"box": box}
         t = time.perf_counter()
         try:
-            res = fit_photo(ref.image, box=box, catalog=reader, mesh=key)
+            res = fit_photo(ref.image, catalog=reader, mesh=key, **given)
         except ValueError as exc:
             print(f"  {v.name}: {row}: {exc}")
             out[row] = Score(seconds=time.perf_counter() - t,
                              top1=0.0 if key is None else float("nan"))
-            if key is None:
+            if row == "end to end":
                 out["baseline"] = Score()
             continue
         times = [time.perf_counter() - t]
         for _ in range(runs - 1):                       # timing only: the same result again
             t = time.perf_counter()
-            fit_photo(ref.image, box=box, catalog=reader, mesh=key)
+            fit_photo(ref.image, catalog=reader, mesh=key, **given)
             times.append(time.perf_counter() - t)
         sec = float(np.median(times))
         sc = score_colors({p: f.color_linear for p, f in res.parts.items()}, ref, pixels)
