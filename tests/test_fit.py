@@ -592,6 +592,43 @@ def test_photo_list_with_progress(photo, catalogue, tmp_path, capsys):
     assert "missing.png: no such file" in captured.err
 
 
+def test_photo_list_with_mask_column(photo, catalogue, tmp_path, capsys):
+    """A list with a header naming its columns: a row with a vehicle mask is fitted on that
+    mask (the JSON says so, as --mask does); a row giving a box and a mask, and a header with an
+    unknown column, get one line naming the line."""
+    import cv2
+
+    from ucad_cl.cli import main
+    from ucad_cl.refphoto import render_reference
+
+    path, box, m = photo
+    _, mesh, rows = _mesh(catalogue, 1)
+    ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=30.0, elevation=10.0,
+                           seed=5, background="plain", size=(240, 320))
+    cv2.imwrite(str(tmp_path / "car_mask.png"), ref.mask.astype(np.uint8) * 255)
+    (tmp_path / "car.png").write_bytes(path.read_bytes())     # paths relative to the list
+    lst = tmp_path / "list.csv"
+    lst.write_text(f"path,mask,mesh\ncar.png,car_mask.png,{m.sha256[:12]}\n")
+    out = tmp_path / "o"
+    assert main(["fit", "--photos", str(lst), "--catalog", str(catalogue), "--out",
+                 str(out)]) == 0
+    assert "1 fitted, 0 failed" in capsys.readouterr().out
+    doc = json.loads((out / "car.json").read_text())
+    assert doc["mesh_id"] == m.sha256 and doc["object"] == "mask"
+    assert doc["parts"]["body"]["status"] in ("fitted", "flagged")
+    both = tmp_path / "both.csv"
+    both.write_text("path,x0,y0,x1,y1,mask\n"
+                    f"car.png,{box[0]},{box[1]},{box[2]},{box[3]},car_mask.png\n")
+    err = _one_line_error(capsys, 2, main(["fit", "--photos", str(both), "--catalog",
+                                           str(catalogue), "--out", str(out)]))
+    assert "line 2" in err and "not both" in err
+    bad = tmp_path / "bad.csv"
+    bad.write_text("path,box,mesh\ncar.png,1,\n")
+    err = _one_line_error(capsys, 2, main(["fit", "--photos", str(bad), "--catalog",
+                                           str(catalogue), "--out", str(out)]))
+    assert "line 1" in err and "box" in err
+
+
 def _red_segmenter(tmp_path: Path) -> str:
     """onnx:MODEL:CONFIG of a 1x1 convolution: class 1 (body) where 10 R - 5 G - 5 B > 1."""
     import onnx

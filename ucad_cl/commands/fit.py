@@ -4,8 +4,9 @@ fit the part materials of a catalogued vehicle to a photo (``ucad_cl.fit``; docs
 Writes DIR/<stem>.json (mesh, pose, lighting, parts, materials, candidates, seconds),
 DIR/<stem>.glb (the model with every material replaced by its part's fitted material; not
 written when the mesh file moved) and DIR/<stem>.png (photo | fitted render | part masks over
-the photo | error map). ``--photos LIST.csv`` (columns path,x0,y0,x1,y1[,mesh]; paths relative
-to the list's folder) fits many photos with a progress bar. Bad input: one line on stderr, exit
+the photo | error map). ``--photos LIST.csv`` (columns path,x0,y0,x1,y1[,mesh], or a header
+naming path, the box or a mask column, and mesh: ``read_list``; paths relative to the list's
+folder) fits many photos with a progress bar. Bad input: one line on stderr, exit
 status 2 (1 when some photos of a list failed).
 """
 from __future__ import annotations
@@ -27,6 +28,11 @@ examples:
   ucad-index fit street.jpg --box 120 80 460 300 --catalog cat --out fits
   ucad-index fit street.jpg --mask car.png --catalog cat --mesh 3f2a9c01 --out fits
   ucad-index fit --photos photos.csv --catalog cat --out fits
+
+The photo list: one photo a line, path,x0,y0,x1,y1[,mesh]; or with a header line naming the
+columns, e.g. "path,mask,mesh" for vehicle masks from a segmenter (paths relative to the list).
+A mask finds the right mesh more often than a box (GrabCut's mask errors cost retrieval:
+docs/FIT.md, "The object mask's share of retrieval").
 """
 
 
@@ -43,7 +49,8 @@ def register(sub) -> None:
                    help="vehicle box in pixels (x1, y1 exclusive); GrabCut finds the vehicle")
     g.add_argument("--mask", type=Path, help="vehicle mask image, same size (non-zero = vehicle)")
     p.add_argument("--photos", type=Path, default=None, metavar="LIST.csv",
-                   help="fit every row of this CSV (path,x0,y0,x1,y1[,mesh])")
+                   help="fit every row of this CSV (path,x0,y0,x1,y1[,mesh]; or a header "
+                        "naming the columns, e.g. path,mask,mesh)")
     p.add_argument("--catalog", required=True, type=Path, metavar="CAT")
     p.add_argument("--mesh", default=None, metavar="MESH",
                    help="the catalogued mesh (id, id prefix, path or file name); default: "
@@ -99,9 +106,9 @@ def run_list(reader, args, segmenter) -> int:
         print(f"{args.photos}: {exc}", file=sys.stderr)
         return 2
     failed = 0
-    for path, box, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
+    for path, box, mask, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
         try:
-            res, out = fit_one(reader, path, box, None, mesh or args.mesh, args.out, segmenter)
+            res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out, segmenter)
             tqdm.write(f"ok    {path} -> {out}.json ({res.mesh_path})")
         except ValueError as exc:
             failed += 1
@@ -110,27 +117,57 @@ def run_list(reader, args, segmenter) -> int:
     return 1 if failed else 0
 
 
+LIST_COLUMNS = ("path", "x0", "y0", "x1", "y1", "mask", "mesh")
+
+
 def read_list(path: Path) -> list:
-    """[(photo path, box, mesh or None)] of a CSV with columns path,x0,y0,x1,y1[,mesh]."""
+    """[(photo path, box or None, mask path or None, mesh or None)] of a photo list (CSV).
+
+    Without a header: columns path,x0,y0,x1,y1[,mesh]. With a header (first cell ``path``),
+    columns by name, any of ``LIST_COLUMNS`` in any order: each row gives the box (x0..x1) or
+    a ``mask`` image (non-zero = vehicle), not both; an empty ``mesh`` means retrieval. Paths
+    are relative to the list's folder. ValueError naming the line for a malformed row."""
     import csv
 
+    def where(p: str) -> Path:
+        q = Path(p.strip())
+        return q if q.is_absolute() else path.parent / q
+
     rows = []
+    names = ["path", "x0", "y0", "x1", "y1", "mesh"]
     with open(path, newline="", encoding="utf-8") as f:
         for k, row in enumerate(csv.reader(f)):
             if not row or row[0].strip().startswith("#"):
                 continue
             if k == 0 and row[0].strip().lower() == "path":
+                names = [c.strip().lower() for c in row]
+                unknown = [c for c in names if c not in LIST_COLUMNS]
+                if unknown or len(set(names)) != len(names):
+                    raise ValueError(f"line 1: columns must be distinct names among "
+                                     f"{','.join(LIST_COLUMNS)}; got {','.join(names)}")
+                if "mask" not in names and not {"x0", "y0", "x1", "y1"} <= set(names):
+                    raise ValueError("line 1: give the box columns x0,y0,x1,y1 or a mask "
+                                     "column")
                 continue
-            if len(row) not in (5, 6):
-                raise ValueError(f"line {k + 1}: expected path,x0,y0,x1,y1[,mesh], got "
-                                 f"{len(row)} columns")
-            try:
-                box = [float(v) for v in row[1:5]]
-            except ValueError:
-                raise ValueError(f"line {k + 1}: the box must be 4 numbers") from None
-            p = Path(row[0].strip())
-            rows.append((p if p.is_absolute() else path.parent / p, box,
-                         row[5].strip() if len(row) == 6 and row[5].strip() else None))
+            if names[-1] == "mesh" and len(row) == len(names) - 1:
+                row = row + [""]                    # the optional last mesh column left out
+            if len(row) != len(names):
+                raise ValueError(f"line {k + 1}: expected {','.join(names)}, got {len(row)} "
+                                 "columns")
+            cell = {n: v.strip() for n, v in zip(names, row)}
+            corners = [cell.get(n, "") for n in ("x0", "y0", "x1", "y1")]
+            box = mask = None
+            if any(corners):
+                try:
+                    box = [float(v) for v in corners]
+                except ValueError:
+                    raise ValueError(f"line {k + 1}: the box must be 4 numbers") from None
+            if cell.get("mask"):
+                mask = where(cell["mask"])
+            if (box is None) == (mask is None):
+                raise ValueError(f"line {k + 1}: give the box (x0,y0,x1,y1) or a mask, "
+                                 + ("not both" if box is not None else "neither is given"))
+            rows.append((where(cell["path"]), box, mask, cell.get("mesh") or None))
     if not rows:
         raise ValueError("no photo listed")
     return rows
