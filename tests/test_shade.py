@@ -153,10 +153,10 @@ def test_device_shading_matches_numpy_reference(runtime):
 
 
 def test_srgb_bucket_table_is_a_tight_lower_bound():
-    """ucad_cl/kernels/shade.cl starts from ``srgb8_bucket_start[int(x * 4095)]`` and steps up by the
-    exact thresholds: the start must never exceed the level of any float32 x in the bucket
-    (checked on every float32 next to each bucket boundary and on a dense sweep), and stays
-    within a few levels of it (the kernel's loop is short)."""
+    """ucad_cl/kernels/shade.cl starts from ``srgb8_bucket_start[int(x * (SRGB_BUCKETS - 1))]``
+    and steps up by the exact thresholds: the start must never exceed the level of any float32
+    x in the bucket (checked on every float32 next to each bucket boundary and on a dense
+    sweep), and stays within a few levels of it (the kernel's loop is short)."""
     from ucad_cl.shade import SRGB_BUCKETS, linear_to_srgb8, srgb8_bucket_start, srgb8_thresholds
 
     thr = srgb8_thresholds()

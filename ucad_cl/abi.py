@@ -24,7 +24,7 @@ BG_MAT = int(BACKGROUND_MAT)     # material id of background pixels; faces have 
 BIG_PIXELS = 1024                # raster parallel path: boxes above this go to raster_big
 MAX_BINS = 36                    # HOG orientation bins, at most (per-cell histogram array)
 K_MAX = 64                       # search: k of one top-k, at most (per-work-item arrays)
-SRGB_BUCKETS = 4096              # shade: buckets of the linear -> sRGB start-level table
+SRGB_BUCKETS = 65536             # shade: buckets of the linear -> sRGB start-level table
 MAX_PARTS = PartMasks.MAX_PARTS  # parts: part masks are uint16 bit sets
 
 CONSTANTS = {"UCAD_BG_TRI": f"{BG_TRI:#x}u", "UCAD_BG_MAT": f"{BG_MAT}u",
