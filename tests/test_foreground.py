@@ -96,6 +96,58 @@ def test_grabcut_finds_the_vehicle_in_the_box(car, runtime):
     assert (ref & truth).sum() / (ref | truth).sum() > 0.9
 
 
+def _guided_reference(guide, src, r, eps):
+    """The guided filter (He et al. 2010, eq. 7-8) in float64 with explicit window means over
+    the reflected image (OpenCV's BORDER_REFLECT: ...cba|abc...)."""
+    g = guide.astype(np.float64).mean(axis=2) / 255.0
+    p = src.astype(np.float64)
+
+    def mean(x):
+        xp = np.pad(x, r, mode="symmetric")
+        H, W = x.shape
+        return np.array([[xp[i:i + 2 * r + 1, j:j + 2 * r + 1].mean() for j in range(W)]
+                         for i in range(H)])
+
+    mg, mp = mean(g), mean(p)
+    a = (mean(g * p) - mg * mp) / (mean(g * g) - mg * mg + eps)
+    b = mp - a * mg
+    return mean(a) * g + mean(b)
+
+
+def test_guided_filter_against_a_reference():
+    rng = np.random.default_rng(3)
+    guide = rng.integers(0, 256, (23, 31, 3), dtype=np.uint8)
+    guide[:, 15:] //= 4                                       # a strong vertical edge
+    src = (rng.uniform(size=(23, 31)) > 0.5).astype(np.float32)
+    for r, eps in ((1, 1e-3), (3, 1e-2), (5, 1e-4)):
+        got = fg.guided_filter(guide, src, r, eps)
+        assert got.dtype == np.float32 and got.shape == src.shape
+        np.testing.assert_allclose(got, _guided_reference(guide, src, r, eps), atol=2e-4)
+
+
+def test_grabcut_mask_follows_the_photos_edges_at_full_size(car, runtime):
+    """GrabCut runs at GRABCUT_SIDE px; on a photo several times larger, with ``follow_edges``
+    its mask is scaled back along the photo's own edges (``EDGE_RADIUS``): nearer the rendered
+    truth than the nearest-neighbour upsampling, whose boundary is quantised to the reduction
+    step; and the same seeded by a silhouette (the fit's refinement)."""
+    ring = make_ring(azimuths=[35.0], elevations=[12.0], size=(640, 480))
+    views = render_views(car, ring)
+    truth = np.isfinite(views.depth[0])
+    img = shade_views(car, views, background=_stripes(480, 640))[0]
+    ys, xs = np.nonzero(truth)
+    box = (xs.min() - 6, ys.min() - 5, xs.max() + 7, ys.max() + 6)
+
+    def iou(m):
+        return (m & truth).sum() / (m | truth).sum()
+
+    edge_aware = fg.object_mask(img, box=box, follow_edges=True).mask
+    nearest = fg.object_mask(img, box=box).mask
+    assert iou(edge_aware) > iou(nearest) and iou(edge_aware) > 0.95, (iou(edge_aware),
+                                                                       iou(nearest))
+    seeded = fg.refine_with_silhouette(img, truth, core=0.04, follow_edges=True)
+    assert iou(seeded) > iou(fg.refine_with_silhouette(img, truth, core=0.04))
+
+
 def test_grabcut_that_keeps_too_little_falls_back_to_the_box():
     """A flat image has no object: whatever GrabCut answers, the result is a usable mask."""
     img = np.full((60, 80, 3), 90, np.uint8)

@@ -363,7 +363,7 @@ class _Fit:
 
     def run(self, photo, box, mask, mesh_key, segmenter) -> FitResult:
         photo = check_image(photo)
-        obj = object_mask(photo, box=box, mask=mask)
+        obj = object_mask(photo, box=box, mask=mask, follow_edges=True)   # foreground.py
         if obj.source == "box":
             x0, y0, x1, y1 = obj.box
             spread = float(photo[y0:y1, x0:x1].reshape(-1, 3).std(axis=0).max())
@@ -632,7 +632,7 @@ class _Fit:
         prior = votes >= len(seeds) / 2.0
         if not prior.any():
             return None
-        fg = refine_with_silhouette(photo, prior, core=REFINE_CORE)
+        fg = refine_with_silhouette(photo, prior, core=REFINE_CORE, follow_edges=True)
         if np.count_nonzero(fg) < max(MIN_REFINED * np.count_nonzero(prior), 8):
             return None
         return ObjectMask(mask=fg, source="grabcut", box=obj.box,

@@ -11,8 +11,13 @@ pixels over the renders' background, exactly as the renders have it.
   (``grabcut_box``), seeded by the box: the box grown by ``GROW`` of its size on every side is
   "probably background" around a "probably foreground" box, everything farther out is
   background (a detector's box may cut a few pixels of the car). GrabCut runs on the region
-  reduced to at most ``GRABCUT_SIDE`` pixels (speed; the mask is scaled back with nearest
-  neighbour). ``kept`` reports the share of the box's pixels it kept. When it keeps less than
+  reduced to at most ``GRABCUT_SIDE`` pixels (speed); its mask is scaled back with nearest
+  neighbour, or, with ``follow_edges`` (the fit's object, which retrieval describes), along the
+  photo's own edges: ``guided_filter`` with the photo's grey levels as the guide (radius
+  ``EDGE_RADIUS`` GrabCut pixels), thresholded at 1/2, so the boundary is not quantised to the
+  reduction step (retrieval of real vehicles 101 against 97 of 120 on three held-out draws;
+  pose search keeps nearest neighbour: 94.2 against 95.3 % of box poses within 15 deg with it;
+  docs/FIT.md, "The object mask's share of retrieval"). ``kept`` reports the share of the box's pixels it kept. When it keeps less than
   ``MIN_KEPT`` of the box (it lost the object in clutter of the object's colours), the whole box
   is used instead (``source='box'``).
 * ``refine_with_silhouette`` reruns GrabCut seeded by a render's silhouette placed over the
@@ -36,6 +41,9 @@ RENDER_BACKGROUND = (128, 128, 128)     # the flat background of the renders pos
 GROW = 0.1              # box margin treated as "probably background" (fraction of the box side)
 GRABCUT_SIDE = 96       # GrabCut runs on the region reduced to this longer side (pixels)
 GRABCUT_ITERS = 5
+EDGE_RADIUS = 3.0       # GrabCut's mask scaled back along the photo's edges: guided filter radius
+#                         in GrabCut pixels (chosen on tuning photos: 1.5-4 alike, 6 worse)
+EDGE_EPS = 1e-3         # ... and its regulariser (grey levels in [0, 1], squared)
 MIN_KEPT = 0.15         # below this share of the box, GrabCut's answer is not used
 MIN_PIXELS = 8          # objects with fewer mask pixels are refused
 
@@ -56,10 +64,12 @@ class ObjectMask:
     kept: float = 1.0
 
 
-def object_mask(image: np.ndarray, *, box=None, mask=None, grabcut: bool = True) -> ObjectMask:
+def object_mask(image: np.ndarray, *, box=None, mask=None, grabcut: bool = True,
+                follow_edges: bool = False) -> ObjectMask:
     """The object of ``image`` ((H, W, 3) uint8 RGB) given by exactly one of ``box`` (x0, y0,
     x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W), non-zero = object). With a box and
-    ``grabcut=False`` the object is the whole box. ValueError naming the problem for a bad
+    ``grabcut=False`` the object is the whole box; ``follow_edges``: GrabCut's mask scaled back
+    along the photo's edges (module docstring). ValueError naming the problem for a bad
     image, an empty or tiny mask or box, or both/neither given."""
     image = check_image(image)
     if (box is None) == (mask is None):
@@ -87,7 +97,7 @@ def object_mask(image: np.ndarray, *, box=None, mask=None, grabcut: bool = True)
     whole[y0:y1, x0:x1] = True
     if not grabcut:
         return ObjectMask(mask=whole, source="box", box=b, kept=1.0)
-    fg = grabcut_box(image, b)
+    fg = grabcut_box(image, b, follow_edges=follow_edges)
     kept = float(fg[y0:y1, x0:x1].mean())
     if kept < MIN_KEPT:
         return ObjectMask(mask=whole, source="box", box=b, kept=kept)
@@ -140,18 +150,20 @@ def mask_box(mask: np.ndarray) -> tuple[int, int, int, int]:
 
 # ----------------------------------------------------------------------------- GrabCut
 
-def grabcut_box(image: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+def grabcut_box(image: np.ndarray, box: tuple[int, int, int, int], *,
+                follow_edges: bool = False) -> np.ndarray:
     """(H, W) bool foreground estimated by GrabCut inside the integer pixel ``box``."""
     x0, y0, x1, y1 = box
     g = GROW * max(x1 - x0, y1 - y0)
     seeds = _Seeds(image.shape[:2], (x0 - 2 * g, y0 - 2 * g, x1 + 2 * g, y1 + 2 * g))
     seeds.fill((x0 - g, y0 - g, x1 + g, y1 + g), cv2.GC_PR_BGD)
     seeds.fill((x0, y0, x1, y1), cv2.GC_PR_FGD)
-    return seeds.run(image)
+    return seeds.run(image, follow_edges)
 
 
 def refine_with_silhouette(image: np.ndarray, silhouette: np.ndarray,
-                           band: float = 0.06, core: float = 0.0) -> np.ndarray:
+                           band: float = 0.06, core: float = 0.0,
+                           follow_edges: bool = False) -> np.ndarray:
     """(H, W) bool foreground from GrabCut seeded by ``silhouette`` ((H, W) bool, a render's
     mask placed over the object): "probably foreground" inside it, "probably background" in a
     band of ``band`` x its box side around it, background beyond; with ``core`` > 0 the
@@ -170,7 +182,7 @@ def refine_with_silhouette(image: np.ndarray, silhouette: np.ndarray,
         c = 2 * int(np.ceil(core * side * seeds.scale)) + 1
         inner = cv2.erode(sil, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (c, c))) > 0
         seeds.labels[inner] = cv2.GC_FGD
-    return seeds.run(image)
+    return seeds.run(image, follow_edges)
 
 
 class _Seeds:
@@ -200,7 +212,7 @@ class _Seeds:
         rx0, ry0, rx1, ry1 = self.region
         return cv2.resize(img[ry0:ry1, rx0:rx1], self.size, interpolation=cv2.INTER_NEAREST)
 
-    def run(self, image) -> np.ndarray:
+    def run(self, image, follow_edges: bool = False) -> np.ndarray:
         rx0, ry0, rx1, ry1 = self.region
         out = np.zeros(self.shape, bool)
         lab = self.labels
@@ -220,10 +232,31 @@ class _Seeds:
             cv2.grabCut(small, lab, None, bgd, fgd, GRABCUT_ITERS, cv2.GC_INIT_WITH_MASK)
         except cv2.error:                       # too few samples for a colour model
             return out
-        fg = ((lab == cv2.GC_FGD) | (lab == cv2.GC_PR_FGD)).astype(np.uint8)
-        out[ry0:ry1, rx0:rx1] = cv2.resize(fg, (rx1 - rx0, ry1 - ry0),
-                                           interpolation=cv2.INTER_NEAREST) > 0
+        fg = ((lab == cv2.GC_FGD) | (lab == cv2.GC_PR_FGD)).astype(np.float32)
+        up = cv2.resize(fg, (rx1 - rx0, ry1 - ry0), interpolation=cv2.INTER_NEAREST)
+        if follow_edges and EDGE_RADIUS > 0 and self.scale < 1.0:
+            r = max(1, int(round(EDGE_RADIUS / self.scale)))
+            up = guided_filter(image[ry0:ry1, rx0:rx1], up, r, EDGE_EPS)
+        out[ry0:ry1, rx0:rx1] = up > 0.5
         return out
+
+
+def guided_filter(guide: np.ndarray, src: np.ndarray, radius: int, eps: float) -> np.ndarray:
+    """(H, W) float32: ``src`` ((H, W) float32) filtered by the guided filter (He, Sun and Tang,
+    ECCV 2010) with the grey level of ``guide`` ((H, W, 3) uint8, mean of the channels / 255) as
+    the guide; box windows of side 2 ``radius`` + 1 (reflected at the borders) and ``eps`` the
+    regulariser: an edge of the guide stays an edge of the output, so a mask upsampled from
+    GrabCut's grid moves onto the photo's own boundary."""
+    g = guide.astype(np.float32).mean(axis=2) * np.float32(1.0 / 255.0)
+    k = (2 * radius + 1, 2 * radius + 1)
+
+    def box(x):
+        return cv2.boxFilter(x, -1, k, borderType=cv2.BORDER_REFLECT)
+
+    mg, ms = box(g), box(src)
+    a = (box(g * src) - mg * ms) / (box(g * g) - mg * mg + np.float32(eps))
+    b = ms - a * mg
+    return box(a) * g + box(b)
 
 
 # ----------------------------------------------------------------------------- centring
