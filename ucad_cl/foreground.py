@@ -17,9 +17,10 @@ pixels over the renders' background, exactly as the renders have it.
   ``EDGE_RADIUS`` GrabCut pixels), thresholded at 1/2, so the boundary is not quantised to the
   reduction step (retrieval of real vehicles 101 against 97 of 120 on three held-out draws;
   pose search keeps nearest neighbour: 94.2 against 95.3 % of box poses within 15 deg with it;
-  docs/FIT.md, "The object mask's share of retrieval"). ``kept`` reports the share of the box's pixels it kept. When it keeps less than
-  ``MIN_KEPT`` of the box (it lost the object in clutter of the object's colours), the whole box
-  is used instead (``source='box'``).
+  docs/FIT.md, "GrabCut's mask scaled back along the photo's edges"). ``kept`` reports the
+  share of the box's pixels it kept. When it keeps less than ``MIN_KEPT`` of the box (it lost
+  the object in clutter of the object's colours), the whole box is used instead
+  (``source='box'``).
 * ``refine_with_silhouette`` reruns GrabCut seeded by a render's silhouette placed over the
   object (pose search does this with its best candidate): "probably foreground" inside the
   silhouette, "probably background" in a band around it, background beyond (with ``core``,
