@@ -22,8 +22,9 @@ Conventions and units:
 Two paths: ``device=True`` (default) runs ``ucad_cl/kernels/shade.cl`` over all views in one launch
 (float32; measured ~0.15 s -> ~0.01 s for 72 views x 256 px, where NumPy shading was the largest
 cost of a catalogue build), after a launch that computes every pixel's half vector once (the
-same in every view: 144 views of a 50k-triangle mesh ~66 -> ~40 ms on PoCL, same bytes); ``device=False`` is the vectorised float64 NumPy reference, one view at
-a time, which the kernel is tested against (to within one 8-bit level).
+same in every view: 144 views of a 50k-triangle mesh ~66 -> ~40 ms on PoCL, same bytes);
+``device=False`` is the vectorised float64 NumPy reference, one view at a time, which the kernel
+is tested against (to within one 8-bit level).
 """
 from __future__ import annotations
 
