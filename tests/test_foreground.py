@@ -29,6 +29,17 @@ def _stripes(H, W):
     return img
 
 
+def _sedan_over_stripes(car, size, grow):
+    """(true mask, photo, box): the sedan at azimuth 35, elevation 12 over stripes, ``size``
+    (W, H); the box is the mask's grown by ``grow`` (left, top, right, bottom) pixels."""
+    views = render_views(car, make_ring(azimuths=[35.0], elevations=[12.0], size=size))
+    truth = np.isfinite(views.depth[0])
+    img = shade_views(car, views, background=_stripes(size[1], size[0]))[0]
+    ys, xs = np.nonzero(truth)
+    return truth, img, (xs.min() - grow[0], ys.min() - grow[1], xs.max() + grow[2],
+                        ys.max() + grow[3])
+
+
 def test_mask_and_box_errors_name_the_problem():
     img = np.zeros((40, 60, 3), np.uint8)
     with pytest.raises(ValueError, match="mask is empty"):
@@ -70,12 +81,7 @@ def test_given_mask_and_plain_box():
 
 def test_grabcut_finds_the_vehicle_in_the_box(car, runtime):
     """A sedan over stripes of other colours: GrabCut's mask against the rendered truth."""
-    ring = make_ring(azimuths=[35.0], elevations=[12.0], size=(200, 150))
-    views = render_views(car, ring)
-    truth = np.isfinite(views.depth[0])
-    img = shade_views(car, views, background=_stripes(150, 200))[0]
-    ys, xs = np.nonzero(truth)
-    box = (xs.min() - 3, ys.min() - 2, xs.max() + 4, ys.max() + 3)
+    truth, img, box = _sedan_over_stripes(car, (200, 150), (3, 2, 4, 3))
     o = fg.object_mask(img, box=box)
     assert o.source == "grabcut"
     iou = (o.mask & truth).sum() / (o.mask | truth).sum()
@@ -130,12 +136,7 @@ def test_grabcut_mask_follows_the_photos_edges_at_full_size(car, runtime):
     its mask is scaled back along the photo's own edges (``EDGE_RADIUS``): nearer the rendered
     truth than the nearest-neighbour upsampling, whose boundary is quantised to the reduction
     step; and the same seeded by a silhouette (the fit's refinement)."""
-    ring = make_ring(azimuths=[35.0], elevations=[12.0], size=(640, 480))
-    views = render_views(car, ring)
-    truth = np.isfinite(views.depth[0])
-    img = shade_views(car, views, background=_stripes(480, 640))[0]
-    ys, xs = np.nonzero(truth)
-    box = (xs.min() - 6, ys.min() - 5, xs.max() + 7, ys.max() + 6)
+    truth, img, box = _sedan_over_stripes(car, (640, 480), (6, 5, 7, 6))
 
     def iou(m):
         return (m & truth).sum() / (m | truth).sum()
