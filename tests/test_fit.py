@@ -468,6 +468,7 @@ def photo(catalogue, tmp_path_factory):
                            seed=5, background="plain", size=(240, 320))
     d = tmp_path_factory.mktemp("photos")
     cv2.imwrite(str(d / "car.png"), ref.image[:, :, ::-1])
+    cv2.imwrite(str(d / "car_mask.png"), ref.mask.astype(np.uint8) * 255)  # beside it: its mask
     return d / "car.png", ref.box, m
 
 
@@ -596,17 +597,11 @@ def test_photo_list_with_mask_column(photo, catalogue, tmp_path, capsys):
     """A list with a header naming its columns: a row with a vehicle mask is fitted on that
     mask (the JSON says so, as --mask does); a row giving a box and a mask, and a header with an
     unknown column, get one line naming the line."""
-    import cv2
-
     from ucad_cl.cli import main
-    from ucad_cl.refphoto import render_reference
 
     path, box, m = photo
-    _, mesh, rows = _mesh(catalogue, 1)
-    ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=30.0, elevation=10.0,
-                           seed=5, background="plain", size=(240, 320))
-    cv2.imwrite(str(tmp_path / "car_mask.png"), ref.mask.astype(np.uint8) * 255)
-    (tmp_path / "car.png").write_bytes(path.read_bytes())     # paths relative to the list
+    for name in ("car.png", "car_mask.png"):                  # paths relative to the list
+        (tmp_path / name).write_bytes((path.parent / name).read_bytes())
     lst = tmp_path / "list.csv"
     lst.write_text(f"path,mask,mesh\ncar.png,car_mask.png,{m.sha256[:12]}\n")
     out = tmp_path / "o"

@@ -2,8 +2,9 @@
  * for the model, units and conventions; this kernel is its device path, the NumPy code there is
  * the reference it is tested against, to within one 8-bit level).
  *
- * One work-item per pixel of the (V, H, W) batch. Per view: R (3x3, row-major) and t of the
- * world-to-camera matrix. Per face: unit normal and first vertex (canonical frame), material.
+ * shade_pixels: one work-item per pixel of the (V, H, W) batch. Per view: R (3x3, row-major)
+ * and t of the world-to-camera matrix. Per face: unit normal and first vertex (canonical
+ * frame), material. Per pixel position: its half vector, from half_vectors (run first).
  */
 #include "common.h"
 
