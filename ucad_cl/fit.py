@@ -125,6 +125,8 @@ FINE_WEIGHT = 2.0           # ... by HOG distance + this x the finer HOG's dista
 FINE_HOG = dict(size=128, cell=8)   # the finer HOG: 15 x 15 blocks of the 128 px crop
 REFINE_CORE = 0.04          # ... their core (eroded by this share of the box side) is foreground
 MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of the prior
+SEED_MASK_STEP = 10.0       # ... and each seed alone too, over stored rings of at most this
+#                             azimuth step (degrees; docs/FIT.md)
 
 
 class PhotoSegmenter(Protocol):
@@ -354,6 +356,9 @@ class _Fit:
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
         self.db: FeatureTable | SearchIndex | None = None
+        self.fine_rows: dict[tuple[str, int], np.ndarray] = {}   # (sha, view) -> finer HOG
+        self.view_infos: dict[str, list] = {}                      # sha -> its stored views
+        self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
         self._t = time.perf_counter()
 
     def _lap(self, stage: str) -> None:
@@ -371,18 +376,7 @@ class _Fit:
                 raise ValueError(f"no vehicle found inside the box {obj.box}: it is uniform "
                                  f"(standard deviation {spread:.1f} levels; all background?)")
         self._lap("object")
-        if obj.source != "mask":                # GrabCut again, seeded by stored silhouettes
-            if mesh_key is None:
-                seeds = self._first_views(photo, obj)
-            else:
-                sha = self._given(mesh_key).sha256
-                seeds = [(sha, self._nearest_view(sha, photo, obj))]
-            self._lap("retrieval")
-            refined = self._refined_object(photo, obj, seeds)
-            if refined is not None:
-                obj = refined
-            self._lap("object")
-        meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
+        obj, meta, candidates, best_view = self._object_and_mesh(photo, obj, mesh_key)
         self._lap("retrieval")
         if obj.source == "box":
             self.notes.append(f"GrabCut kept {obj.kept:.0%} of the box: the vehicle's outline "
@@ -439,6 +433,42 @@ class _Fit:
                          images=images, mesh=mesh, part_rows=rows, object_source=obj.source,
                          loss=loss, object=obj)
 
+    # -- the object and the mesh
+    def _object_and_mesh(self, photo, obj: ObjectMask, mesh_key):
+        """(object, mesh record, candidates, best stored view): steps 1-2 of docs/FIT.md. With
+        a box, GrabCut's object is refined by the stored silhouettes of the first meshes
+        (``_refined_object``: a pixel at least half of them cover), and, without ``--mesh``,
+        once by each of those silhouettes alone: retrieval runs on every such mask and keeps
+        the answer that scores best (ties: the voted mask's, then the seeds' order); the
+        object returned, which the pose touch-up and the part masks use, stays the voted mask
+        (the colours were worse from the winning mask: docs/FIT.md). The single-seed masks only over stored rings of
+        azimuth step at most ``SEED_MASK_STEP``: a coarser ring's silhouettes are too far from
+        the photo's pose, and a mask shaped by one of them favours its own mesh (docs/FIT.md)."""
+        hypotheses: list[ObjectMask] = []       # other object masks retrieval tries
+        if obj.source != "mask":                # GrabCut again, seeded by stored silhouettes
+            if mesh_key is None:
+                seeds = self._first_views(photo, obj)
+            else:
+                sha = self._given(mesh_key).sha256
+                seeds = [(sha, self._nearest_view(sha, photo, obj))]
+            self._lap("retrieval")
+            first = obj
+            refined = self._refined_object(photo, first, seeds)
+            if refined is not None:
+                obj = refined
+            if len(seeds) > 1 and self._ring_step(seeds[0][0]) <= SEED_MASK_STEP:
+                for seed in seeds:              # one mask per seed too (docstring)
+                    alone = self._refined_object(photo, first, [seed])
+                    if alone is not None:
+                        hypotheses.append(alone)
+            self._lap("object")
+        meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
+        for alt in hypotheses:                  # (ties: the mask voted by every seed)
+            m2, c2, v2 = self._pick_mesh(photo, alt, None)
+            if c2 and candidates and c2[0].score < candidates[0].score:
+                meta, candidates, best_view = m2, c2, v2
+        return obj, meta, candidates, best_view
+
     # -- which mesh
     def _given(self, key):
         """The catalogue's record of the mesh the caller named (ValueError if not accepted)."""
@@ -486,7 +516,7 @@ class _Fit:
         cands = []
         for k, view, score in ranked[:CANDIDATES]:
             m = metas[k]
-            v = self.r.views(m.sha256)[view]
+            v = self._views(m.sha256)[view]
             cands.append(Candidate(m.sha256, str(m.source), view, v.azimuth, v.elevation,
                                    score))
         return metas[ranked[0][0]], cands, ranked[0][1]
@@ -505,10 +535,10 @@ class _Fit:
         qf = unit_rows(q_fine[None])[0][0]
         q = unit_rows(np.asarray(query)[None])[0][0]
         table = self._database()                   # mt.mesh indexes its meshes (= metas)
-        imgs, masks, rows = [], [], []
+        imgs, masks, todo, rows = [], [], [], []
         for mt in best[:FINE_MESHES]:
             sha = metas[mt.mesh].sha256
-            views = self.r.views(sha)
+            views = self._views(sha)
             ring = sorted((v.azimuth, v.index) for v in views
                           if v.elevation == views[mt.view].elevation)
             at = [i for _, i in ring].index(mt.view)
@@ -519,13 +549,19 @@ class _Fit:
             for row in self.r.parts(sha):
                 albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
             for v, dv in zip(sel, d):
+                rows.append((mt.mesh, v, float(dv)))
+                if (sha, v) in self.fine_rows or (sha, v) in todo:
+                    continue
                 rec = self.r.view(sha, v)
                 imgs.append(shade_stored_view(rec.depth, rec.mat_id, rec.tri_id, rec.K, albedo))
                 masks.append(np.isfinite(rec.depth))
-                rows.append((mt.mesh, v, float(dv)))
+                todo.append((sha, v))
+        if todo:                                    # one HOG launch for every new view
+            new = unit_rows(ex.extract(np.stack(imgs), np.stack(masks)).feats)[0]
+            self.fine_rows.update(zip(todo, new))
         scored: list[tuple[float, int, int, int]] = []
-        if rows:                                    # one HOG launch for every view
-            f = unit_rows(ex.extract(np.stack(imgs), np.stack(masks)).feats)[0]
+        if rows:
+            f = np.stack([self.fine_rows[metas[k].sha256, v] for k, v, _ in rows])
             total = np.array([dv for _, _, dv in rows]) + FINE_WEIGHT * (2.0 - 2.0 * f @ qf)
             for rank, mt in enumerate(best[:FINE_MESHES]):
                 own = [i for i, (k, _, _) in enumerate(rows) if k == mt.mesh]
@@ -534,6 +570,19 @@ class _Fit:
         scored.sort()
         return ([(k, v, s) for s, _, k, v in scored]
                 + [(mt.mesh, mt.view, mt.score) for mt in best[FINE_MESHES:]])
+
+    def _ring_step(self, sha: str) -> float:
+        """Azimuth step (degrees) of a mesh's first stored ring: the smallest gap between its
+        azimuths, around the circle (360 for a single view)."""
+        views = self._views(sha)
+        az = np.unique([v.azimuth % 360.0 for v in views if v.elevation == views[0].elevation])
+        return float(np.diff(np.append(az, az[0] + 360.0)).min()) if len(az) > 1 else 360.0
+
+    def _views(self, sha: str) -> list:
+        """The catalogue's views of a mesh (``CatalogReader.views``), read once per photo."""
+        if sha not in self.view_infos:
+            self.view_infos[sha] = self.r.views(sha)
+        return self.view_infos[sha]
 
     def _database(self) -> FeatureTable | SearchIndex:
         """Where retrieval's stored rows come from: the catalogue's search index when it is
@@ -583,7 +632,11 @@ class _Fit:
         if isinstance(src, SearchIndex):
             near = src.preselect(query, INDEX_ROWS)
             try:
-                return src.meshes, src.rows(near), src.mesh[near], src.view[near]
+                new = [int(i) for i in near if int(i) not in self.index_rows]
+                if new:                         # rows read once per photo (several queries)
+                    self.index_rows.update(zip(new, src.rows(np.asarray(new, np.int64))))
+                rows = np.stack([self.index_rows[int(i)] for i in near])
+                return src.meshes, rows, src.mesh[near], src.view[near]
             except CatalogError as exc:
                 self.notes.append(f"search index not used ({exc}): every stored row read")
                 src = self.db = self._table()
