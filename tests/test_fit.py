@@ -720,8 +720,9 @@ def test_retrieval_keeps_the_object_mask_whose_answer_is_nearest(catalogue, monk
             first = object_mask(ref.image, box=ref.box, follow_edges=True)
             seeds = fit._Fit(r, None)._first_views(ref.image, first)
             assert len(seeds) == fit.REFINE_MESHES
-            masks = [fit._Fit(r, None)._refined_object(ref.image, first, seeds)]
-            masks += [fit._Fit(r, None)._refined_object(ref.image, first, [s]) for s in seeds]
+            placed = fit._Fit(r, None)._placed_silhouettes(ref.image, first, seeds)
+            masks = [fit._Fit(r, None)._refined_object(ref.image, first, placed)]
+            masks += [fit._Fit(r, None)._refined_object(ref.image, first, [p]) for p in placed]
             tried = []
             for i, om in enumerate(masks):
                 if om is not None:

@@ -328,10 +328,17 @@ def catalog_ring(reader: CatalogReader, key: str) -> PoseRing:
     W, H = max(1, int(round(W * f))), max(1, int(round(H * f)))
     ring = CameraRing(K=K, w2c=w2c, width=W, height=H, azimuth=az, elevation=el,
                       distance=dist, near=0.01 * dist)
-    n_az = int(np.sum(el == el[0]))
     sides = f * np.array([float(v["stats"].get("box_side", 0.0)) for v in views])
     return PoseRing(ring=ring, feats=np.asarray(feats, np.float32), sides=sides,
-                    extractor=HogExtractor(), azimuth_step=360.0 / max(n_az, 1))
+                    extractor=HogExtractor(), azimuth_step=azimuth_step(el))
+
+
+
+def azimuth_step(elevations) -> float:
+    """Azimuth step (degrees) of a stored ring from its views' elevations: 360 over the number
+    of views at the first elevation (rings are elevation-major, ``cameras.make_ring``)."""
+    el = np.asarray(elevations, np.float64)
+    return 360.0 / max(int(np.sum(el == el[0])), 1)
 
 
 # ----------------------------------------------------------------------------- the steps
@@ -441,9 +448,10 @@ class _Fit:
         once by each of those silhouettes alone: retrieval runs on every such mask and keeps
         the answer that scores best (ties: the voted mask's, then the seeds' order); the
         object returned, which the pose touch-up and the part masks use, stays the voted mask
-        (the colours were worse from the winning mask: docs/FIT.md). The single-seed masks only over stored rings of
-        azimuth step at most ``SEED_MASK_STEP``: a coarser ring's silhouettes are too far from
-        the photo's pose, and a mask shaped by one of them favours its own mesh (docs/FIT.md)."""
+        (the colours were worse from the winning mask: docs/FIT.md). The single-seed masks
+        only over stored rings of azimuth step (``azimuth_step``) at most ``SEED_MASK_STEP``:
+        a coarser ring's silhouettes are too far from the photo's pose, and a mask shaped by
+        one of them favours its own mesh (docs/FIT.md)."""
         hypotheses: list[ObjectMask] = []       # other object masks retrieval tries
         if obj.source != "mask":                # GrabCut again, seeded by stored silhouettes
             if mesh_key is None:
@@ -453,19 +461,21 @@ class _Fit:
                 seeds = [(sha, self._nearest_view(sha, photo, obj))]
             self._lap("retrieval")
             first = obj
-            refined = self._refined_object(photo, first, seeds)
+            placed = self._placed_silhouettes(photo, first, seeds)
+            refined = self._refined_object(photo, first, placed)
             if refined is not None:
                 obj = refined
-            if len(seeds) > 1 and self._ring_step(seeds[0][0]) <= SEED_MASK_STEP:
-                for seed in seeds:              # one mask per seed too (docstring)
-                    alone = self._refined_object(photo, first, [seed])
+            if (len(seeds) > 1 and azimuth_step([v.elevation for v in self._views(seeds[0][0])])
+                    <= SEED_MASK_STEP):
+                for one in placed:              # one mask per seed too (docstring)
+                    alone = self._refined_object(photo, first, [one])
                     if alone is not None:
                         hypotheses.append(alone)
             self._lap("object")
         meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
         for alt in hypotheses:                  # (ties: the mask voted by every seed)
             m2, c2, v2 = self._pick_mesh(photo, alt, None)
-            if c2 and candidates and c2[0].score < candidates[0].score:
+            if c2[0].score < candidates[0].score:
                 meta, candidates, best_view = m2, c2, v2
         return obj, meta, candidates, best_view
 
@@ -545,13 +555,15 @@ class _Fit:
             sel = [ring[(at + d) % len(ring)][1] for d in range(-FINE_VIEWS, FINE_VIEWS + 1)]
             first = int(np.searchsorted(table.mesh, mt.mesh))    # its rows, in view order
             d = 2.0 - 2.0 * unit_rows(table.rows(first + np.asarray(sel)))[0] @ q
-            albedo = np.full((metas[mt.mesh].n_materials + 1, 3), 0.8)
-            for row in self.r.parts(sha):
-                albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
+            albedo = None                           # read for a view not described yet
             for v, dv in zip(sel, d):
                 rows.append((mt.mesh, v, float(dv)))
                 if (sha, v) in self.fine_rows or (sha, v) in todo:
                     continue
+                if albedo is None:
+                    albedo = np.full((metas[mt.mesh].n_materials + 1, 3), 0.8)
+                    for row in self.r.parts(sha):
+                        albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
                 rec = self.r.view(sha, v)
                 imgs.append(shade_stored_view(rec.depth, rec.mat_id, rec.tri_id, rec.K, albedo))
                 masks.append(np.isfinite(rec.depth))
@@ -570,13 +582,6 @@ class _Fit:
         scored.sort()
         return ([(k, v, s) for s, _, k, v in scored]
                 + [(mt.mesh, mt.view, mt.score) for mt in best[FINE_MESHES:]])
-
-    def _ring_step(self, sha: str) -> float:
-        """Azimuth step (degrees) of a mesh's first stored ring: the smallest gap between its
-        azimuths, around the circle (360 for a single view)."""
-        views = self._views(sha)
-        az = np.unique([v.azimuth % 360.0 for v in views if v.elevation == views[0].elevation])
-        return float(np.diff(np.append(az, az[0] + 360.0)).min()) if len(az) > 1 else 360.0
 
     def _views(self, sha: str) -> list:
         """The catalogue's views of a mesh (``CatalogReader.views``), read once per photo."""
@@ -662,27 +667,35 @@ class _Fit:
         return mesh, ""
 
     # -- the object
-    def _refined_object(self, photo, obj: ObjectMask, seeds) -> ObjectMask | None:
-        """GrabCut rerun with the stored silhouettes of ``seeds`` ([(sha, view)]) as its prior
-        (``foreground.refine_with_silhouette``, core ``REFINE_CORE``): each placed onto the box
-        (its silhouette's box stretched onto the object's box), a pixel is "probably
-        foreground" when at least half of them cover it. None when GrabCut keeps under
-        ``MIN_REFINED`` of that prior (it lost the vehicle)."""
+    def _placed_silhouettes(self, photo, obj: ObjectMask, seeds) -> list[np.ndarray | None]:
+        """The stored silhouettes of ``seeds`` ([(sha, view)]), each placed onto the object's
+        box (its silhouette's box stretched onto it): (H, W) bool, None for an empty one."""
         import cv2
 
         H, W = photo.shape[:2]
         X0, Y0, X1, Y1 = obj.box
-        votes = np.zeros((H, W), np.float64)
+        placed: list[np.ndarray | None] = []
         for sha, view in seeds:
             sil = np.asarray(self.r.material_map(sha, int(view))) > 0
             if not sil.any():
+                placed.append(None)
                 continue
             x0, y0, x1, y1 = mask_box(sil)
             sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
             M = np.array([[sx, 0.0, X0 - sx * x0], [0.0, sy, Y0 - sy * y0]])
-            votes += cv2.warpAffine(sil.astype(np.uint8), M, (W, H),
-                                    flags=cv2.INTER_NEAREST) > 0
-        prior = votes >= len(seeds) / 2.0
+            placed.append(cv2.warpAffine(sil.astype(np.uint8), M, (W, H),
+                                         flags=cv2.INTER_NEAREST) > 0)
+        return placed
+
+    def _refined_object(self, photo, obj: ObjectMask,
+                        placed: list[np.ndarray | None]) -> ObjectMask | None:
+        """GrabCut rerun with placed stored silhouettes (``_placed_silhouettes``) as its prior
+        (``foreground.refine_with_silhouette``, core ``REFINE_CORE``): a pixel is "probably
+        foreground" when at least half of them cover it. None when GrabCut keeps under
+        ``MIN_REFINED`` of that prior (it lost the vehicle)."""
+        X0, Y0, X1, Y1 = obj.box
+        votes = sum((m for m in placed if m is not None), np.zeros(photo.shape[:2], np.float64))
+        prior = votes >= len(placed) / 2.0
         if not prior.any():
             return None
         fg = refine_with_silhouette(photo, prior, core=REFINE_CORE, follow_edges=True)
