@@ -167,3 +167,107 @@ def test_combine_and_offsets(rendered):
         cy = (ys.min() + ys.max() + 1) / 2.0
         np.testing.assert_allclose(c.offsets[v], [(cx - K[0, 2]) / K[0, 0],
                                                   (cy - K[1, 2]) / K[1, 1]])
+
+
+# ----------------------------------------------------------------------------- photo edges
+
+def test_boundary_points_equal_pixel_pair_loop():
+    rng = np.random.default_rng(4)
+    mat = np.zeros((12, 15), np.uint16)
+    mat[3:9, 2:11] = rng.integers(1, 4, (6, 9))
+    pts, normal, box = cues.boundary_points(mat)
+    ref = set()
+    padded = np.pad(mat, 1)
+    for y in range(-1, 12):
+        for x in range(-1, 15):
+            a = padded[y + 1, x + 1]
+            if x < 14 and a != padded[y + 1, x + 2] and y >= 0:
+                ref.add((x + 1.0, y + 0.5, 0))
+            if y < 11 and a != padded[y + 2, x + 1] and x >= 0:
+                ref.add((x + 0.5, y + 1.0, 1))
+    got = {(float(p[0]), float(p[1]), int(n)) for p, n in zip(pts, normal)}
+    assert got == ref and len(pts) == len(ref)
+    assert box == (2, 3, 11, 9)
+    assert cues.boundary_points(np.zeros((4, 4), np.uint16))[0].shape == (0, 2)
+
+
+def test_photo_edges_equal_independent_reference():
+    """The frame: the box's centre at the frame's centre, its longer side at EDGE_SIDE / (1 +
+    2 EDGE_GROW) pixels; the two channels: SciPy's exact distance transform of the Canny edges
+    whose Sobel gradient lies within EDGE_SLACK_DEG of the x / y axis."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    img = np.full((240, 320, 3), 90, np.uint8)
+    cv2.ellipse(img, (150, 120), (90, 40), 20, 0, 360, (220, 40, 40), -1)
+    cv2.rectangle(img, (100, 100), (170, 130), (20, 200, 90), -1)
+    img = np.clip(img + rng.normal(0, 3, img.shape), 0, 255).astype(np.uint8)
+    mask = np.zeros((240, 320), bool)
+    mask[70:171, 60:241] = True                       # box (60, 70, 241, 171)
+    e = cues.photo_edges(img, mask)
+    assert e.box == (60, 70, 241, 171)
+    A = e.to_frame
+    centre = A[:, :2] @ [150.5, 120.5] + A[:, 2]
+    np.testing.assert_allclose(centre, [cues.EDGE_SIDE / 2] * 2)
+    assert A[0, 0] * 181 == pytest.approx(cues.EDGE_SIDE / (1 + 2 * cues.EDGE_GROW))
+    crop = cv2.warpAffine(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), A, (cues.EDGE_SIDE,) * 2,
+                          flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REPLICATE)
+    edges = cv2.Canny(crop, *cues.EDGE_CANNY, L2gradient=True) > 0
+    gx = ndimage.sobel(crop.astype(np.float64), axis=1, mode="reflect")
+    gy = ndimage.sobel(crop.astype(np.float64), axis=0, mode="reflect")
+    t = np.tan(np.radians(cues.EDGE_SLACK_DEG))
+    for c, near in enumerate((np.abs(gy) <= t * np.abs(gx), np.abs(gx) <= t * np.abs(gy))):
+        ref = ndimage.distance_transform_edt(~(edges & near))
+        inside = (slice(2, -2), slice(2, -2))            # Sobel borders differ in convention
+        np.testing.assert_allclose(e.dist[c][inside], ref[inside], atol=1e-3)
+        assert (edges & near).sum() > 20
+
+
+def test_edge_distance_equals_point_loop():
+    rng = np.random.default_rng(6)
+    S = cues.EDGE_SIDE
+    dist = np.stack([ndimage.distance_transform_edt(rng.random((S, S)) > 0.02)
+                     for _ in range(2)]).astype(np.float32)
+    A = np.array([[0.8, 0.0, 10.0], [0.0, 0.8, -5.0]])
+    e = cues.PhotoEdges(dist=dist, to_frame=A, box=(30, 40, 190, 120))
+    mat = np.zeros((64, 64), np.uint16)
+    mat[20:40, 10:50] = 1
+    mat[25:30, 15:25] = 2
+    pts, normal, box = cues.boundary_points(mat)
+    got = cues.edge_distance(e, pts, normal, box)
+    best = np.inf
+    for dx in range(-cues.EDGE_SHIFT, cues.EDGE_SHIFT + 1):
+        for dy in range(-cues.EDGE_SHIFT, cues.EDGE_SHIFT + 1):
+            total = 0.0
+            for (x, y), n in zip(pts, normal):
+                px = 30 + (x - box[0]) * (160 / (box[2] - box[0]))
+                py = 40 + (y - box[1]) * (80 / (box[3] - box[1]))
+                fx = min(max(int(np.round(0.8 * px + 10.0)) + dx, 0), S - 1)
+                fy = min(max(int(np.round(0.8 * py - 5.0)) + dy, 0), S - 1)
+                total += min(float(dist[n, fy, fx]), cues.EDGE_TAU)
+            best = min(best, total / len(pts) / cues.EDGE_TAU)
+    assert got == pytest.approx(best, abs=1e-9)
+    assert cues.edge_distance(e, np.zeros((0, 2)), np.zeros(0, int), (0, 0, 1, 1)) == 1.0
+
+
+def test_a_view_lies_on_the_edges_of_a_photo_of_itself(rendered):
+    """A photo made of render 1 placed on clutter, smaller: its own boundaries lie on its
+    edges (not all: boundaries between materials of one shade show no edge); those of the
+    other views, stretched onto the same box, lie much further."""
+    import cv2
+
+    mesh, views, images, _ = rendered
+    rng = np.random.default_rng(7)
+    photo = rng.integers(0, 256, (300, 400, 3)).astype(np.uint8)
+    photo = cv2.GaussianBlur(photo, (0, 0), 6)                  # soft clutter
+    small = cv2.resize(images[1], (72, 72), interpolation=cv2.INTER_NEAREST)
+    m = cv2.resize(np.isfinite(views.depth[1]).astype(np.uint8), (72, 72),
+                   interpolation=cv2.INTER_NEAREST) > 0
+    photo[100:172, 150:222][m] = small[m]
+    mask = np.zeros(photo.shape[:2], bool)
+    mask[100:172, 150:222] = m
+    e = cues.photo_edges(photo, mask)
+    d = [cues.edge_distance(e, *cues.boundary_points(views.mat_id[v]))
+         for v in range(views.n_views)]
+    assert d[1] < 0.35
+    assert d[1] < min(d[0], d[2]) - 0.2

@@ -344,14 +344,15 @@ def test_retrieval_through_the_search_index_keeps_the_answer(catalogue, tmp_path
 
 def test_fine_rerank_scores_match_the_meshes_own_renders(catalogue):
     """Retrieval's re-rank of the first meshes: each one's score is its stored view's HOG
-    distance + FINE_WEIGHT x the finer HOG's distance, the stored view shaded from its maps
-    alone; recomputed from each mesh's own render at that view (render_views + shade_views,
-    as the build shades) it agrees to 10 % of the finer distance (0.5-1 here; shading from the
-    maps moves it by 0.03-0.08 on these 128 px views); the list is in score order and finds
-    the mesh."""
+    distance + FINE_WEIGHT x the finer HOG's distance (the stored view shaded from its maps
+    alone) + EDGE_WEIGHT x its boundaries' distance to the photo's edges; recomputed from each
+    mesh's own render at that view (render_views + shade_views, as the build shades) it agrees
+    to 10 % of the finer distance (0.5-1 here; shading from the maps moves it by 0.03-0.08 on
+    these 128 px views); the list is in score order and finds the mesh."""
     import ucad_cl.fit as fit
     from ucad_catalog.reader import CatalogReader
     from ucad_catalog.views import CameraRing
+    from ucad_cl.cues import boundary_points, edge_distance, photo_edges
     from ucad_cl.features import HogExtractor, unit_rows
     from ucad_cl.pose import query_features
     from ucad_cl.refphoto import render_reference
@@ -367,6 +368,7 @@ def test_fine_rerank_scores_match_the_meshes_own_renders(catalogue):
     q = [unit_rows(query_features(ref.image, h, mask=ref.mask)[0][None])[0][0] for h in hogs]
     scores = [c.score for c in res.candidates[:fit.FINE_MESHES]]
     assert scores == sorted(scores)
+    edges = photo_edges(ref.image, ref.mask)
     with CatalogReader(catalogue) as r:
         for c in res.candidates[:fit.FINE_MESHES]:
             _, other, _ = _mesh(catalogue, [x.sha256 for x in r.meshes()].index(c.mesh_id))
@@ -378,8 +380,10 @@ def test_fine_rerank_scores_match_the_meshes_own_renders(catalogue):
             img = shade_views(other, views, background=(128, 128, 128))
             d = [2.0 - 2.0 * float(unit_rows(h.extract(img, np.isfinite(views.depth)).feats)[0][0]
                                    @ qq) for h, qq in zip(hogs, q)]
-            assert abs(c.score - (d[0] + fit.FINE_WEIGHT * d[1])) < 0.1 * fit.FINE_WEIGHT * d[1], \
-                (c, d)
+            d_edge = edge_distance(edges, *boundary_points(views.mat_id[0]))
+            assert 0.0 < d_edge < 1.0
+            total = d[0] + fit.FINE_WEIGHT * d[1] + fit.EDGE_WEIGHT * d_edge
+            assert abs(c.score - total) < 0.1 * fit.FINE_WEIGHT * d[1], (c, d, d_edge)
 
 
 def test_refined_object_mask_beats_grabcut_in_clutter(catalogue):

@@ -29,6 +29,10 @@ Cues (all in [0, ~1], lower is better):
   deviations. A repainted car has one colour per part, so the right view's regions are
   near-uniform whatever the colours.
 
+Retrieval's re-rank (``ucad_cl.fit``) uses one more, outside ``Cues``: ``photo_edges(image,
+mask)`` and ``edge_distance(edges, *boundary_points(mat))``, how far a stored view's material
+boundaries, placed onto the object's box, lie from the photo's own (not composited) edges.
+
 ``combine(distances, weights)`` is the weighted sum. Ties are not broken here: pose search orders
 equal scores by view index.
 """
@@ -188,6 +192,103 @@ def map_edges(tri: np.ndarray, mat: np.ndarray, depth: np.ndarray,
         out[a] |= diff
         out[b] |= diff
     return out
+
+
+# ----------------------------------------------------------------------------- photo edges
+
+# Retrieval's re-rank (``ucad_cl.fit``, docs/FIT.md "Stored views' edges against the photo's"):
+# how far a stored view's material boundaries, placed onto the object's box, lie from the
+# photo's own edges. The photo is not composited: clutter adds edges that every candidate may
+# land on alike, while a boundary the photo lacks (or a wrong outline) costs.
+EDGE_SIDE = 160             # frame side (pixels): the object's box grown by EDGE_GROW, squared
+EDGE_GROW = 0.15            # ... on every side, as a share of the box's longer side
+EDGE_CANNY = (40, 100)      # photo edge thresholds (cv2.Canny, L2 gradient, frame grey levels)
+EDGE_SLACK_DEG = 67.5       # a photo edge serves a boundary whose normal is this near its gradient
+EDGE_TAU = 6.0              # distance cap (frame pixels)
+EDGE_SHIFT = 2              # the boundaries are shifted by up to this many frame pixels each way
+
+
+@dataclass(frozen=True)
+class PhotoEdges:
+    """A photo's edges in the square frame around its object's box, for ``edge_distance``.
+
+    dist: (2, S, S) float32 Euclidean distance (frame pixels, exact) to the nearest Canny edge
+    pixel whose gradient lies within ``EDGE_SLACK_DEG`` of the x axis (channel 0) or of the y
+    axis (channel 1); ``EDGE_TAU`` everywhere in a channel without edges. to_frame: (2, 3) photo
+    pixel coordinates -> frame pixel coordinates. box: the object's box (x0, y0, x1, y1) in
+    photo pixels, x1 / y1 exclusive."""
+
+    dist: np.ndarray
+    to_frame: np.ndarray
+    box: tuple[int, int, int, int]
+
+
+def photo_edges(image: np.ndarray, mask: np.ndarray) -> PhotoEdges:
+    """``PhotoEdges`` of ``image`` (H, W, 3) uint8 RGB around the box of ``mask`` (H, W) bool,
+    non-empty: the frame is the box's longer side grown by ``EDGE_GROW`` on every side, centred
+    on the box, resized to ``EDGE_SIDE`` (area averaging; outside the photo the edge pixels
+    repeat); Canny (``EDGE_CANNY``, L2 gradient) on its grey levels; a pixel's gradient angle
+    from 3x3 Sobel derivatives."""
+    y0, x0, y1, x1 = _box(np.asarray(mask, bool))
+    s = EDGE_SIDE / (max(x1 - x0, y1 - y0) * (1.0 + 2.0 * EDGE_GROW))
+    cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
+    to_frame = np.array([[s, 0.0, EDGE_SIDE / 2.0 - s * cx], [0.0, s, EDGE_SIDE / 2.0 - s * cy]])
+    grey = cv2.cvtColor(np.ascontiguousarray(image, np.uint8), cv2.COLOR_RGB2GRAY)
+    crop = cv2.warpAffine(grey, to_frame, (EDGE_SIDE, EDGE_SIDE), flags=cv2.INTER_AREA,
+                          borderMode=cv2.BORDER_REPLICATE)
+    edges = cv2.Canny(crop, EDGE_CANNY[0], EDGE_CANNY[1], L2gradient=True) > 0
+    f = crop.astype(np.float32)
+    gx, gy = cv2.Sobel(f, cv2.CV_32F, 1, 0), cv2.Sobel(f, cv2.CV_32F, 0, 1)
+    off_x = np.degrees(np.arctan2(np.abs(gy), np.abs(gx)))     # 0 (along x) .. 90 (along y)
+    dist = np.full((2, EDGE_SIDE, EDGE_SIDE), EDGE_TAU, np.float32)
+    for c, near in enumerate((off_x <= EDGE_SLACK_DEG, off_x >= 90.0 - EDGE_SLACK_DEG)):
+        e = edges & near
+        if e.any():
+            dist[c] = cv2.distanceTransform((~e).astype(np.uint8), cv2.DIST_L2,
+                                            cv2.DIST_MASK_PRECISE)
+    return PhotoEdges(dist=dist, to_frame=to_frame, box=(x0, y0, x1, y1))
+
+
+def boundary_points(mat: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+    """The boundaries of a material-id map (H, W) (0 = background): ((N, 2) float64 (x, y)
+    pixel coordinates of the midpoints between 4-neighbours of different id, the silhouette
+    included; (N,) int 0 between horizontal neighbours (normal along x), 1 between vertical
+    ones; the non-zero ids' box (x0, y0, x1, y1), x1 / y1 exclusive). An empty map gives no
+    points and box (0, 0, 1, 1)."""
+    m = np.pad(np.asarray(mat), 1)
+    c = m[1:-1, 1:-1]
+    ys, xs = np.nonzero(c != m[1:-1, 2:])           # pixel (y, x) against (y, x + 1)
+    ys2, xs2 = np.nonzero(c != m[2:, 1:-1])         # pixel (y, x) against (y + 1, x)
+    pts = np.concatenate([np.stack([xs + 1.0, ys + 0.5], 1), np.stack([xs2 + 0.5, ys2 + 1.0], 1)])
+    normal = np.concatenate([np.zeros(len(xs), np.int64), np.ones(len(xs2), np.int64)])
+    fg = np.asarray(mat) > 0
+    if not fg.any():
+        return np.zeros((0, 2)), np.zeros(0, np.int64), (0, 0, 1, 1)
+    y0, x0, y1, x1 = _box(fg)
+    return pts, normal, (x0, y0, x1, y1)
+
+
+def edge_distance(edges: PhotoEdges, points: np.ndarray, normal: np.ndarray,
+                  box: tuple[int, int, int, int]) -> float:
+    """How far a stored view's boundaries (``boundary_points``) lie from the photo's edges, in
+    [0, 1]: the boundaries' box stretched onto the photo object's box (each axis on its own),
+    into the frame, each point rounded to the nearest frame pixel (clamped to the frame) and
+    read in the channel of its normal, distances capped at ``EDGE_TAU``, averaged over the
+    points, divided by ``EDGE_TAU``; the minimum over integer shifts of up to ``EDGE_SHIFT``
+    frame pixels in x and y. 1.0 without points."""
+    if len(points) == 0:
+        return 1.0
+    x0, y0, x1, y1 = box
+    X0, Y0, X1, Y1 = edges.box
+    sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
+    photo = np.stack([X0 + (points[:, 0] - x0) * sx, Y0 + (points[:, 1] - y0) * sy], 1)
+    q = np.round(photo @ edges.to_frame[:, :2].T + edges.to_frame[:, 2]).astype(np.int64)
+    shift = np.arange(-EDGE_SHIFT, EDGE_SHIFT + 1)
+    side = edges.dist.shape[1]
+    xi = np.clip(q[None, None, :, 0] + shift[:, None, None], 0, side - 1)
+    yi = np.clip(q[None, None, :, 1] + shift[None, :, None], 0, side - 1)
+    d = np.minimum(edges.dist[normal[None, None, :], yi, xi], EDGE_TAU)
+    return float(d.mean(axis=2, dtype=np.float64).min() / EDGE_TAU)
 
 
 # ----------------------------------------------------------------------------- helpers

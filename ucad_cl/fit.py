@@ -21,7 +21,9 @@
    those; the first ``FINE_MESHES`` distinct meshes are re-ranked by a finer HOG (``FINE_HOG``:
    128 px crop, 8 px cells) of their best view and its neighbours, the stored views shaded
    from their depth, material and triangle maps (``shade.shade_stored_view``; no mesh is
-   read): score = HOG distance + ``FINE_WEIGHT`` x the finer HOG's distance (``_fine_rerank``);
+   read): score = HOG distance + ``FINE_WEIGHT`` x the finer HOG's distance + ``EDGE_WEIGHT``
+   x how far the view's material boundaries lie from the photo's edges (``cues.edge_distance``;
+   ``_fine_rerank``);
    the first ``RERANK_POSE`` distinct meshes are posed (step 3) and the best pose score wins;
    the first ``CANDIDATES`` distinct meshes are reported as ``candidates`` (mesh, view pose,
    feature score; lower is better).
@@ -79,6 +81,7 @@ from ucad_catalog.searchindex import SearchIndex
 from .artifacts import CameraRing, Mesh
 from .cameras import pixel_rays
 from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
+from .cues import boundary_points, edge_distance, photo_edges
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import ObjectMask, check_image, mask_box, object_mask, refine_with_silhouette
@@ -123,6 +126,7 @@ FINE_MESHES = 10            # retrieval: the first meshes re-ranked by the finer
 FINE_VIEWS = 1              # ... at their best view and this many neighbours on each side ...
 FINE_WEIGHT = 2.0           # ... by HOG distance + this x the finer HOG's distance
 FINE_HOG = dict(size=128, cell=8)   # the finer HOG: 15 x 15 blocks of the 128 px crop
+EDGE_WEIGHT = 2.0           # ... + this x the stored view's edges' distance to the photo's
 REFINE_CORE = 0.04          # ... their core (eroded by this share of the box side) is foreground
 MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of the prior
 SEED_MASK_STEP = 10.0       # ... and each seed alone too, over stored rings of at most this
@@ -364,6 +368,7 @@ class _Fit:
         self.notes: list[str] = []
         self.db: FeatureTable | SearchIndex | None = None
         self.fine_rows: dict[tuple[str, int], np.ndarray] = {}   # (sha, view) -> finer HOG
+        self.boundaries: dict[tuple[str, int], tuple] = {}        # ... -> its boundary points
         self.view_infos: dict[str, list] = {}                      # sha -> its stored views
         self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
         self._t = time.perf_counter()
@@ -534,14 +539,17 @@ class _Fit:
     def _fine_rerank(self, photo, obj: ObjectMask, query, metas,
                      best: list[CatalogMatch]) -> list[tuple[int, int, float]]:
         """[(mesh index, view, score)] in retrieval order: the first ``FINE_MESHES`` meshes of
-        ``best`` (each mesh's best row, in HOG order) re-ranked by ``d + FINE_WEIGHT * d_fine``
-        at their best view and its ``FINE_VIEWS`` neighbours on each side in azimuth (same
-        elevation): ``d`` the squared distance of the unit HOG rows, ``d_fine`` that of the
-        finer HOG (``FINE_HOG``) of the photo's object and of the stored view shaded from its
-        maps (``shade.shade_stored_view``: no mesh read), each mesh scored by its best view
-        (ties: the HOG order); the other meshes follow with their HOG distance."""
+        ``best`` (each mesh's best row, in HOG order) re-ranked by ``d + FINE_WEIGHT * d_fine +
+        EDGE_WEIGHT * d_edge`` at their best view and its ``FINE_VIEWS`` neighbours on each
+        side in azimuth (same elevation): ``d`` the squared distance of the unit HOG rows,
+        ``d_fine`` that of the finer HOG (``FINE_HOG``) of the photo's object and of the stored
+        view shaded from its maps (``shade.shade_stored_view``: no mesh read), ``d_edge`` how
+        far the stored view's material boundaries lie from the photo's edges around the
+        object (``cues.edge_distance``), each mesh scored by its best view (ties: the HOG
+        order); the other meshes follow with their HOG distance."""
         ex = HogExtractor(runtime=self.runtime, **FINE_HOG)
         q_fine, _ = query_features(photo, ex, mask=obj.mask, runtime=self.runtime)
+        edges = photo_edges(photo, obj.mask)
         qf = unit_rows(q_fine[None])[0][0]
         q = unit_rows(np.asarray(query)[None])[0][0]
         table = self._database()                   # mt.mesh indexes its meshes (= metas)
@@ -565,6 +573,7 @@ class _Fit:
                     for row in self.r.parts(sha):
                         albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
                 rec = self.r.view(sha, v)
+                self.boundaries[sha, v] = boundary_points(rec.mat_id)
                 imgs.append(shade_stored_view(rec.depth, rec.mat_id, rec.tri_id, rec.K, albedo))
                 masks.append(np.isfinite(rec.depth))
                 todo.append((sha, v))
@@ -574,7 +583,10 @@ class _Fit:
         scored: list[tuple[float, int, int, int]] = []
         if rows:
             f = np.stack([self.fine_rows[metas[k].sha256, v] for k, v, _ in rows])
-            total = np.array([dv for _, _, dv in rows]) + FINE_WEIGHT * (2.0 - 2.0 * f @ qf)
+            d_edge = [edge_distance(edges, *self.boundaries[metas[k].sha256, v])
+                      for k, v, _ in rows]
+            total = (np.array([dv for _, _, dv in rows]) + FINE_WEIGHT * (2.0 - 2.0 * f @ qf)
+                     + EDGE_WEIGHT * np.array(d_edge))
             for rank, mt in enumerate(best[:FINE_MESHES]):
                 own = [i for i, (k, _, _) in enumerate(rows) if k == mt.mesh]
                 i = own[int(np.argmin(total[own]))]
