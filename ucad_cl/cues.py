@@ -45,6 +45,7 @@ import numpy as np
 
 from .artifacts import BACKGROUND_TRI, Mesh, ViewSet
 from .features import FeatureExtractor, crop_window, square_windows, unit_rows
+from .foreground import mask_box
 from .shade import face_normals
 
 CUES = ("hog", "silhouette", "chamfer", "region")
@@ -229,7 +230,7 @@ def photo_edges(image: np.ndarray, mask: np.ndarray) -> PhotoEdges:
     on the box, resized to ``EDGE_SIDE`` (area averaging; outside the photo the edge pixels
     repeat); Canny (``EDGE_CANNY``, L2 gradient) on its grey levels; a pixel's gradient angle
     from 3x3 Sobel derivatives."""
-    y0, x0, y1, x1 = _box(np.asarray(mask, bool))
+    x0, y0, x1, y1 = mask_box(np.asarray(mask, bool))
     s = EDGE_SIDE / (max(x1 - x0, y1 - y0) * (1.0 + 2.0 * EDGE_GROW))
     cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
     to_frame = np.array([[s, 0.0, EDGE_SIDE / 2.0 - s * cx], [0.0, s, EDGE_SIDE / 2.0 - s * cy]])
@@ -255,17 +256,16 @@ def boundary_points(mat: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int,
     included; (N,) int 0 between horizontal neighbours (normal along x), 1 between vertical
     ones; the non-zero ids' box (x0, y0, x1, y1), x1 / y1 exclusive). An empty map gives no
     points and box (0, 0, 1, 1)."""
+    fg = np.asarray(mat) > 0
+    if not fg.any():
+        return np.zeros((0, 2)), np.zeros(0, np.int64), (0, 0, 1, 1)
     m = np.pad(np.asarray(mat), 1)
     c = m[1:-1, 1:-1]
     ys, xs = np.nonzero(c != m[1:-1, 2:])           # pixel (y, x) against (y, x + 1)
     ys2, xs2 = np.nonzero(c != m[2:, 1:-1])         # pixel (y, x) against (y + 1, x)
     pts = np.concatenate([np.stack([xs + 1.0, ys + 0.5], 1), np.stack([xs2 + 0.5, ys2 + 1.0], 1)])
     normal = np.concatenate([np.zeros(len(xs), np.int64), np.ones(len(xs2), np.int64)])
-    fg = np.asarray(mat) > 0
-    if not fg.any():
-        return np.zeros((0, 2)), np.zeros(0, np.int64), (0, 0, 1, 1)
-    y0, x0, y1, x1 = _box(fg)
-    return pts, normal, (x0, y0, x1, y1)
+    return pts, normal, mask_box(fg)
 
 
 def edge_distance(edges: PhotoEdges, points: np.ndarray, normal: np.ndarray,

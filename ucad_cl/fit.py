@@ -337,7 +337,6 @@ def catalog_ring(reader: CatalogReader, key: str) -> PoseRing:
                     extractor=HogExtractor(), azimuth_step=azimuth_step(el))
 
 
-
 def azimuth_step(elevations) -> float:
     """Azimuth step (degrees) of a stored ring from its views' elevations: 360 over the number
     of views at the first elevation (rings are elevation-major, ``cameras.make_ring``)."""
