@@ -203,7 +203,8 @@ def test_photo_edges_equal_independent_reference():
     cv2.rectangle(img, (100, 100), (170, 130), (20, 200, 90), -1)
     img = np.clip(img + rng.normal(0, 3, img.shape), 0, 255).astype(np.uint8)
     mask = np.zeros((240, 320), bool)
-    mask[70:171, 60:241] = True                       # box (60, 70, 241, 171)
+    mask[70:171, 60:241] = True                       # box (60, 70, 241, 171) ...
+    mask[105:171, 60:150] = False                     # ... with a corner cut away
     e = cues.photo_edges(img, mask)
     assert e.box == (60, 70, 241, 171)
     A = e.to_frame
@@ -221,6 +222,21 @@ def test_photo_edges_equal_independent_reference():
         inside = (slice(2, -2), slice(2, -2))            # Sobel borders differ in convention
         np.testing.assert_allclose(e.dist[c][inside], ref[inside], atol=1e-3)
         assert (edges & near).sum() > 20
+        # the edges inside the object: the mask in the frame (nearest) eroded by EDGE_INSIDE
+        core = cv2.warpAffine(mask.astype(np.uint8), A, (cues.EDGE_SIDE,) * 2,
+                              flags=cv2.INTER_NEAREST) > 0
+        core = ndimage.binary_erosion(core, np.ones((2 * cues.EDGE_INSIDE + 1,) * 2),
+                                      border_value=1)
+        want = {(int(x), int(y)) for y, x in np.argwhere((e.dist[c] == 0) & core)}
+        assert {(int(x), int(y)) for x, y in e.inside[c]} == want
+        assert 0 < len(want) < (e.dist[c] == 0).sum()
+    # the frame's colours, centred: the box's centre pixel sits at the frame's centre
+    rgb = cv2.warpAffine(img, A, (cues.EDGE_SIDE,) * 2, flags=cv2.INTER_AREA,
+                         borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3).astype(np.float64)
+    np.testing.assert_allclose(e.colours, rgb - rgb.mean(0), atol=1e-9)
+    assert e.spread == pytest.approx(float(((rgb - rgb.mean(0)) ** 2).sum()), rel=1e-12)
+    centre = (e.colours + rgb.mean(0)).reshape(cues.EDGE_SIDE, cues.EDGE_SIDE, 3)[80, 80]
+    np.testing.assert_allclose(centre, img[120, 150], atol=12)
 
 
 def test_edge_distance_equals_point_loop():
@@ -229,7 +245,8 @@ def test_edge_distance_equals_point_loop():
     dist = np.stack([ndimage.distance_transform_edt(rng.random((S, S)) > 0.02)
                      for _ in range(2)]).astype(np.float32)
     A = np.array([[0.8, 0.0, 10.0], [0.0, 0.8, -5.0]])
-    e = cues.PhotoEdges(dist=dist, to_frame=A, box=(30, 40, 190, 120))
+    e = cues.PhotoEdges(dist=dist, to_frame=A, box=(30, 40, 190, 120),
+                        inside=(np.zeros((0, 2), np.int64),) * 2, colours=np.zeros((S * S, 3)), spread=0.0)
     mat = np.zeros((64, 64), np.uint16)
     mat[20:40, 10:50] = 1
     mat[25:30, 15:25] = 2
@@ -248,6 +265,85 @@ def test_edge_distance_equals_point_loop():
             best = min(best, total / len(pts) / cues.EDGE_TAU)
     assert got == pytest.approx(best, abs=1e-9)
     assert cues.edge_distance(e, np.zeros((0, 2)), np.zeros(0, int), (0, 0, 1, 1)) == 1.0
+
+
+def test_edge_recall_equals_point_loop():
+    """Each inside edge pixel's distance to the nearest placed boundary point of its channel,
+    brute force over the points (Euclidean), capped, averaged; best shift."""
+    rng = np.random.default_rng(16)
+    S = cues.EDGE_SIDE
+    A = np.array([[0.8, 0.0, 10.0], [0.0, 0.8, -5.0]])
+    inside = tuple(rng.integers(20, 140, (n, 2)).astype(np.int64) for n in (40, 25))
+    e = cues.PhotoEdges(dist=np.zeros((2, S, S), np.float32), to_frame=A,
+                        box=(30, 40, 190, 120), inside=inside, colours=np.zeros((S * S, 3)), spread=0.0)
+    mat = np.zeros((64, 64), np.uint16)
+    mat[20:40, 10:50] = 1
+    mat[25:30, 15:25] = 2
+    pts, normal, box = cues.boundary_points(mat)
+    placed = []
+    for x, y in pts:
+        px = 30 + (x - box[0]) * (160 / (box[2] - box[0]))
+        py = 40 + (y - box[1]) * (80 / (box[3] - box[1]))
+        placed.append((min(max(int(np.round(0.8 * px + 10.0)), 0), S - 1),
+                       min(max(int(np.round(0.8 * py - 5.0)), 0), S - 1)))
+    placed_np = np.array(placed, np.float64)
+    best = np.inf
+    for dx in range(-cues.EDGE_SHIFT, cues.EDGE_SHIFT + 1):
+        for dy in range(-cues.EDGE_SHIFT, cues.EDGE_SHIFT + 1):
+            total = 0.0
+            for c in range(2):
+                own = placed_np[normal == c] + [dx, dy]
+                for x, y in inside[c]:
+                    x, y = min(max(x - dx, 0), S - 1) + dx, min(max(y - dy, 0), S - 1) + dy
+                    d = np.sqrt(((own - [x, y]) ** 2).sum(1)).min()
+                    total += min(d, cues.EDGE_TAU)
+            best = min(best, total / 65 / cues.EDGE_TAU)
+    got = cues.edge_recall(e, pts, normal, box)
+    assert got == pytest.approx(best, abs=1e-6)
+    assert 0.05 < got < 0.95
+    assert cues.edge_recall(e, np.zeros((0, 2)), np.zeros(0, int), (0, 0, 1, 1)) == 1.0
+    none = cues.PhotoEdges(dist=e.dist, to_frame=A, box=e.box, colours=e.colours,
+                           spread=0.0, inside=(np.zeros((0, 2), np.int64),) * 2)
+    assert cues.edge_recall(none, pts, normal, box) == 0.0
+
+
+def test_region_residual_equals_per_label_loop():
+    """The map's non-zero box lands on the object's box in the frame; the residual is the
+    within-region sum of squares (a loop over the ids) over the total."""
+    import cv2
+
+    rng = np.random.default_rng(17)
+    S = cues.EDGE_SIDE
+    A = np.array([[0.8, 0.0, 10.0], [0.0, 0.8, -5.0]])
+    colours = rng.random((S * S, 3)) * 255
+
+    def frame(rgb):                           # PhotoEdges keeps the colours centred
+        c = rgb - rgb.mean(0)
+        return cues.PhotoEdges(dist=np.zeros((2, S, S), np.float32), to_frame=A,
+                               box=(30, 40, 170, 120), inside=(np.zeros((0, 2), np.int64),) * 2,
+                               colours=c, spread=float((c * c).sum()))
+
+    e = frame(colours)
+    mat = np.zeros((64, 64), np.uint16)
+    mat[20:40, 10:50] = 1
+    mat[25:30, 15:25] = 2
+    M = np.array([[0.8 * 3.5, 0.0, 0.8 * (30 - 3.5 * 10) + 10.0],
+                  [0.0, 0.8 * 4.0, 0.8 * (40 - 4.0 * 20) - 5.0]])
+    lab = cv2.warpAffine(mat.astype(np.float32), M, (S, S), flags=cv2.INTER_NEAREST)
+    ys, xs = np.nonzero(lab)                  # frame box of the object: x 34-146, y 27-91
+    assert abs(xs.min() - 34) <= 1 and abs(xs.max() + 1 - 146) <= 1
+    assert abs(ys.min() - 27) <= 1 and abs(ys.max() + 1 - 91) <= 1
+    lab = lab.ravel()
+    within = sum(float(((colours[lab == k] - colours[lab == k].mean(0)) ** 2).sum())
+                 for k in np.unique(lab))
+    total = float(((colours - colours.mean(0)) ** 2).sum())
+    assert cues.region_residual(e, mat) == pytest.approx(within / total, rel=1e-9)
+    # colours that follow the placed regions leave nothing unexplained
+    flat = frame(np.array([[0, 0, 0], [200, 10, 10], [10, 10, 200]],
+                          np.float64)[lab.astype(int)])
+    assert cues.region_residual(flat, mat) == pytest.approx(0.0, abs=1e-9)
+    assert cues.region_residual(frame(np.full((S * S, 3), 7.0)), mat) == 0.0
+    assert cues.region_residual(e, np.zeros((8, 8), np.uint16)) == 1.0
 
 
 def test_a_view_lies_on_the_edges_of_a_photo_of_itself(rendered):
@@ -271,3 +367,10 @@ def test_a_view_lies_on_the_edges_of_a_photo_of_itself(rendered):
          for v in range(views.n_views)]
     assert d[1] < 0.35
     assert d[1] < min(d[0], d[2]) - 0.2
+    # the other way round: the photo's edges inside the object lie on its own boundaries, and
+    # its own material regions explain its colours best
+    rc = [cues.edge_recall(e, *cues.boundary_points(views.mat_id[v]))
+          for v in range(views.n_views)]
+    rg = [cues.region_residual(e, views.mat_id[v]) for v in range(views.n_views)]
+    assert rc[1] < min(rc[0], rc[2]) - 0.1, rc
+    assert rg[1] < min(rg[0], rg[2]) - 0.1, rg

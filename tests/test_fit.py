@@ -345,14 +345,17 @@ def test_retrieval_through_the_search_index_keeps_the_answer(catalogue, tmp_path
 def test_fine_rerank_scores_match_the_meshes_own_renders(catalogue):
     """Retrieval's re-rank of the first meshes: each one's score is its stored view's HOG
     distance + FINE_WEIGHT x the finer HOG's distance (the stored view shaded from its maps
-    alone) + EDGE_WEIGHT x its boundaries' distance to the photo's edges; recomputed from each
-    mesh's own render at that view (render_views + shade_views, as the build shades) it agrees
-    to 10 % of the finer distance (0.5-1 here; shading from the maps moves it by 0.03-0.08 on
-    these 128 px views); the list is in score order and finds the mesh."""
+    alone) + EDGE_WEIGHT x its boundaries' distance to the photo's edges + RECALL_WEIGHT x the
+    photo's inside edges' distance to its boundaries + REGION_WEIGHT x the colour variance its
+    material regions leave; recomputed from each mesh's own render at that view (render_views
+    + shade_views, as the build shades) it agrees to 10 % of the finer distance (0.5-1 here;
+    shading from the maps moves it by 0.03-0.08 on these 128 px views); the list is in score
+    order and finds the mesh."""
     import ucad_cl.fit as fit
     from ucad_catalog.reader import CatalogReader
     from ucad_catalog.views import CameraRing
-    from ucad_cl.cues import boundary_points, edge_distance, photo_edges
+    from ucad_cl.cues import (boundary_points, edge_distance, edge_recall, photo_edges,
+                              region_residual)
     from ucad_cl.features import HogExtractor, unit_rows
     from ucad_cl.pose import query_features
     from ucad_cl.refphoto import render_reference
@@ -380,9 +383,12 @@ def test_fine_rerank_scores_match_the_meshes_own_renders(catalogue):
             img = shade_views(other, views, background=(128, 128, 128))
             d = [2.0 - 2.0 * float(unit_rows(h.extract(img, np.isfinite(views.depth)).feats)[0][0]
                                    @ qq) for h, qq in zip(hogs, q)]
-            d_edge = edge_distance(edges, *boundary_points(views.mat_id[0]))
-            assert 0.0 < d_edge < 1.0
-            total = d[0] + fit.FINE_WEIGHT * d[1] + fit.EDGE_WEIGHT * d_edge
+            bp = boundary_points(views.mat_id[0])
+            d_edge, d_recall = edge_distance(edges, *bp), edge_recall(edges, *bp)
+            d_region = region_residual(edges, views.mat_id[0])
+            assert 0.0 < d_edge < 1.0 and 0.0 < d_recall < 1.0 and 0.0 < d_region < 1.0
+            total = (d[0] + fit.FINE_WEIGHT * d[1] + fit.EDGE_WEIGHT * d_edge
+                     + fit.RECALL_WEIGHT * d_recall + fit.REGION_WEIGHT * d_region)
             assert abs(c.score - total) < 0.1 * fit.FINE_WEIGHT * d[1], (c, d, d_edge)
 
 

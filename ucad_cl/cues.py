@@ -207,21 +207,29 @@ EDGE_CANNY = (40, 100)      # photo edge thresholds (cv2.Canny, L2 gradient, fra
 EDGE_SLACK_DEG = 67.5       # a photo edge serves a boundary whose normal is this near its gradient
 EDGE_TAU = 6.0              # distance cap (frame pixels)
 EDGE_SHIFT = 2              # the boundaries are shifted by up to this many frame pixels each way
+EDGE_INSIDE = 3             # edge_recall: photo edges this far (frame pixels) inside the object
 
 
 @dataclass(frozen=True)
 class PhotoEdges:
-    """A photo's edges in the square frame around its object's box, for ``edge_distance``.
+    """A photo's edges and colours in the square frame around its object's box, for
+    ``edge_distance``, ``edge_recall`` and ``region_residual``.
 
     dist: (2, S, S) float32 Euclidean distance (frame pixels, exact) to the nearest Canny edge
     pixel whose gradient lies within ``EDGE_SLACK_DEG`` of the x axis (channel 0) or of the y
     axis (channel 1); ``EDGE_TAU`` everywhere in a channel without edges. to_frame: (2, 3) photo
     pixel coordinates -> frame pixel coordinates. box: the object's box (x0, y0, x1, y1) in
-    photo pixels, x1 / y1 exclusive."""
+    photo pixels, x1 / y1 exclusive. inside: per channel, (n, 2) int64 (x, y) frame pixels of
+    that channel's edges lying at least ``EDGE_INSIDE`` frame pixels inside the object mask
+    (its outline left out). colours: (S * S, 3) float64 the frame's RGB (0-255), row-major,
+    minus their mean. spread: their sum of squares (the total for ``region_residual``)."""
 
     dist: np.ndarray
     to_frame: np.ndarray
     box: tuple[int, int, int, int]
+    inside: tuple[np.ndarray, np.ndarray]
+    colours: np.ndarray
+    spread: float
 
 
 def photo_edges(image: np.ndarray, mask: np.ndarray) -> PhotoEdges:
@@ -229,8 +237,10 @@ def photo_edges(image: np.ndarray, mask: np.ndarray) -> PhotoEdges:
     non-empty: the frame is the box's longer side grown by ``EDGE_GROW`` on every side, centred
     on the box, resized to ``EDGE_SIDE`` (area averaging; outside the photo the edge pixels
     repeat); Canny (``EDGE_CANNY``, L2 gradient) on its grey levels; a pixel's gradient angle
-    from 3x3 Sobel derivatives."""
-    x0, y0, x1, y1 = mask_box(np.asarray(mask, bool))
+    from 3x3 Sobel derivatives; the mask comes into the frame by nearest neighbour and is
+    eroded by ``EDGE_INSIDE`` (square structuring element) to select ``inside``."""
+    mask = np.asarray(mask, bool)
+    x0, y0, x1, y1 = mask_box(mask)
     s = EDGE_SIDE / (max(x1 - x0, y1 - y0) * (1.0 + 2.0 * EDGE_GROW))
     cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
     to_frame = np.array([[s, 0.0, EDGE_SIDE / 2.0 - s * cx], [0.0, s, EDGE_SIDE / 2.0 - s * cy]])
@@ -247,7 +257,18 @@ def photo_edges(image: np.ndarray, mask: np.ndarray) -> PhotoEdges:
         if e.any():
             dist[c] = cv2.distanceTransform((~e).astype(np.uint8), cv2.DIST_L2,
                                             cv2.DIST_MASK_PRECISE)
-    return PhotoEdges(dist=dist, to_frame=to_frame, box=(x0, y0, x1, y1))
+    core = cv2.warpAffine(mask.astype(np.uint8), to_frame, (EDGE_SIDE, EDGE_SIDE),
+                          flags=cv2.INTER_NEAREST)
+    core = cv2.erode(core, np.ones((2 * EDGE_INSIDE + 1,) * 2, np.uint8)) > 0
+    inside = tuple(np.argwhere((dist[c] == 0) & core)[:, ::-1].astype(np.int64)
+                   for c in range(2))
+    colours = cv2.warpAffine(np.ascontiguousarray(image, np.uint8), to_frame,
+                             (EDGE_SIDE, EDGE_SIDE), flags=cv2.INTER_AREA,
+                             borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3).astype(np.float64)
+    colours -= colours.mean(axis=0)
+    return PhotoEdges(dist=dist, to_frame=to_frame, box=(x0, y0, x1, y1),
+                      inside=(inside[0], inside[1]), colours=colours,
+                      spread=float((colours * colours).sum()))
 
 
 def boundary_points(mat: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
@@ -278,11 +299,7 @@ def edge_distance(edges: PhotoEdges, points: np.ndarray, normal: np.ndarray,
     frame pixels in x and y. 1.0 without points."""
     if len(points) == 0:
         return 1.0
-    x0, y0, x1, y1 = box
-    X0, Y0, X1, Y1 = edges.box
-    sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
-    photo = np.stack([X0 + (points[:, 0] - x0) * sx, Y0 + (points[:, 1] - y0) * sy], 1)
-    q = np.round(photo @ edges.to_frame[:, :2].T + edges.to_frame[:, 2]).astype(np.int64)
+    q = _placed(edges, points, box)
     shift = np.arange(-EDGE_SHIFT, EDGE_SHIFT + 1)
     side = edges.dist.shape[1]
     xi = np.clip(q[None, None, :, 0] + shift[:, None, None], 0, side - 1)
@@ -291,7 +308,89 @@ def edge_distance(edges: PhotoEdges, points: np.ndarray, normal: np.ndarray,
     return float(d.mean(axis=2, dtype=np.float64).min() / EDGE_TAU)
 
 
+def edge_recall(edges: PhotoEdges, points: np.ndarray, normal: np.ndarray,
+                box: tuple[int, int, int, int]) -> float:
+    """How far the photo's edges inside its object (``PhotoEdges.inside``) lie from a stored
+    view's boundaries (``boundary_points``), in [0, 1]: ``edge_distance`` the other way round.
+    The boundaries are placed in the frame as ``edge_distance`` places them; each inside edge
+    pixel reads the exact Euclidean distance to the nearest placed boundary point of its own
+    channel, capped at ``EDGE_TAU``; averaged over the edge pixels, divided by ``EDGE_TAU``; the
+    minimum over the same shifts. 0.0 when the photo has no inside edge, 1.0 without points."""
+    n = len(edges.inside[0]) + len(edges.inside[1])
+    if n == 0:
+        return 0.0
+    if len(points) == 0:
+        return 1.0
+    side = edges.dist.shape[1]
+    q = np.clip(_placed(edges, points, box), 0, side - 1)
+    shift = np.arange(-EDGE_SHIFT, EDGE_SHIFT + 1)
+    total = np.zeros((len(shift), len(shift)))
+    for c in range(2):
+        px = edges.inside[c]
+        if not len(px):
+            continue
+        on = q[normal == c]
+        dt = np.full((side, side), EDGE_TAU, np.float32)
+        if len(on):
+            free = np.ones((side, side), np.uint8)
+            free[on[:, 1], on[:, 0]] = 0
+            dt = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        # boundaries shifted by (dx, dy): the edge pixel reads the map at (x - dx, y - dy)
+        xi = np.clip(px[None, None, :, 0] - shift[:, None, None], 0, side - 1)
+        yi = np.clip(px[None, None, :, 1] - shift[None, :, None], 0, side - 1)
+        total += np.minimum(dt[yi, xi], EDGE_TAU).sum(axis=2, dtype=np.float64)
+    return float(total.min() / n / EDGE_TAU)
+
+
+def region_residual(edges: PhotoEdges, mat: np.ndarray) -> float:
+    """How much of the frame's colour variance a stored view's material regions leave
+    unexplained, in [0, 1]: the material-id map ``mat`` (H, W) (0 = background) placed in the
+    frame as ``edge_distance`` places its boundaries (its non-zero box stretched onto the
+    object's box; nearest neighbour, background outside), the frame partitioned by id (the
+    background one more region), the within-region sum of squared RGB deviations over the
+    total. A repainted vehicle has one colour per part, so the right mesh's regions are near
+    uniform whatever the colours. 0.0 for a uniform frame, 1.0 for an empty map."""
+    mat = np.asarray(mat)
+    fg = mat > 0
+    c, total = edges.colours, edges.spread
+    if total <= 0.0:
+        return 0.0
+    if not fg.any():
+        return 1.0
+    M = _frame_from_view(edges, mask_box(fg))
+    lab = cv2.warpAffine(mat.astype(np.float32), M, (EDGE_SIDE, EDGE_SIDE),
+                         flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=0.0).astype(np.int64).ravel()
+    n = int(lab.max()) + 1
+    count = np.bincount(lab, minlength=n).astype(np.float64)
+    explained = 0.0
+    for k in range(3):
+        s = np.bincount(lab, weights=c[:, k], minlength=n)
+        explained += float(np.divide(s * s, count, out=np.zeros(n), where=count > 0).sum())
+    return float(np.clip((total - explained) / total, 0.0, 1.0))   # (colours' mean is 0)
+
+
 # ----------------------------------------------------------------------------- helpers
+
+def _frame_from_view(edges: PhotoEdges, box: tuple[int, int, int, int]) -> np.ndarray:
+    """(2, 3) stored-view pixel coordinates -> frame pixel coordinates: the view's box (x0, y0,
+    x1, y1) stretched onto the object's box (each axis on its own), then ``to_frame``."""
+    x0, y0, x1, y1 = box
+    X0, Y0, X1, Y1 = edges.box
+    sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
+    A = np.array([[sx, 0.0, X0 - sx * x0], [0.0, sy, Y0 - sy * y0], [0.0, 0.0, 1.0]])
+    return (np.vstack([edges.to_frame, [0.0, 0.0, 1.0]]) @ A)[:2]
+
+
+def _placed(edges: PhotoEdges, points: np.ndarray, box) -> np.ndarray:
+    """(N, 2) int64 frame pixels (x, y) of stored-view points: stretched onto the object's box
+    as ``_frame_from_view`` says, rounded to the nearest pixel (not clamped)."""
+    x0, y0, x1, y1 = box
+    X0, Y0, X1, Y1 = edges.box
+    sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
+    photo = np.stack([X0 + (points[:, 0] - x0) * sx, Y0 + (points[:, 1] - y0) * sy], 1)
+    return np.round(photo @ edges.to_frame[:, :2].T + edges.to_frame[:, 2]).astype(np.int64)
+
 
 def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
     """(y0, x0, y1, x1), y1/x1 exclusive, of a non-empty mask."""

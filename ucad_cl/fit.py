@@ -81,7 +81,7 @@ from ucad_catalog.searchindex import SearchIndex
 from .artifacts import CameraRing, Mesh
 from .cameras import pixel_rays
 from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
-from .cues import boundary_points, edge_distance, photo_edges
+from .cues import boundary_points, edge_distance, edge_recall, photo_edges, region_residual
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import ObjectMask, check_image, mask_box, object_mask, refine_with_silhouette
@@ -127,6 +127,8 @@ FINE_VIEWS = 1              # ... at their best view and this many neighbours on
 FINE_WEIGHT = 2.0           # ... by HOG distance + this x the finer HOG's distance
 FINE_HOG = dict(size=128, cell=8)   # the finer HOG: 15 x 15 blocks of the 128 px crop
 EDGE_WEIGHT = 2.0           # ... + this x the stored view's edges' distance to the photo's
+RECALL_WEIGHT = 0.25        # ... + this x the photo's inside edges' distance to the view's
+REGION_WEIGHT = 0.5         # ... + this x the colour variance its material regions leave
 REFINE_CORE = 0.04          # ... their core (eroded by this share of the box side) is foreground
 MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of the prior
 SEED_MASK_STEP = 10.0       # ... and each seed alone too, over stored rings of at most this
@@ -360,14 +362,24 @@ class _Frame:
     mat_map: np.ndarray
 
 
+@dataclass
+class _Described:
+    """A stored view the retrieval re-rank has read, kept for the photo (other object masks
+    meet it again): its material-id map (0 = background), ``cues.boundary_points`` of it, and
+    its unit finer-HOG row (``FINE_HOG``; set by the batch that describes new views)."""
+
+    mat: np.ndarray
+    boundary: tuple
+    fine: np.ndarray | None = None
+
+
 class _Fit:
     def __init__(self, reader: CatalogReader, runtime: Runtime | None):
         self.r, self.runtime = reader, runtime
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
         self.db: FeatureTable | SearchIndex | None = None
-        self.fine_rows: dict[tuple[str, int], np.ndarray] = {}   # (sha, view) -> finer HOG
-        self.boundaries: dict[tuple[str, int], tuple] = {}        # ... -> its boundary points
+        self.described: dict[tuple[str, int], _Described] = {}   # (sha, view) -> re-rank's
         self.view_infos: dict[str, list] = {}                      # sha -> its stored views
         self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
         self._t = time.perf_counter()
@@ -565,31 +577,35 @@ class _Fit:
             albedo = None                           # read for a view not described yet
             for v, dv in zip(sel, d):
                 rows.append((mt.mesh, v, float(dv)))
-                if (sha, v) in self.fine_rows or (sha, v) in todo:
+                if (sha, v) in self.described:
                     continue
                 if albedo is None:
                     albedo = np.full((metas[mt.mesh].n_materials + 1, 3), 0.8)
                     for row in self.r.parts(sha):
                         albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
                 rec = self.r.view(sha, v)
-                self.boundaries[sha, v] = boundary_points(rec.mat_id)
+                self.described[sha, v] = _Described(rec.mat_id, boundary_points(rec.mat_id))
                 imgs.append(shade_stored_view(rec.depth, rec.mat_id, rec.tri_id, rec.K, albedo))
                 masks.append(np.isfinite(rec.depth))
                 todo.append((sha, v))
         if todo:                                    # one HOG launch for every new view
             new = unit_rows(ex.extract(np.stack(imgs), np.stack(masks)).feats)[0]
-            self.fine_rows.update(zip(todo, new))
+            for key, row in zip(todo, new):
+                self.described[key].fine = row
         scored: list[tuple[float, int, int, int]] = []
         if rows:
-            f = np.stack([self.fine_rows[metas[k].sha256, v] for k, v, _ in rows])
-            d_edge = [edge_distance(edges, *self.boundaries[metas[k].sha256, v])
-                      for k, v, _ in rows]
+            seen = [self.described[metas[k].sha256, v] for k, v, _ in rows]
+            f = np.stack([sv.fine for sv in seen])
             total = (np.array([dv for _, _, dv in rows]) + FINE_WEIGHT * (2.0 - 2.0 * f @ qf)
-                     + EDGE_WEIGHT * np.array(d_edge))
+                     + EDGE_WEIGHT * np.array([edge_distance(edges, *sv.boundary)
+                                               for sv in seen]))
             for rank, mt in enumerate(best[:FINE_MESHES]):
                 own = [i for i, (k, _, _) in enumerate(rows) if k == mt.mesh]
-                i = own[int(np.argmin(total[own]))]
-                scored.append((float(total[i]), rank, mt.mesh, rows[i][1]))
+                i = own[int(np.argmin(total[own]))]     # the view; then the mesh's score:
+                sv = seen[i]
+                score = (float(total[i]) + RECALL_WEIGHT * edge_recall(edges, *sv.boundary)
+                         + REGION_WEIGHT * region_residual(edges, sv.mat))
+                scored.append((score, rank, mt.mesh, rows[i][1]))
         scored.sort()
         return ([(k, v, s) for s, _, k, v in scored]
                 + [(mt.mesh, mt.view, mt.score) for mt in best[FINE_MESHES:]])
