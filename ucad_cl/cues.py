@@ -29,9 +29,12 @@ Cues (all in [0, ~1], lower is better):
   deviations. A repainted car has one colour per part, so the right view's regions are
   near-uniform whatever the colours.
 
-Retrieval's re-rank (``ucad_cl.fit``) uses one more, outside ``Cues``: ``photo_edges(image,
-mask)`` and ``edge_distance(edges, *boundary_points(mat))``, how far a stored view's material
-boundaries, placed onto the object's box, lie from the photo's own (not composited) edges.
+Retrieval's re-rank (``ucad_cl.fit``) uses three more, outside ``Cues``, in a frame around the
+object of the photo itself (not composited; ``photo_edges(image, mask)``), a stored view placed
+by stretching its box onto the object's: ``edge_distance(edges, *boundary_points(mat))``, how
+far the view's material boundaries lie from the photo's edges; ``edge_recall`` the other way
+round, from the photo's edges inside the object to the view's boundaries; and
+``region_residual(edges, mat)``, the ``region`` cue on that frame.
 
 ``combine(distances, weights)`` is the weighted sum. Ties are not broken here: pose search orders
 equal scores by view index.
@@ -197,10 +200,12 @@ def map_edges(tri: np.ndarray, mat: np.ndarray, depth: np.ndarray,
 
 # ----------------------------------------------------------------------------- photo edges
 
-# Retrieval's re-rank (``ucad_cl.fit``, docs/FIT.md "Stored views' edges against the photo's"):
-# how far a stored view's material boundaries, placed onto the object's box, lie from the
-# photo's own edges. The photo is not composited: clutter adds edges that every candidate may
-# land on alike, while a boundary the photo lacks (or a wrong outline) costs.
+# Retrieval's re-rank (``ucad_cl.fit``, docs/FIT.md "Stored views' edges against the photo's"
+# and "The photo's edges and colours against the view's regions"): how far a stored view's
+# material boundaries, placed onto the object's box, lie from the photo's own edges, and the
+# other way round. The photo is not composited: clutter adds edges that every candidate may
+# land on alike, while a boundary the photo lacks (or a wrong outline) costs; an edge inside
+# the object that the view has no boundary for costs too.
 EDGE_SIDE = 160             # frame side (pixels): the object's box grown by EDGE_GROW, squared
 EDGE_GROW = 0.15            # ... on every side, as a share of the box's longer side
 EDGE_CANNY = (40, 100)      # photo edge thresholds (cv2.Canny, L2 gradient, frame grey levels)
@@ -361,12 +366,7 @@ def region_residual(edges: PhotoEdges, mat: np.ndarray) -> float:
     lab = cv2.warpAffine(mat.astype(np.float32), M, (EDGE_SIDE, EDGE_SIDE),
                          flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=0.0).astype(np.int64).ravel()
-    n = int(lab.max()) + 1
-    count = np.bincount(lab, minlength=n).astype(np.float64)
-    explained = 0.0
-    for k in range(3):
-        s = np.bincount(lab, weights=c[:, k], minlength=n)
-        explained += float(np.divide(s * s, count, out=np.zeros(n), where=count > 0).sum())
+    explained = float(_explained(c, lab[None])[0])
     return float(np.clip((total - explained) / total, 0.0, 1.0))   # (colours' mean is 0)
 
 
@@ -442,8 +442,16 @@ def _region(query: Cues, views: Cues) -> np.ndarray:
     total = float(((c - c.mean(0)) ** 2).sum())
     if total <= 0:
         return np.zeros(len(views))
-    V = len(views)
-    lab = views.labels.reshape(V, -1).astype(np.int64)
+    explained = _explained(c, views.labels.reshape(len(views), -1).astype(np.int64))
+    sq = float((c * c).sum())
+    return np.clip((sq - explained) / total, 0.0, None)
+
+
+def _explained(c: np.ndarray, lab: np.ndarray) -> np.ndarray:
+    """(V,) float64 sum over the regions of (sum of colours)^2 / count, channels summed: the
+    between-region part of the sum of squares of the colours ``c`` (N, 3) float64 partitioned
+    by each row of ``lab`` (V, N) int64 (ids >= 0)."""
+    V = len(lab)
     n_lab = int(lab.max()) + 1
     idx = (lab + n_lab * np.arange(V)[:, None]).ravel()
     count = np.bincount(idx, minlength=V * n_lab).reshape(V, n_lab)
@@ -452,5 +460,4 @@ def _region(query: Cues, views: Cues) -> np.ndarray:
         ch = np.tile(c[:, k], V)
         s = np.bincount(idx, weights=ch, minlength=V * n_lab).reshape(V, n_lab)
         explained += np.divide(s * s, count, out=np.zeros_like(s), where=count > 0).sum(1)
-    sq = float((c * c).sum())
-    return np.clip((sq - explained) / total, 0.0, None)
+    return explained

@@ -21,9 +21,12 @@
    those; the first ``FINE_MESHES`` distinct meshes are re-ranked by a finer HOG (``FINE_HOG``:
    128 px crop, 8 px cells) of their best view and its neighbours, the stored views shaded
    from their depth, material and triangle maps (``shade.shade_stored_view``; no mesh is
-   read): score = HOG distance + ``FINE_WEIGHT`` x the finer HOG's distance + ``EDGE_WEIGHT``
-   x how far the view's material boundaries lie from the photo's edges (``cues.edge_distance``;
-   ``_fine_rerank``);
+   read): a view's score = HOG distance + ``FINE_WEIGHT`` x the finer HOG's distance +
+   ``EDGE_WEIGHT`` x how far the view's material boundaries lie from the photo's edges
+   (``cues.edge_distance``); a mesh's = its best view's + ``RECALL_WEIGHT`` x how far the
+   photo's edges inside the object lie from that view's boundaries (``cues.edge_recall``) +
+   ``REGION_WEIGHT`` x the colour variance that view's material regions leave
+   (``cues.region_residual``; ``_fine_rerank``);
    the first ``RERANK_POSE`` distinct meshes are posed (step 3) and the best pose score wins;
    the first ``CANDIDATES`` distinct meshes are reported as ``candidates`` (mesh, view pose,
    feature score; lower is better).
@@ -550,14 +553,18 @@ class _Fit:
     def _fine_rerank(self, photo, obj: ObjectMask, query, metas,
                      best: list[CatalogMatch]) -> list[tuple[int, int, float]]:
         """[(mesh index, view, score)] in retrieval order: the first ``FINE_MESHES`` meshes of
-        ``best`` (each mesh's best row, in HOG order) re-ranked by ``d + FINE_WEIGHT * d_fine +
-        EDGE_WEIGHT * d_edge`` at their best view and its ``FINE_VIEWS`` neighbours on each
-        side in azimuth (same elevation): ``d`` the squared distance of the unit HOG rows,
-        ``d_fine`` that of the finer HOG (``FINE_HOG``) of the photo's object and of the stored
-        view shaded from its maps (``shade.shade_stored_view``: no mesh read), ``d_edge`` how
-        far the stored view's material boundaries lie from the photo's edges around the
-        object (``cues.edge_distance``), each mesh scored by its best view (ties: the HOG
-        order); the other meshes follow with their HOG distance."""
+        ``best`` (each mesh's best row, in HOG order), each at its best view and its
+        ``FINE_VIEWS`` neighbours on each side in azimuth (same elevation), its view chosen by
+        ``d + FINE_WEIGHT * d_fine + EDGE_WEIGHT * d_edge`` (ties: the first in azimuth order,
+        from ``-FINE_VIEWS``): ``d`` the squared distance of the unit HOG rows, ``d_fine``
+        that of the finer HOG (``FINE_HOG``) of the photo's object and of the stored view
+        shaded from its maps (``shade.shade_stored_view``: no mesh read), ``d_edge`` how far
+        the stored view's material boundaries lie from the photo's edges around the object
+        (``cues.edge_distance``); the mesh scored by that view's sum + ``RECALL_WEIGHT *
+        d_recall + REGION_WEIGHT * d_region`` (``cues.edge_recall``: how far the photo's
+        edges inside the object lie from the view's boundaries; ``cues.region_residual``: the
+        colour variance its material regions leave), re-ranked by it (ties: the HOG order);
+        the other meshes follow with their HOG distance."""
         ex = HogExtractor(runtime=self.runtime, **FINE_HOG)
         q_fine, _ = query_features(photo, ex, mask=obj.mask, runtime=self.runtime)
         edges = photo_edges(photo, obj.mask)
