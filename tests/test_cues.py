@@ -246,7 +246,8 @@ def test_edge_distance_equals_point_loop():
                      for _ in range(2)]).astype(np.float32)
     A = np.array([[0.8, 0.0, 10.0], [0.0, 0.8, -5.0]])
     e = cues.PhotoEdges(dist=dist, to_frame=A, box=(30, 40, 190, 120),
-                        inside=(np.zeros((0, 2), np.int64),) * 2, colours=np.zeros((S * S, 3)), spread=0.0)
+                        inside=(np.zeros((0, 2), np.int64),) * 2, colours=np.zeros((S * S, 3)),
+                        spread=0.0)
     mat = np.zeros((64, 64), np.uint16)
     mat[20:40, 10:50] = 1
     mat[25:30, 15:25] = 2
@@ -275,7 +276,8 @@ def test_edge_recall_equals_point_loop():
     A = np.array([[0.8, 0.0, 10.0], [0.0, 0.8, -5.0]])
     inside = tuple(rng.integers(20, 140, (n, 2)).astype(np.int64) for n in (40, 25))
     e = cues.PhotoEdges(dist=np.zeros((2, S, S), np.float32), to_frame=A,
-                        box=(30, 40, 190, 120), inside=inside, colours=np.zeros((S * S, 3)), spread=0.0)
+                        box=(30, 40, 190, 120), inside=inside, colours=np.zeros((S * S, 3)),
+                        spread=0.0)
     mat = np.zeros((64, 64), np.uint16)
     mat[20:40, 10:50] = 1
     mat[25:30, 15:25] = 2
@@ -292,9 +294,8 @@ def test_edge_recall_equals_point_loop():
         for dy in range(-cues.EDGE_SHIFT, cues.EDGE_SHIFT + 1):
             total = 0.0
             for c in range(2):
-                own = placed_np[normal == c] + [dx, dy]
-                for x, y in inside[c]:
-                    x, y = min(max(x - dx, 0), S - 1) + dx, min(max(y - dy, 0), S - 1) + dy
+                own = placed_np[normal == c] + [dx, dy]      # the boundaries shifted
+                for x, y in inside[c]:                        # (20-139: no edge clamping)
                     d = np.sqrt(((own - [x, y]) ** 2).sum(1)).min()
                     total += min(d, cues.EDGE_TAU)
             best = min(best, total / 65 / cues.EDGE_TAU)
