@@ -48,7 +48,7 @@ import numpy as np
 
 from .artifacts import BACKGROUND_TRI, Mesh, ViewSet
 from .features import FeatureExtractor, crop_window, square_windows, unit_rows
-from .foreground import mask_box
+from .foreground import box_stretch, mask_box
 from .shade import face_normals
 
 CUES = ("hog", "silhouette", "chamfer", "region")
@@ -249,7 +249,8 @@ def photo_edges(image: np.ndarray, mask: np.ndarray) -> PhotoEdges:
     s = EDGE_SIDE / (max(x1 - x0, y1 - y0) * (1.0 + 2.0 * EDGE_GROW))
     cx, cy = (x0 + x1) / 2.0, (y0 + y1) / 2.0
     to_frame = np.array([[s, 0.0, EDGE_SIDE / 2.0 - s * cx], [0.0, s, EDGE_SIDE / 2.0 - s * cy]])
-    grey = cv2.cvtColor(np.ascontiguousarray(image, np.uint8), cv2.COLOR_RGB2GRAY)
+    image = np.ascontiguousarray(image, np.uint8)
+    grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     crop = cv2.warpAffine(grey, to_frame, (EDGE_SIDE, EDGE_SIDE), flags=cv2.INTER_AREA,
                           borderMode=cv2.BORDER_REPLICATE)
     edges = cv2.Canny(crop, EDGE_CANNY[0], EDGE_CANNY[1], L2gradient=True) > 0
@@ -267,8 +268,7 @@ def photo_edges(image: np.ndarray, mask: np.ndarray) -> PhotoEdges:
     core = cv2.erode(core, np.ones((2 * EDGE_INSIDE + 1,) * 2, np.uint8)) > 0
     inside = tuple(np.argwhere((dist[c] == 0) & core)[:, ::-1].astype(np.int64)
                    for c in range(2))
-    colours = cv2.warpAffine(np.ascontiguousarray(image, np.uint8), to_frame,
-                             (EDGE_SIDE, EDGE_SIDE), flags=cv2.INTER_AREA,
+    colours = cv2.warpAffine(image, to_frame, (EDGE_SIDE, EDGE_SIDE), flags=cv2.INTER_AREA,
                              borderMode=cv2.BORDER_REPLICATE).reshape(-1, 3).astype(np.float64)
     colours -= colours.mean(axis=0)
     return PhotoEdges(dist=dist, to_frame=to_frame, box=(x0, y0, x1, y1),
@@ -374,21 +374,21 @@ def region_residual(edges: PhotoEdges, mat: np.ndarray) -> float:
 
 def _frame_from_view(edges: PhotoEdges, box: tuple[int, int, int, int]) -> np.ndarray:
     """(2, 3) stored-view pixel coordinates -> frame pixel coordinates: the view's box (x0, y0,
-    x1, y1) stretched onto the object's box (each axis on its own), then ``to_frame``."""
-    x0, y0, x1, y1 = box
-    X0, Y0, X1, Y1 = edges.box
-    sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
-    A = np.array([[sx, 0.0, X0 - sx * x0], [0.0, sy, Y0 - sy * y0], [0.0, 0.0, 1.0]])
+    x1, y1) stretched onto the object's box (``foreground.box_stretch``), then ``to_frame``."""
+    A = np.vstack([box_stretch(box, edges.box), [0.0, 0.0, 1.0]])
     return (np.vstack([edges.to_frame, [0.0, 0.0, 1.0]]) @ A)[:2]
 
 
 def _placed(edges: PhotoEdges, points: np.ndarray, box) -> np.ndarray:
     """(N, 2) int64 frame pixels (x, y) of stored-view points: stretched onto the object's box
-    as ``_frame_from_view`` says, rounded to the nearest pixel (not clamped)."""
-    x0, y0, x1, y1 = box
-    X0, Y0, X1, Y1 = edges.box
-    sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
-    photo = np.stack([X0 + (points[:, 0] - x0) * sx, Y0 + (points[:, 1] - y0) * sy], 1)
+    by ``foreground.box_stretch``'s scales, rounded to the nearest pixel (not clamped). The
+    points are offset from the box corner before scaling (``X0 + (x - x0) sx``), the rounding
+    ``edge_distance`` was chosen with; ``_frame_from_view``'s matrix form rounds a point on a
+    half pixel differently."""
+    x0, y0 = box[0], box[1]
+    X0, Y0 = edges.box[0], edges.box[1]
+    A = box_stretch(box, edges.box)
+    photo = np.stack([X0 + (points[:, 0] - x0) * A[0, 0], Y0 + (points[:, 1] - y0) * A[1, 1]], 1)
     return np.round(photo @ edges.to_frame[:, :2].T + edges.to_frame[:, 2]).astype(np.int64)
 
 

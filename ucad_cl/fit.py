@@ -87,7 +87,8 @@ from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_l
 from .cues import boundary_points, edge_distance, edge_recall, photo_edges, region_residual
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
-from .foreground import ObjectMask, check_image, mask_box, object_mask, refine_with_silhouette
+from .foreground import (ObjectMask, box_stretch, check_image, mask_box, object_mask,
+                         refine_with_silhouette)
 from .ingest import IngestError, load_mesh
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
@@ -707,16 +708,13 @@ class _Fit:
         import cv2
 
         H, W = photo.shape[:2]
-        X0, Y0, X1, Y1 = obj.box
         placed: list[np.ndarray | None] = []
         for sha, view in seeds:
             sil = np.asarray(self.r.material_map(sha, int(view))) > 0
             if not sil.any():
                 placed.append(None)
                 continue
-            x0, y0, x1, y1 = mask_box(sil)
-            sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
-            M = np.array([[sx, 0.0, X0 - sx * x0], [0.0, sy, Y0 - sy * y0]])
+            M = box_stretch(mask_box(sil), obj.box)
             placed.append(cv2.warpAffine(sil.astype(np.uint8), M, (W, H),
                                          flags=cv2.INTER_NEAREST) > 0)
         return placed

@@ -149,6 +149,16 @@ def mask_box(mask: np.ndarray) -> tuple[int, int, int, int]:
     return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
 
 
+def box_stretch(src: tuple[int, int, int, int], dst: tuple[int, int, int, int]) -> np.ndarray:
+    """(2, 3) float64 affine map taking box ``src`` onto box ``dst`` ((x0, y0, x1, y1), each
+    axis scaled on its own, corners onto corners): how a stored view's silhouette or material
+    map is placed onto a photo's object."""
+    x0, y0, x1, y1 = src
+    X0, Y0, X1, Y1 = dst
+    sx, sy = (X1 - X0) / (x1 - x0), (Y1 - Y0) / (y1 - y0)
+    return np.array([[sx, 0.0, X0 - sx * x0], [0.0, sy, Y0 - sy * y0]])
+
+
 # ----------------------------------------------------------------------------- GrabCut
 
 def grabcut_box(image: np.ndarray, box: tuple[int, int, int, int], *,
