@@ -392,6 +392,52 @@ def test_fine_rerank_scores_match_the_meshes_own_renders(catalogue):
             assert abs(c.score - total) < 0.1 * fit.FINE_WEIGHT * d[1], (c, d, d_edge)
 
 
+def test_prefilter_passes_the_meshes_nearest_by_hog_and_edges(catalogue, monkeypatch):
+    """With more meshes than FINE_MESHES, the re-rank describes those of the first
+    PREFILTER_MESHES by HOG of least d + EDGE_WEIGHT x d_edge at their HOG-best view: recomputed
+    here from the stored features (NumPy, float64) and the stored material maps, the first
+    FINE_MESHES candidates are that set and the others follow in HOG order. Two photos; in the
+    second (a front view) the HOG order puts the true mesh third and the pre-filter passes it
+    on to the re-rank."""
+    import ucad_cl.fit as fit
+    from ucad_catalog.reader import CatalogReader
+    from ucad_cl.cues import boundary_points, edge_distance, photo_edges
+    from ucad_cl.features import HogExtractor, unit_rows
+    from ucad_cl.pose import query_features
+    from ucad_cl.refphoto import render_reference
+
+    monkeypatch.setattr(fit, "FINE_MESHES", 2)
+    monkeypatch.setattr(fit, "PREFILTER_MESHES", 4)
+    differs = []
+    for k, az in ((1, 200.0), (3, 0.0)):
+        m, mesh, rows = _mesh(catalogue, k)
+        ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=az,
+                               elevation=10.0, seed=7, background="plain")
+        res = fit.fit_photo(ref.image, mask=ref.mask, catalog=catalogue)
+        q = unit_rows(query_features(ref.image, HogExtractor(), mask=ref.mask)[0][None])[0][0]
+        edges = photo_edges(ref.image, ref.mask)
+        with CatalogReader(catalogue) as r:
+            t = r.feature_table()
+            d = 2.0 - 2.0 * unit_rows(np.asarray(t.feats, np.float64))[0] @ q
+            best = {}                                  # mesh -> (d, row) of its best row
+            for row in np.lexsort((np.arange(len(d)), d)):
+                best.setdefault(int(t.mesh[row]), (float(d[row]), int(row)))
+            order = sorted(best, key=lambda j: best[j])
+            pre = []
+            for j in order[:4]:
+                sha = t.meshes[j].sha256
+                mat = np.asarray(r.material_map(sha, int(t.view[best[j][1]])))
+                pre.append((best[j][0] + fit.EDGE_WEIGHT * edge_distance(
+                    edges, *boundary_points(mat)), j))
+            keep = {t.meshes[j].sha256 for _, j in sorted(pre)[:2]}
+            rest = [t.meshes[j].sha256 for j in order if t.meshes[j].sha256 not in keep]
+        assert {c.mesh_id for c in res.candidates[:2]} == keep, k
+        assert [c.mesh_id for c in res.candidates[2:]] == rest[:len(res.candidates) - 2], k
+        differs.append(keep != {t.meshes[j].sha256 for j in order[:2]})
+    assert differs == [False, True]
+    assert m.sha256 in keep and m.sha256 not in {t.meshes[j].sha256 for j in order[:2]}
+
+
 def test_refined_object_mask_beats_grabcut_in_clutter(catalogue):
     """With a box, GrabCut is rerun seeded by the first retrieved meshes' stored silhouettes:
     on a black car in a cluttered street its object overlaps the reference's true mask (Embree

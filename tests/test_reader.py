@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import sqlite3
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -429,10 +430,18 @@ def test_schema_1_catalogue_is_upgraded_by_the_writer(tmp_path):
 
 
 # ---------------------------------------------------------------------------- one-part decoder
-def test_one_part_decoder_equals_openexr(tmp_path):
+@pytest.mark.parametrize("head_bytes", [None, 16])
+def test_one_part_decoder_equals_openexr(tmp_path, monkeypatch, head_bytes):
     """ViewStackFile against OpenEXR's own decoder: ZIP (compressible and incompressible
-    chunks), ZIPS, no compression, a single-part file, empty views; PIZ goes through OpenEXR."""
+    chunks), ZIPS, no compression, a single-part file, empty views; PIZ goes through OpenEXR.
+    With a 16-byte first read the headers are read in doubling steps (as a long stack's are);
+    a stack cut or removed after it was opened gives ValueError naming it at the read."""
     import OpenEXR
+
+    from ucad_catalog import exr
+
+    if head_bytes is not None:
+        monkeypatch.setattr(exr, "_HEAD_BYTES", head_bytes)
 
     rng = np.random.default_rng(3)
     H, W = 37, 29
@@ -484,8 +493,22 @@ def test_one_part_decoder_equals_openexr(tmp_path):
         g = ViewStackFile(tmp_path / "corrupt.exr")
         for v in range(g.n_views):
             g.read(v)
-    whole = (tmp_path / "ZIP_COMPRESSION-4.exr").read_bytes()   # cut anywhere: ValueError
-    cut = tmp_path / "cut.exr"
+    stack = ViewStackFile(tmp_path / "ZIP_COMPRESSION-4.exr")     # a chunk offset past the end
+    table = int(stack.parts[0]["offsets"][0]) - 8 * sum(len(p["offsets"]) for p in stack.parts)
+    far = bytearray((tmp_path / "ZIP_COMPRESSION-4.exr").read_bytes())
+    far[table + 8:table + 16] = struct.pack("<Q", 2**62)          # view 0's second chunk
+    (tmp_path / "far.exr").write_bytes(bytes(far))
+    with pytest.raises(ValueError, match="far.exr: view 0: corrupt chunk data"):
+        ViewStackFile(tmp_path / "far.exr").read(0)
+    opened = ViewStackFile(tmp_path / "ZIP_COMPRESSION-4.exr")    # cut after the open
+    whole = (tmp_path / "ZIP_COMPRESSION-4.exr").read_bytes()
+    (tmp_path / "ZIP_COMPRESSION-4.exr").write_bytes(whole[:len(whole) // 2])
+    with pytest.raises(ValueError, match="ZIP_COMPRESSION-4.exr: view 3: corrupt"):
+        opened.read(3)
+    (tmp_path / "ZIP_COMPRESSION-4.exr").unlink()
+    with pytest.raises(ValueError, match="ZIP_COMPRESSION-4.exr: view 0: cannot read"):
+        opened.read(0)
+    cut = tmp_path / "cut.exr"                                    # cut anywhere: ValueError
     for n in sorted(set(range(0, 600)) | set(range(600, len(whole), 7))):
         cut.write_bytes(whole[:n])
         with pytest.raises(ValueError, match="cut.exr"):

@@ -18,7 +18,9 @@
    photos reads the catalogue's features once; meshes without readable features are left out
    with a note): the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
    (the stored rows are unit vectors), then ``pose.search_catalog``'s exact float64 ranking of
-   those; the first ``FINE_MESHES`` distinct meshes are re-ranked by a finer HOG (``FINE_HOG``:
+   those; of the first ``PREFILTER_MESHES`` distinct meshes, the ``FINE_MESHES`` of least HOG
+   distance + ``EDGE_WEIGHT`` x ``cues.edge_distance`` (below) at their best view, read from
+   the stored material map (``_prefiltered``), are re-ranked by a finer HOG (``FINE_HOG``:
    128 px crop, 8 px cells) of their best view and its neighbours, the stored views shaded
    from their depth, material and triangle maps (``shade.shade_stored_view``; no mesh is
    read): a view's score = HOG distance + ``FINE_WEIGHT`` x the finer HOG's distance +
@@ -126,7 +128,9 @@ INDEX_FROM = 32768          # retrieval reads the search index (if fresh) over t
 INDEX_ROWS = 4096           # ... and keeps the rows nearest in its projections (docs/FIT.md)
 PRESELECT_ROWS = 2048       # ... then by float32 dot products of the full rows, for the exact rank
 REFINE_MESHES = 3           # object: stored silhouettes of the first meshes seed GrabCut again
-FINE_MESHES = 10            # retrieval: the first meshes re-ranked by the finer HOG ...
+PREFILTER_MESHES = 20       # retrieval: of this many first meshes by HOG, the FINE_MESHES of
+                            # least HOG + edge distance at their best view ...
+FINE_MESHES = 10            # ... are re-ranked by the finer HOG ...
 FINE_VIEWS = 1              # ... at their best view and this many neighbours on each side ...
 FINE_WEIGHT = 2.0           # ... by HOG distance + this x the finer HOG's distance
 FINE_HOG = dict(size=128, cell=8)   # the finer HOG: 15 x 15 blocks of the 128 px crop
@@ -370,7 +374,8 @@ class _Frame:
 class _Described:
     """A stored view the retrieval re-rank has read, kept for the photo (other object masks
     meet it again): its material-id map (0 = background), ``cues.boundary_points`` of it, and
-    its unit finer-HOG row (``FINE_HOG``; set by the batch that describes new views)."""
+    its unit finer-HOG row (``FINE_HOG``; set by the batch that describes new views, None
+    while only ``_prefiltered`` has read the view)."""
 
     mat: np.ndarray
     boundary: tuple
@@ -553,8 +558,9 @@ class _Fit:
 
     def _fine_rerank(self, photo, obj: ObjectMask, query, metas,
                      best: list[CatalogMatch]) -> list[tuple[int, int, float]]:
-        """[(mesh index, view, score)] in retrieval order: the first ``FINE_MESHES`` meshes of
-        ``best`` (each mesh's best row, in HOG order), each at its best view and its
+        """[(mesh index, view, score)] in retrieval order: ``FINE_MESHES`` meshes of ``best``
+        (each mesh's best row, in HOG order), chosen among its first ``PREFILTER_MESHES`` by
+        ``_prefiltered``, each at its best view and its
         ``FINE_VIEWS`` neighbours on each side in azimuth (same elevation), its view chosen by
         ``d + FINE_WEIGHT * d_fine + EDGE_WEIGHT * d_edge`` (ties: the first in azimuth order,
         from ``-FINE_VIEWS``): ``d`` the squared distance of the unit HOG rows, ``d_fine``
@@ -573,7 +579,8 @@ class _Fit:
         q = unit_rows(np.asarray(query)[None])[0][0]
         table = self._database()                   # mt.mesh indexes its meshes (= metas)
         imgs, masks, todo, rows = [], [], [], []
-        for mt in best[:FINE_MESHES]:
+        kept = self._prefiltered(edges, q, metas, best, table)
+        for mt in kept:
             sha = metas[mt.mesh].sha256
             views = self._views(sha)
             ring = sorted((v.azimuth, v.index) for v in views
@@ -585,7 +592,8 @@ class _Fit:
             albedo = None                           # read for a view not described yet
             for v, dv in zip(sel, d):
                 rows.append((mt.mesh, v, float(dv)))
-                if (sha, v) in self.described:
+                have = self.described.get((sha, v))
+                if (sha, v) in todo or (have is not None and have.fine is not None):
                     continue
                 if albedo is None:
                     albedo = np.full((metas[mt.mesh].n_materials + 1, 3), 0.8)
@@ -607,7 +615,7 @@ class _Fit:
             total = (np.array([dv for _, _, dv in rows]) + FINE_WEIGHT * (2.0 - 2.0 * f @ qf)
                      + EDGE_WEIGHT * np.array([edge_distance(edges, *sv.boundary)
                                                for sv in seen]))
-            for rank, mt in enumerate(best[:FINE_MESHES]):
+            for rank, mt in enumerate(kept):
                 own = [i for i, (k, _, _) in enumerate(rows) if k == mt.mesh]
                 i = own[int(np.argmin(total[own]))]     # the view; then the mesh's score:
                 sv = seen[i]
@@ -615,8 +623,31 @@ class _Fit:
                          + REGION_WEIGHT * region_residual(edges, sv.mat))
                 scored.append((score, rank, mt.mesh, rows[i][1]))
         scored.sort()
+        ranked = {mt.mesh for mt in kept}
         return ([(k, v, s) for s, _, k, v in scored]
-                + [(mt.mesh, mt.view, mt.score) for mt in best[FINE_MESHES:]])
+                + [(mt.mesh, mt.view, mt.score) for mt in best if mt.mesh not in ranked])
+
+    def _prefiltered(self, edges, q, metas, best: list[CatalogMatch],
+                     table) -> list[CatalogMatch]:
+        """The meshes of ``best`` (HOG order) that ``_fine_rerank`` describes: of the first
+        ``PREFILTER_MESHES``, the ``FINE_MESHES`` of least ``d + EDGE_WEIGHT * d_edge`` at
+        their best HOG view (the stored material map alone: nothing shaded; ties: the HOG
+        order), kept in HOG order; all of them when there are no more than ``FINE_MESHES``."""
+        pool = best[:PREFILTER_MESHES]
+        if len(pool) <= FINE_MESHES:
+            return pool
+        pre = []
+        for rank, mt in enumerate(pool):
+            sha = metas[mt.mesh].sha256
+            if (sha, mt.view) not in self.described:
+                mat = np.asarray(self.r.material_map(sha, int(mt.view)))
+                self.described[sha, mt.view] = _Described(mat, boundary_points(mat))
+            row = table.rows(int(np.searchsorted(table.mesh, mt.mesh)) + np.asarray([mt.view]))
+            d = 2.0 - 2.0 * float(unit_rows(row)[0][0] @ q)
+            d_edge = edge_distance(edges, *self.described[sha, mt.view].boundary)
+            pre.append((d + EDGE_WEIGHT * d_edge, rank))
+        keep = sorted(rank for _, rank in sorted(pre)[:FINE_MESHES])
+        return [pool[r] for r in keep]
 
     def _views(self, sha: str) -> list:
         """The catalogue's views of a mesh (``CatalogReader.views``), read once per photo."""
