@@ -493,6 +493,12 @@ def test_one_part_decoder_equals_openexr(tmp_path, monkeypatch, head_bytes):
         g = ViewStackFile(tmp_path / "corrupt.exr")
         for v in range(g.n_views):
             g.read(v)
+    loop = bytearray((tmp_path / "ZIP_COMPRESSION-4.exr").read_bytes())  # an attribute whose
+    first = loop.index(b"\0", loop.index(b"\0", 8) + 1) + 1       # size points back at itself
+    loop[first:first + 4] = struct.pack("<i", 8 - (first + 4))
+    (tmp_path / "loop.exr").write_bytes(bytes(loop))
+    with pytest.raises(ValueError, match="loop.exr: not a readable .* negative size"):
+        ViewStackFile(tmp_path / "loop.exr")
     stack = ViewStackFile(tmp_path / "ZIP_COMPRESSION-4.exr")     # a chunk offset past the end
     table = int(stack.parts[0]["offsets"][0]) - 8 * sum(len(p["offsets"]) for p in stack.parts)
     far = bytearray((tmp_path / "ZIP_COMPRESSION-4.exr").read_bytes())

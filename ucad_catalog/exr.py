@@ -426,6 +426,8 @@ def _parse_header(data: bytes, pos: int,
         name = data[pos:end]
         tend = find(b"\0", end + 1)
         size = _I32(data, tend + 1)[0]
+        if size < 0:                                   # (else the walk could loop forever)
+            raise ValueError(f"attribute {name!r} has a negative size")
         v = tend + 5
         if name in _WANTED:
             value = data[v:v + size]

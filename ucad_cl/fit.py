@@ -579,7 +579,7 @@ class _Fit:
         q = unit_rows(np.asarray(query)[None])[0][0]
         table = self._database()                   # mt.mesh indexes its meshes (= metas)
         imgs, masks, todo, rows = [], [], [], []
-        kept = self._prefiltered(edges, q, metas, best, table)
+        kept = self._prefiltered(edges, metas, best)
         for mt in kept:
             sha = metas[mt.mesh].sha256
             views = self._views(sha)
@@ -627,12 +627,12 @@ class _Fit:
         return ([(k, v, s) for s, _, k, v in scored]
                 + [(mt.mesh, mt.view, mt.score) for mt in best if mt.mesh not in ranked])
 
-    def _prefiltered(self, edges, q, metas, best: list[CatalogMatch],
-                     table) -> list[CatalogMatch]:
+    def _prefiltered(self, edges, metas, best: list[CatalogMatch]) -> list[CatalogMatch]:
         """The meshes of ``best`` (HOG order) that ``_fine_rerank`` describes: of the first
         ``PREFILTER_MESHES``, the ``FINE_MESHES`` of least ``d + EDGE_WEIGHT * d_edge`` at
-        their best HOG view (the stored material map alone: nothing shaded; ties: the HOG
-        order), kept in HOG order; all of them when there are no more than ``FINE_MESHES``."""
+        their best HOG view (``d`` = the match's score; the stored material map alone: nothing
+        shaded; ties: the HOG order), kept in HOG order; all of them when there are no more
+        than ``FINE_MESHES``."""
         pool = best[:PREFILTER_MESHES]
         if len(pool) <= FINE_MESHES:
             return pool
@@ -642,10 +642,8 @@ class _Fit:
             if (sha, mt.view) not in self.described:
                 mat = np.asarray(self.r.material_map(sha, int(mt.view)))
                 self.described[sha, mt.view] = _Described(mat, boundary_points(mat))
-            row = table.rows(int(np.searchsorted(table.mesh, mt.mesh)) + np.asarray([mt.view]))
-            d = 2.0 - 2.0 * float(unit_rows(row)[0][0] @ q)
             d_edge = edge_distance(edges, *self.described[sha, mt.view].boundary)
-            pre.append((d + EDGE_WEIGHT * d_edge, rank))
+            pre.append((mt.score + EDGE_WEIGHT * d_edge, rank))
         keep = sorted(rank for _, rank in sorted(pre)[:FINE_MESHES])
         return [pool[r] for r in keep]
 
