@@ -55,6 +55,23 @@ def catalogue_content(path) -> dict:
     return out
 
 
+def _content_difference(got: dict, want: dict) -> str:
+    """Where two ``catalogue_content`` results differ: per mesh, each differing field, and for
+    materials each differing row (so that a failure says which label moved)."""
+    out = [f"meshes only in one: {sorted(set(got) ^ set(want))}"]
+    for sha in sorted(set(got) & set(want)):
+        for key in sorted(set(got[sha]) | set(want[sha])):
+            a, b = got[sha].get(key), want[sha].get(key)
+            if a == b:
+                continue
+            if key == "materials":
+                rows = [f"{x} != {y}" for x, y in zip(a, b) if x != y]
+                out.append(f"{want[sha]['path']}: materials differ: {rows}")
+            else:
+                out.append(f"{want[sha]['path']}: {key}: {a!r} != {b!r}")
+    return "\n".join(out)
+
+
 def test_build_labels_rejections_and_skip(library, tmp_path, runtime):
     cat = tmp_path / "cat"
     s = build(library, cat, OPTS, progress=False, log=lambda *a: None)
@@ -148,7 +165,8 @@ def test_sigkill_resume_equals_uninterrupted_build(library, tmp_path, runtime):
             pass
     done = subprocess.run(_build_cmd(library, cat), env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
-    assert catalogue_content(cat) == expected
+    got = catalogue_content(cat)
+    assert got == expected, _content_difference(got, expected)
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
         assert c.verify() == []
