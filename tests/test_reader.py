@@ -433,7 +433,8 @@ def test_schema_1_catalogue_is_upgraded_by_the_writer(tmp_path):
 @pytest.mark.parametrize("head_bytes", [None, 16])
 def test_one_part_decoder_equals_openexr(tmp_path, monkeypatch, head_bytes):
     """ViewStackFile against OpenEXR's own decoder: ZIP (compressible and incompressible
-    chunks), ZIPS, no compression, a single-part file, empty views; PIZ goes through OpenEXR.
+    chunks), ZIPS, no compression, a single-part file, empty views, one part whose header has
+    one more attribute (the others repeat a layout); PIZ goes through OpenEXR.
     With a 16-byte first read the headers are read in doubling steps (as a long stack's are);
     a stack cut or removed after it was opened gives ValueError naming it at the read."""
     import OpenEXR
@@ -462,6 +463,8 @@ def test_one_part_decoder_equals_openexr(tmp_path, monkeypatch, head_bytes):
                           "displayWindow": (np.array([0, 0], np.int32),
                                             np.array([W - 1, H - 1], np.int32)),
                           "compression": getattr(OpenEXR, comp), "type": OpenEXR.scanlineimage}
+                if v == 1:                  # a header of another layout among repeated ones
+                    header["comments"] = "one more attribute"
                 parts.append(OpenEXR.Part(header, {k: OpenEXR.Channel(x)
                                                    for k, x in chans.items()}, f"view_{v:03d}"))
             path = tmp_path / f"{comp}-{n_parts}.exr"
