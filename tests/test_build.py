@@ -55,7 +55,7 @@ def catalogue_content(path) -> dict:
     return out
 
 
-def _content_difference(got: dict, want: dict) -> str:
+def content_difference(got: dict, want: dict) -> str:
     """Where two ``catalogue_content`` results differ: per mesh, each differing field, and for
     materials each differing row (so that a failure says which label moved)."""
     out = [f"meshes only in one: {sorted(set(got) ^ set(want))}"]
@@ -166,7 +166,7 @@ def test_sigkill_resume_equals_uninterrupted_build(library, tmp_path, runtime):
     done = subprocess.run(_build_cmd(library, cat), env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
     got = catalogue_content(cat)
-    assert got == expected, _content_difference(got, expected)
+    assert got == expected, content_difference(got, expected)
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
         assert c.verify() == []

@@ -22,7 +22,7 @@ import pytest
 
 from tests.hostile_corpus import (box_gltf, pack_glb, remove_deep, vehicle_glb, wrapped,
                                   write_corpus)
-from tests.test_build import catalogue_content
+from tests.test_build import catalogue_content, content_difference
 from ucad_cl.build import BuildOptions, BuildStopped, build
 from ucad_cl.ingest import Budgets, IngestError, load_mesh
 from ucad_cl.system import printable
@@ -475,7 +475,8 @@ def test_sigkill_of_single_workers_leaves_an_identical_catalogue(kill_library, k
         if kills >= 3:                                # the build outlived most of the kills
             break
     assert kills >= 3, kills
-    assert catalogue_content(cat) == kill_expected[0]
+    got = catalogue_content(cat)
+    assert got == kill_expected[0], content_difference(got, kill_expected[0])
     assert _export(cat, tmp_path / "x.jsonl") == kill_expected[1]
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
