@@ -287,10 +287,10 @@ class ViewStackFile:
                         head += more
         except OSError as exc:
             raise ValueError(f"{self.path}: cannot read the view stack ({exc})") from None
-        starts = np.unique(np.concatenate([p["offsets"] for p in self.parts]))
-        self._ends = np.append(starts[1:], max(self._size, int(starts[-1]))) if starts.size \
-            else starts                                # a chunk ends where the next one starts
-        self._starts = starts
+        # a chunk ends where the next one starts, the last at the end of the file (``_decode``
+        # clamps every range to the file, so offsets past its end read short and are refused)
+        self._starts = np.unique(np.concatenate([p["offsets"] for p in self.parts]))
+        self._ends = np.append(self._starts[1:], self._size)
         self._fallback: Any = None                  # OpenEXR parts, when the fast path cannot
 
     @property

@@ -48,8 +48,8 @@ from ._db import (MESH_ORDER, RECENT_RUNS, CatalogError, catalog_status, check_c
 from .searchindex import SearchIndex, load_search_index
 
 MIN_ID_PREFIX = 8          # hex digits of a sha256 prefix accepted as a mesh id
-_OPEN_STACKS = 64          # view stacks kept open per reader (headers and offsets, ~0.2 MB each
-                           # at 144 views; an open reads the headers only: ~0.6-1.2 ms)
+_OPEN_STACKS = 64          # view stacks kept open per reader (headers and offsets, ~50 KB each
+                           # at 72 views; an open reads the headers only: ~0.6 ms)
 
 
 @dataclass
