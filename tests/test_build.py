@@ -51,13 +51,16 @@ def catalogue_content(path) -> dict:
                                p.pixels) for p in r.parts(m.sha256)],
                 "artifacts": sorted((k, v["sha256"]) for k, v in rec["artifacts"].items()),
                 "views": len(rec["views"]),
+                "file_to_norm": rec["file_to_norm"], "orientation": rec["orientation"],
+                "n_triangles": rec["n_triangles"], "n_materials": rec["n_materials"],
             }
     return out
 
 
-def content_difference(got: dict, want: dict) -> str:
+def content_difference(got: dict, want: dict, got_path=None, want_path=None) -> str:
     """Where two ``catalogue_content`` results differ: per mesh, each differing field, and for
-    materials each differing row (so that a failure says which label moved)."""
+    materials each differing row (so that a failure says which label moved); given both
+    catalogues' paths, also where two view stacks differ (``stack_difference``)."""
     out = [f"meshes only in one: {sorted(set(got) ^ set(want))}"]
     for sha in sorted(set(got) & set(want)):
         for key in sorted(set(got[sha]) | set(want[sha])):
@@ -69,7 +72,36 @@ def content_difference(got: dict, want: dict) -> str:
                 out.append(f"{want[sha]['path']}: materials differ: {rows}")
             else:
                 out.append(f"{want[sha]['path']}: {key}: {a!r} != {b!r}")
+            if key == "artifacts" and got_path is not None and want_path is not None \
+                    and dict(a).get("views.exr") != dict(b).get("views.exr"):
+                out.append(f"{want[sha]['path']}: {stack_difference(got_path, want_path, sha)}")
     return "\n".join(out)
+
+
+def stack_difference(got_path, want_path, sha: str) -> str:
+    """Where two catalogues' view stacks of mesh ``sha`` differ: the first differing byte, and
+    per view and map the pixels that differ (count, first pixel, both values), or the cameras."""
+    from ucad_catalog.reader import CatalogReader
+    with CatalogReader(got_path) as a, CatalogReader(want_path) as b:
+        raw = [r.artifact_path(sha, "views.exr").read_bytes() for r in (a, b)]
+        n = min(map(len, raw))
+        first = next((i for i in range(n) if raw[0][i] != raw[1][i]), n)
+        out = [f"views.exr: {len(raw[0])} / {len(raw[1])} bytes, first difference at byte {first}"]
+        for v in range(min(len(a.views(sha)), len(b.views(sha)))):
+            x, y = a.view(sha, v), b.view(sha, v)
+            for name in ("depth", "mat_id", "tri_id", "K", "w2c"):
+                p, q = np.asarray(getattr(x, name)), np.asarray(getattr(y, name))
+                if p.shape != q.shape:
+                    out.append(f"view {v} {name}: shape {p.shape} != {q.shape}")
+                    continue
+                bits = f"u{p.dtype.itemsize}"                # bit for bit (NaN, -0.0)
+                diff = np.argwhere(np.ascontiguousarray(p).view(bits)
+                                   != np.ascontiguousarray(q).view(bits))
+                if len(diff):
+                    i = tuple(int(k) for k in diff[0])
+                    out.append(f"view {v} {name}: {len(diff)} differ, first {i}: "
+                               f"{p[i].item()!r} != {q[i].item()!r}")
+    return "; ".join(out[:20])
 
 
 def test_build_labels_rejections_and_skip(library, tmp_path, runtime):
@@ -166,7 +198,7 @@ def test_sigkill_resume_equals_uninterrupted_build(library, tmp_path, runtime):
     done = subprocess.run(_build_cmd(library, cat), env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
     got = catalogue_content(cat)
-    assert got == expected, content_difference(got, expected)
+    assert got == expected, content_difference(got, expected, cat, ref)
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
         assert c.verify() == []

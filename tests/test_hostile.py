@@ -362,7 +362,7 @@ def _export(cat, out: Path) -> bytes:
 
 @pytest.fixture(scope="module")
 def small_expected(small_library, tmp_path_factory, runtime):
-    """(catalogue content, export bytes) of an undisturbed build of ``small_library``."""
+    """(catalogue content, export bytes, path) of an undisturbed build of ``small_library``."""
     return _undisturbed(small_library, tmp_path_factory.mktemp("small_ref") / "cat")
 
 
@@ -373,9 +373,10 @@ def kill_expected(kill_library, tmp_path_factory, runtime):
 
 
 def _undisturbed(library: Path, ref: Path) -> tuple:
-    """(catalogue content, export bytes) of an undisturbed build of ``library`` into ``ref``."""
+    """(catalogue content, export bytes, catalogue path) of an undisturbed build of ``library``
+    into ``ref``."""
     build(library, ref, OPTS, **QUIET)
-    return catalogue_content(ref), _export(ref, ref.parent / "ref.jsonl")
+    return catalogue_content(ref), _export(ref, ref.parent / "ref.jsonl"), ref
 
 
 def _cli(library, cat, *extra):
@@ -476,7 +477,8 @@ def test_sigkill_of_single_workers_leaves_an_identical_catalogue(kill_library, k
             break
     assert kills >= 3, kills
     got = catalogue_content(cat)
-    assert got == kill_expected[0], content_difference(got, kill_expected[0])
+    assert got == kill_expected[0], content_difference(got, kill_expected[0], cat,
+                                                       kill_expected[2])
     assert _export(cat, tmp_path / "x.jsonl") == kill_expected[1]
     from ucad_catalog.store import Catalog
     with Catalog.open(cat, create=False) as c:
