@@ -62,10 +62,11 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
 
     Encoded here, not by OpenEXR's writer (``_encode``): the same multi-part scanline file, its
     headers byte for byte those OpenEXR writes for these attributes (tests/test_exr.py), ZIP
-    chunks deflated by ISA-L at level 1 (the ``isal`` package) instead of libdeflate at level
-    4: 72 views at 256 px in ~40 ms against ~80 ms (~40 of them the Python binding's own cost),
-    files 2-5 % larger. Any OpenEXR reader decodes them; the bytes are deterministic for a given
-    ISA-L (its x86 kernels emit one stream from SSE4.2 up)."""
+    chunks deflated by libdeflate (the ``deflate`` package; OpenEXR's own deflater) at
+    ``DEFLATE_LEVEL``. Any OpenEXR reader decodes them. Not ISA-L, used until stop 40 and ~0.045
+    s a 144-view mesh faster: its level 1 gave the same chunk different (valid) streams in
+    different processes, ~1 mesh in 100-200 builds (docs/FORMATS.md); libdeflate's output
+    depends on its input and version only."""
     cams = views.cameras
     names = material_names if material_names is not None else (
         [m.name for m in mesh.materials] if mesh is not None else [])
@@ -122,15 +123,16 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
 # or the plain bytes when that is not smaller (as OpenEXR does; ``_unzip`` undoes it).
 _CHANNELS = (("Z", 2), ("mat", 0), ("tri", 0))          # name, pixel type (2 FLOAT, 0 UINT)
 _ZIP, _ZIP_LINES, _MULTIPART = 3, 16, 0x1000
+DEFLATE_LEVEL = 1    # libdeflate's level for ZIP chunks: 1-4 took the same time on view stacks
 
 
 def _encode(parts: list[tuple[dict, int, np.ndarray]]) -> bytes:
     """The file's bytes for [(attributes, first line, (h, 3, w) uint32 lines)]."""
     try:
-        from isal import isal_zlib
+        import deflate
     except ImportError:                                  # pragma: no cover - a broken install
-        raise RuntimeError("writing view stacks needs the isal package (pip install isal)") \
-            from None
+        raise RuntimeError("writing view stacks needs the deflate package (libdeflate; pip "
+                           "install deflate)") from None
     chlist = b"".join(n.encode() + b"\0" + struct.pack("<iB3xii", t, 0, 1, 1)
                       for n, t in _CHANNELS) + b"\0"
     common = {"channels": ("chlist", chlist), "compression": ("compression", bytes([_ZIP])),
@@ -139,7 +141,8 @@ def _encode(parts: list[tuple[dict, int, np.ndarray]]) -> bytes:
               "screenWindowWidth": _float(1.0), "type": _string("scanlineimage")}
     headers, chunks = [], []
     for attrs, _, lines in parts:
-        packed = [isal_zlib.compress(pre, 1) for pre in _zip_ready(lines)]
+        packed: list[bytes | bytearray] = [deflate.zlib_compress(pre, DEFLATE_LEVEL)
+                                           for pre in _zip_ready(lines)]
         flat = lines.reshape(len(lines), -1)
         for k, data in enumerate(packed):           # not smaller: the plain bytes
             plain = flat[k * _ZIP_LINES:(k + 1) * _ZIP_LINES]
