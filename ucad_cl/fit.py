@@ -600,7 +600,9 @@ class _Fit:
                     for row in self.r.parts(sha):
                         albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
                 rec = self.r.view(sha, v)
-                self.described[sha, v] = _Described(rec.mat_id, boundary_points(rec.mat_id))
+                if have is None:                    # (else _prefiltered described it)
+                    self.described[sha, v] = _Described(rec.mat_id,
+                                                        boundary_points(rec.mat_id))
                 imgs.append(shade_stored_view(rec.depth, rec.mat_id, rec.tri_id, rec.K, albedo))
                 masks.append(np.isfinite(rec.depth))
                 todo.append((sha, v))
