@@ -179,10 +179,11 @@ def test_camera_inside_model_guard_band(runtime):
 
 
 @pytest.mark.parametrize("path", ["serial", "parallel"])
-@pytest.mark.parametrize("step", [1, 2, 4])
+@pytest.mark.parametrize("step", [1, 2, 3, 4])
 def test_subdivided_plane_is_covered_exactly_once(runtime, path, step):
-    """A grid of triangles whose vertices and edges pass exactly through pixel centres; with
-    steps of 1 pixel every triangle takes the serial path's branch-free tiny case."""
+    """A grid of triangles whose vertices and edges pass exactly through pixel centres. On the
+    serial path, steps of 1 pixel (boxes of 2 x 2 centres) take the branch-free tiny case, 2 and 3
+    (3 x 3, 4 x 4) the medium faces' queue (draw_medium16), 4 (5 x 5) raster_face."""
     size = 64
     f = 0.5 * size            # fov 90 degrees: f = size / 2, so x = (px - cx) / f at z = 1
     K_cam_dist = 1.0
