@@ -123,16 +123,20 @@ def _render(mesh: Mesh, ring: CameraRing, rt: Runtime, *, max_key_bytes: int = 2
                    for c in faces.T]
     stats.upload += time.perf_counter() - t0
 
-    k_project = rt.kernel(program, "project_vertices", opts)
+    # the serial path projects 16 vertices a work-item in vector code (raster_serial.cl)
+    k_project = rt.kernel(program, "project_vertices16" if serial else "project_vertices", opts)
+    per_item = 16 if serial else 1
     for v0 in range(0, V, chunk):
         nv = min(chunk, V - v0)
         t1 = time.perf_counter()
         d_P = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=P_all[v0:v0 + nv].copy())
         prm = np.array([(W, H, faces.shape[0], nv, ring.near, 0)], RASTER_PARAMS)
+        args = (d_verts, d_P, prm, np.uint32(n_verts), d_pverts, d_pdepth) + (
+            () if serial else (np.uint32(0),))
         cl.enqueue_nd_range_kernel(
-            q, _args(k_project, d_verts, d_P, prm, np.uint32(n_verts), d_pverts, d_pdepth,
-                     np.uint32(serial)),
-            (_round_up(n_verts, LOCAL_PROJECT[0]), _round_up(nv, LOCAL_PROJECT[1])), LOCAL_PROJECT)
+            q, _args(k_project, *args),
+            (_round_up(-(-n_verts // per_item), LOCAL_PROJECT[0]),
+             _round_up(nv, LOCAL_PROJECT[1])), LOCAL_PROJECT)
         bufs = (d_verts, d_faces, d_P, d_pverts, d_keys, d_fmat)
         chunk_outs = [o[v0:v0 + nv] for o in outs]
         if serial:

@@ -217,24 +217,32 @@ DEFINE_RASTER_TRIANGLE(raster_triangle32, int, int2)
  * one outside some plane, (CLIPPED, clip code): bit k set when outside plane k, NaN counts as
  * outside. 8 bytes per vertex and view. Depth w goes to a separate buffer when store_depth is
  * set (serial path, which reads it per vertex); the parallel path recomputes it instead (same
- * expression, same bits), which measured cheaper there than the extra bandwidth. */
+ * expression, same bits), which measured cheaper there than the extra bandwidth. The serial
+ * path uses project_vertices16 (raster_serial.cl), the same in explicit 16-lane vectors. */
 #define CLIPPED INT_MIN
-kernel void project_vertices(global const float *verts, global const float *P, raster_params prm,
-                             uint n_verts, global int2 *out, global float *depth_out,
-                             uint store_depth) {
-    uint v = get_global_id(0), view = get_global_id(1);
-    if (v >= n_verts || view >= (uint)prm.n_views) return;
+static inline void project_vertex(global const float *verts, global const float *Pv,
+                                  raster_params prm, uint v, long at, global int2 *out,
+                                  global float *depth_out, uint store_depth) {
     float W = (float)prm.width, H = (float)prm.height;
-    hvert h = project(P + 12 * view, verts[3 * v], verts[3 * v + 1], verts[3 * v + 2]);
-    /* straight-line plane tests (same expressions as plane_dist), so PoCL can vectorize */
+    hvert h = project(Pv, verts[3 * v], verts[3 * v + 1], verts[3 * v + 2]);
+    /* straight-line plane tests (same expressions as plane_dist) */
     int code = (!(h.w - prm.near >= 0.0f))
              | (!(h.u + GUARD * h.w >= 0.0f)) << 1
              | (!((W + GUARD) * h.w - h.u >= 0.0f)) << 2
              | (!(h.v + GUARD * h.w >= 0.0f)) << 3
              | (!((H + GUARD) * h.w - h.v >= 0.0f)) << 4;
     long2 sn = snap(h);
-    if (store_depth) depth_out[(long)view * n_verts + v] = h.w;
-    out[(long)view * n_verts + v] = code ? (int2)(CLIPPED, code) : (int2)((int)sn.x, (int)sn.y);
+    if (store_depth) depth_out[at] = h.w;
+    out[at] = code ? (int2)(CLIPPED, code) : (int2)((int)sn.x, (int)sn.y);
+}
+
+kernel void project_vertices(global const float *verts, global const float *P, raster_params prm,
+                             uint n_verts, global int2 *out, global float *depth_out,
+                             uint store_depth) {
+    uint v = get_global_id(0), view = get_global_id(1);
+    if (v >= n_verts || view >= (uint)prm.n_views) return;
+    project_vertex(verts, P + 12 * view, prm, v, (long)view * n_verts + v, out, depth_out,
+                   store_depth);
 }
 
 static inline float depth_of(global const float *Pv, global const float *verts, uint i) {
