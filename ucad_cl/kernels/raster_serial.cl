@@ -32,6 +32,22 @@
     (p)[(int)(ix).s8], (p)[(int)(ix).s9], (p)[(int)(ix).sa], (p)[(int)(ix).sb],                 \
     (p)[(int)(ix).sc], (p)[(int)(ix).sd], (p)[(int)(ix).se], (p)[(int)(ix).sf])
 
+/* resolve_key (raster_common.h) for the 16 keys at p, written at pixels g .. g + 15 */
+static inline void resolve16(global const ulong *p, global const ushort *face_material, uint g,
+                             global uint *tri_id, global ushort *mat_id, global float *depth) {
+    ulong16 k = vload16(0, p);
+    int16 bg = convert_int16(k == (ulong16)0xFFFFFFFFFFFFFFFFUL);
+    uint16 t = bg ? (uint16)UCAD_BG_TRI : convert_uint16(k & 0xFFFFFFFFUL);
+    uint16 fm = (uint16)(0);
+    if (!all(bg)) {
+        uint16 ti = bg ? (uint16)0 : t;
+        fm = GATHER16(uint16, face_material, ti);
+    }
+    vstore16(t, 0, tri_id + g);
+    vstore16(convert_ushort16(bg ? (uint16)UCAD_BG_MAT : fm + 1), 0, mat_id + g);
+    vstore16(bg ? (float16)INFINITY : as_float16(convert_uint16(k >> 32)), 0, depth + g);
+}
+
 /* round_even (raster_common.h), 16 lanes */
 static inline float16 round_even16(float16 x) {
     const float magic = 12582912.0f;
@@ -229,7 +245,9 @@ kernel void raster_views_serial(global const float *verts, global const uint *fa
 #ifdef UCAD_COUNT_COVERAGE
     for (uint g = 0; g < npix; ++g) kv[g] = 0;
 #else
-    for (uint g = 0; g < npix; ++g) kv[g] = 0xFFFFFFFFFFFFFFFFUL;
+    uint g0 = 0;   /* 16 keys at a time (PoCL does not vectorize these loops), then the tail */
+    for (; g0 + LANES16 <= npix; g0 += LANES16) vstore16((ulong16)0xFFFFFFFFFFFFFFFFUL, 0, kv + g0);
+    for (uint g = g0; g < npix; ++g) kv[g] = 0xFFFFFFFFFFFFFFFFUL;
 #endif
 
     const uint16 lane = (uint16)(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
@@ -330,7 +348,10 @@ kernel void raster_views_serial(global const float *verts, global const uint *fa
                       zv, W, H, kv);
     }
 #ifndef UCAD_COUNT_COVERAGE
-    for (uint g = 0; g < npix; ++g)
+    uint g1 = 0;
+    for (; g1 + LANES16 <= npix; g1 += LANES16)
+        resolve16(kv + g1, face_material, view * npix + g1, tri_id, mat_id, depth);
+    for (uint g = g1; g < npix; ++g)
         resolve_key(kv[g], face_material, view * npix + g, tri_id, mat_id, depth);
 #endif
 }
