@@ -152,6 +152,32 @@ def test_device_shading_matches_numpy_reference(runtime):
         assert (ref != dev).mean() < 0.01
 
 
+@pytest.mark.parametrize("size", [(96, 80), (97, 61)])
+def test_vector_and_scalar_shade_kernels_give_identical_bytes(runtime, size):
+    """shade_pixels16 (16 pixels a work-item, CPUs) and shade_pixels (one, GPUs) give the same
+    bytes: integer shininess of every parity, several lights and backgrounds, an empty view. At
+    97 x 61 (not a multiple of 16 pixels) and for a non-integer shininess both run shade_pixels."""
+    from ucad_cl.cameras import make_ring
+    from ucad_cl.render import render_views
+    from ucad_cl.synth import make_vehicle
+
+    mesh = make_vehicle(4, "suv").mesh()
+    ring = make_ring(azimuth_step=45, elevations=(10.0, 50.0), size=size)
+    views = render_views(mesh, ring, runtime=runtime)
+    views.tri_id[0] = 0xFFFFFFFF              # an empty view: every 16-pixel group background
+    assert (views.tri_id != 0xFFFFFFFF).any(axis=(1, 2))[1:].all()
+    for kw in ({}, {"background": (10, 200, 30), "specular": 0.6, "shininess": 7.0},
+               {"specular": 0.9, "shininess": 1.0, "light_dir": (0.5, -0.2, -0.8)},
+               {"specular": 0.8, "shininess": 12.5}, {"ambient": 1.0, "specular": 0.0},
+               {"background": np.random.default_rng(0).integers(0, 255, (size[1], size[0], 3),
+                                                                np.uint8)}):
+        a = shade_views(mesh, views, lanes=16, **kw, runtime=runtime)
+        b = shade_views(mesh, views, lanes=1, **kw, runtime=runtime)
+        assert np.array_equal(a, b), f"{kw}: {int((a != b).any(axis=-1).sum())} pixels differ"
+    with pytest.raises(ValueError, match="lanes"):
+        shade_views(mesh, views, lanes=8, runtime=runtime)
+
+
 def test_srgb_bucket_table_is_a_tight_lower_bound():
     """ucad_cl/kernels/shade.cl starts from ``srgb8_bucket_start[int(x * (SRGB_BUCKETS - 1))]``
     and steps up by the exact thresholds: the start must never exceed the level of any float32

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .abi import RASTER_PARAMS
-from .runtime import Runtime, get_runtime
+from .runtime import Runtime, aligned_empty, get_runtime
 from .artifacts import CameraRing, Mesh, ViewSet
 
 BUILD_OPTIONS = ("-cl-fp32-correctly-rounded-divide-sqrt",)
@@ -110,8 +110,8 @@ def _render(mesh: Mesh, ring: CameraRing, rt: Runtime, *, max_key_bytes: int = 2
     if count:
         outs = (np.empty((V, H, W), np.uint64),)
     else:   # page-aligned, so that the serial path can write them in place
-        outs = (_aligned_empty((V, H, W), np.uint32), _aligned_empty((V, H, W), np.uint16),
-                _aligned_empty((V, H, W), np.float32))
+        outs = (aligned_empty((V, H, W), np.uint32), aligned_empty((V, H, W), np.uint16),
+                aligned_empty((V, H, W), np.float32))
     # per-launch buffers are reused across calls (runtime scratch): no allocation and no page
     # faults on first touch for every mesh
     d_keys = rt.scratch("raster.keys", 8 * chunk * npix)
@@ -229,16 +229,6 @@ def _draw_parallel(rt, opts, bufs, n_verts, prm, local_size, outs, count, stats)
             cl.enqueue_copy(q, o, d)
     q.finish()
     return t2
-
-
-def _aligned_empty(shape, dtype, align: int = 4096) -> np.ndarray:
-    """np.empty whose data starts on an ``align``-byte boundary (so that OpenCL can use it in
-    place: PoCL copies a USE_HOST_PTR buffer that is not aligned)."""
-    dtype = np.dtype(dtype)
-    n = int(np.prod(shape)) * dtype.itemsize
-    raw = np.empty(n + align, np.uint8)
-    off = (-raw.ctypes.data) % align
-    return raw[off:off + n].view(dtype).reshape(shape)
 
 
 def projection_matrices(ring: CameraRing) -> np.ndarray:

@@ -46,6 +46,8 @@ from typing import Any
 
 from importlib import resources
 
+import numpy as np
+
 from . import abi
 from .system import IsolatedCallFailed, call_isolated
 
@@ -141,6 +143,16 @@ def device_rank(info: DeviceInfo) -> tuple:
 
 class OpenCLUnavailable(RuntimeError):
     """Raised when no usable OpenCL platform/device exists."""
+
+
+def aligned_empty(shape, dtype, align: int = 4096) -> np.ndarray:
+    """np.empty whose data starts on an ``align``-byte boundary, for host arrays a kernel writes in
+    place (a USE_HOST_PTR buffer: PoCL copies one that is not aligned)."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape)) * dtype.itemsize
+    raw = np.empty(n + align, np.uint8)
+    off = (-raw.ctypes.data) % align
+    return raw[off:off + n].view(dtype).reshape(shape)
 
 
 def kernel_source(name: str) -> str:
