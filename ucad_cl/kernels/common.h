@@ -17,4 +17,13 @@
 #error "built without the ABI defines of ucad_cl/abi.py (build through ucad_cl.runtime.Runtime)"
 #endif
 
+/* The 16 values p[ix.s0] .. p[ix.sf] as a T vector, for kernels written in explicit 16-lane
+ * vectors (raster_serial.cl, shade.cl). The offsets are cast to signed 32 bits, which lets
+ * LLVM use 16-wide dword gathers (every index used is below 2^31). */
+#define GATHER16(T, p, ix) (T)(                                                                 \
+    (p)[(int)(ix).s0], (p)[(int)(ix).s1], (p)[(int)(ix).s2], (p)[(int)(ix).s3],                 \
+    (p)[(int)(ix).s4], (p)[(int)(ix).s5], (p)[(int)(ix).s6], (p)[(int)(ix).s7],                 \
+    (p)[(int)(ix).s8], (p)[(int)(ix).s9], (p)[(int)(ix).sa], (p)[(int)(ix).sb],                 \
+    (p)[(int)(ix).sc], (p)[(int)(ix).sd], (p)[(int)(ix).se], (p)[(int)(ix).sf])
+
 #endif

@@ -25,12 +25,7 @@
 #include "raster_common.h"
 
 #define LANES16 16
-/* The 16 values p[ix.s0] .. p[ix.sf] as a T vector (int offsets: see above). */
-#define GATHER16(T, p, ix) (T)(                                                                 \
-    (p)[(int)(ix).s0], (p)[(int)(ix).s1], (p)[(int)(ix).s2], (p)[(int)(ix).s3],                 \
-    (p)[(int)(ix).s4], (p)[(int)(ix).s5], (p)[(int)(ix).s6], (p)[(int)(ix).s7],                 \
-    (p)[(int)(ix).s8], (p)[(int)(ix).s9], (p)[(int)(ix).sa], (p)[(int)(ix).sb],                 \
-    (p)[(int)(ix).sc], (p)[(int)(ix).sd], (p)[(int)(ix).se], (p)[(int)(ix).sf])
+/* GATHER16 (common.h): 16-lane gathers with int offsets (see above) */
 
 /* resolve_key (raster_common.h) for the 16 keys at p, written at pixels g .. g + 15 */
 static inline void resolve16(global const ulong *p, global const ushort *face_material, uint g,

@@ -106,11 +106,8 @@ kernel void shade_pixels(global const uint *tri_id, global const float *w2c /* V
  * vectorize measured 8.5x slower, because 81 % of the pixels are background: here a group of 16
  * background pixels is written at once). The same expressions in the same order (no contraction,
  * the same repeated squaring, the same threshold steps), so the same bytes; for an integer
- * shininess only (the host uses shade_pixels otherwise) and views of a multiple of 16 pixels. */
-#define GATHER16(T, p, ix) (T)(                                                                 \
-    (p)[(ix).s0], (p)[(ix).s1], (p)[(ix).s2], (p)[(ix).s3], (p)[(ix).s4], (p)[(ix).s5],        \
-    (p)[(ix).s6], (p)[(ix).s7], (p)[(ix).s8], (p)[(ix).s9], (p)[(ix).sa], (p)[(ix).sb],        \
-    (p)[(ix).sc], (p)[(ix).sd], (p)[(ix).se], (p)[(ix).sf])
+ * shininess only (the host uses shade_pixels otherwise) and views of a multiple of 16 pixels.
+ * Gathers: GATHER16 (common.h). */
 
 static inline uint16 srgb8_16(global const float *thr, global const uchar *start, float16 x) {
     float16 c = fmin(fmax(x, 0.0f), 1.0f);
