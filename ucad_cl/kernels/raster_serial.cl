@@ -142,6 +142,48 @@ static inline uint tiny_candidate(int c, int16 row, int16 col, int16 xs0, int16 
     return lane_mask(in);
 }
 
+/* raster_triangle32's setup for 16 faces at once, from their snapped corners q and depths z
+ * and the first pixel centre of each box (xs0, ys0): canonical rotation (first the vertex
+ * with the smallest (y, x); keeps the winding), coordinates relative to that pixel centre,
+ * positive winding (b and c swapped), the edge biases and the depth weights, with
+ * raster_triangle32's expressions. Lanes outside `use` get zero coordinates (zero area), so
+ * no lane's arithmetic can overflow. */
+typedef struct {
+    int16 ax, ay, bx, by, cx, cy, area, bab, bbc, bca;
+    float16 wa, wb, wc, num;
+} setup16;
+
+static inline setup16 face_setup16(int16 q0x, int16 q0y, int16 q1x, int16 q1y, int16 q2x,
+                                   int16 q2y, float16 z0, float16 z1, float16 z2, int16 xs0,
+                                   int16 ys0, int16 use) {
+    setup16 t;
+    int16 r1 = (q1y < q0y) | ((q1y == q0y) & (q1x < q0x));
+    int16 rx = r1 ? q1x : q0x, ry = r1 ? q1y : q0y;
+    int16 r2 = (q2y < ry) | ((q2y == ry) & (q2x < rx));
+    int16 ax = r2 ? q2x : (r1 ? q1x : q0x), ay = r2 ? q2y : (r1 ? q1y : q0y);
+    int16 bx = r2 ? q0x : (r1 ? q2x : q1x), by = r2 ? q0y : (r1 ? q2y : q1y);
+    int16 cx = r2 ? q1x : (r1 ? q0x : q2x), cy = r2 ? q1y : (r1 ? q0y : q2y);
+    float16 za = r2 ? z2 : (r1 ? z1 : z0), zb = r2 ? z0 : (r1 ? z2 : z1);
+    float16 zc = r2 ? z1 : (r1 ? z0 : z2);
+    int16 ox = xs0 * (int)SUB_ONE + (int)SUB_HALF, oy = ys0 * (int)SUB_ONE + (int)SUB_HALF;
+    ax = use ? ax - ox : 0; ay = use ? ay - oy : 0;
+    bx = use ? bx - ox : 0; by = use ? by - oy : 0;
+    cx = use ? cx - ox : 0; cy = use ? cy - oy : 0;
+    int16 area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax);
+    int16 neg = area < 0;   /* make the winding positive: swap b and c */
+    t.ax = ax; t.ay = ay;
+    t.bx = neg ? cx : bx; t.by = neg ? cy : by;
+    t.cx = neg ? bx : cx; t.cy = neg ? by : cy;
+    float16 zb2 = neg ? zc : zb, zc2 = neg ? zb : zc;
+    t.area = neg ? -area : area;
+    t.bab = bias16(t.ax, t.ay, t.bx, t.by);
+    t.bbc = bias16(t.bx, t.by, t.cx, t.cy);
+    t.bca = bias16(t.cx, t.cy, t.ax, t.ay);
+    t.wa = zb2 * zc2; t.wb = za * zc2; t.wc = za * zb2;
+    t.num = convert_float16(t.area) * za * t.wa;
+    return t;
+}
+
 #define MEDIUM_CELLS 16
 /* 16 unclipped faces whose boxes hold at most MEDIUM_CELLS pixel centres (lanes set in live),
  * drawn as raster_triangle32 draws them (same canonical rotation, origin, winding, biases, edge
@@ -164,26 +206,10 @@ static void draw_medium16(uint16 face, int16 live, global const uint *face_a,
     span16(min(q0x, min(q1x, q2x)), max(q0x, max(q1x, q2x)), W, &xs0, &xs1);
     span16(min(q0y, min(q1y, q2y)), max(q0y, max(q1y, q2y)), H, &ys0, &ys1);
     int16 nx = xs1 - xs0, ny = ys1 - ys0;
-    /* canonical rotation: first the vertex with the smallest (y, x); keeps the winding */
-    int16 r1 = (q1y < q0y) | ((q1y == q0y) & (q1x < q0x));
-    int16 rx = r1 ? q1x : q0x, ry = r1 ? q1y : q0y;
-    int16 r2 = (q2y < ry) | ((q2y == ry) & (q2x < rx));
-    int16 ox = xs0 * (int)SUB_ONE + (int)SUB_HALF, oy = ys0 * (int)SUB_ONE + (int)SUB_HALF;
-    int16 ax = (r2 ? q2x : (r1 ? q1x : q0x)) - ox, ay = (r2 ? q2y : (r1 ? q1y : q0y)) - oy;
-    int16 bx = (r2 ? q0x : (r1 ? q2x : q1x)) - ox, by = (r2 ? q0y : (r1 ? q2y : q1y)) - oy;
-    int16 cx = (r2 ? q1x : (r1 ? q0x : q2x)) - ox, cy = (r2 ? q1y : (r1 ? q0y : q2y)) - oy;
-    float16 za = r2 ? z2 : (r1 ? z1 : z0), zb = r2 ? z0 : (r1 ? z2 : z1);
-    float16 zc = r2 ? z1 : (r1 ? z0 : z2);
-    int16 area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax);
-    int16 neg = area < 0;   /* make the winding positive: swap b and c */
-    int16 tx = bx, ty = by;
-    float16 tz = zb;
-    bx = neg ? cx : bx; by = neg ? cy : by; zb = neg ? zc : zb;
-    cx = neg ? tx : cx; cy = neg ? ty : cy; zc = neg ? tz : zc;
-    area = neg ? -area : area;
-    int16 bab = bias16(ax, ay, bx, by), bbc = bias16(bx, by, cx, cy);
-    int16 bca = bias16(cx, cy, ax, ay);
-    float16 wa = zb * zc, wb = za * zc, wc = za * zb, num = convert_float16(area) * za * wa;
+    setup16 t = face_setup16(q0x, q0y, q1x, q1y, q2x, q2y, z0, z1, z2, xs0, ys0, live);
+    int16 ax = t.ax, ay = t.ay, bx = t.bx, by = t.by, cx = t.cx, cy = t.cy, area = t.area;
+    int16 bab = t.bab, bbc = t.bbc, bca = t.bca;
+    float16 wa = t.wa, wb = t.wb, wc = t.wc, num = t.num;
     int16 ok = live & (area != 0);
     int16 cells = ok ? (nx + 1) * (ny + 1) : (int16)0;
     int8 c8 = max(cells.lo, cells.hi);
@@ -293,30 +319,11 @@ kernel void raster_views_serial(global const float *verts, global const uint *fa
         if (!others && !lane_mask(work)) continue;   /* no lane covers a pixel centre */
         float16 z0 = GATHER16(float16, zv, i0), z1 = GATHER16(float16, zv, i1);
         float16 z2 = GATHER16(float16, zv, i2);
-        /* canonical rotation: first the vertex with the smallest (y, x); keeps the winding */
-        int16 r1 = (q1y < q0y) | ((q1y == q0y) & (q1x < q0x));
-        int16 rx = r1 ? q1x : q0x, ry = r1 ? q1y : q0y;
-        int16 r2 = (q2y < ry) | ((q2y == ry) & (q2x < rx));
-        int16 ax = r2 ? q2x : (r1 ? q1x : q0x), ay = r2 ? q2y : (r1 ? q1y : q0y);
-        int16 bx = r2 ? q0x : (r1 ? q2x : q1x), by = r2 ? q0y : (r1 ? q2y : q1y);
-        int16 cx = r2 ? q1x : (r1 ? q0x : q2x), cy = r2 ? q1y : (r1 ? q0y : q2y);
-        float16 za = r2 ? z2 : (r1 ? z1 : z0), zb = r2 ? z0 : (r1 ? z2 : z1);
-        float16 zc = r2 ? z1 : (r1 ? z0 : z2);
         /* relative to the box's first pixel centre, as raster_triangle32 */
-        int16 ox = xs0 * (int)SUB_ONE + (int)SUB_HALF, oy = ys0 * (int)SUB_ONE + (int)SUB_HALF;
-        ax = work ? ax - ox : 0; ay = work ? ay - oy : 0;
-        bx = work ? bx - ox : 0; by = work ? by - oy : 0;
-        cx = work ? cx - ox : 0; cy = work ? cy - oy : 0;
-        int16 area = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax);
-        int16 neg = area < 0;   /* make the winding positive: swap b and c */
-        int16 tx = bx, ty = by;
-        float16 tz = zb;
-        bx = neg ? cx : bx; by = neg ? cy : by; zb = neg ? zc : zb;
-        cx = neg ? tx : cx; cy = neg ? ty : cy; zc = neg ? tz : zc;
-        area = neg ? -area : area;
-        int16 bab = bias16(ax, ay, bx, by), bbc = bias16(bx, by, cx, cy);
-        int16 bca = bias16(cx, cy, ax, ay);
-        float16 wa = zb * zc, wb = za * zc, wc = za * zb, num = convert_float16(area) * za * wa;
+        setup16 t = face_setup16(q0x, q0y, q1x, q1y, q2x, q2y, z0, z1, z2, xs0, ys0, work);
+        int16 ax = t.ax, ay = t.ay, bx = t.bx, by = t.by, cx = t.cx, cy = t.cy, area = t.area;
+        int16 bab = t.bab, bbc = t.bbc, bca = t.bca;
+        float16 wa = t.wa, wb = t.wb, wc = t.wc, num = t.num;
         int16 ok = work & (area != 0);
         uint zbits[4][LANES16], at[4][LANES16], covered[4];
         for (int c = 0; c < 4; ++c)
