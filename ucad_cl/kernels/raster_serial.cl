@@ -116,32 +116,6 @@ static inline uint lane_mask(int16 m) {
     return b2.x | b2.y;
 }
 
-/* Candidate c (0..3) of 16 tiny triangles: the c-th pixel centre of a row (row lanes), of a
- * column (col lanes) or of the 2 x 2 box (other lanes), from the box's first centre (xs0, ys0).
- * Stores its depth bits and its pixel index in the view, and returns the mask of the lanes that
- * cover it (ok set, centre inside the box and inside the triangle); other lanes' values are
- * meaningless. */
-static inline uint tiny_candidate(int c, int16 row, int16 col, int16 xs0, int16 xs1, int16 ys0,
-                                  int16 ys1, int W,
-                                  int16 ax, int16 ay, int16 bx, int16 by, int16 cx, int16 cy,
-                                  int16 bab, int16 bbc, int16 bca, float16 wa, float16 wb,
-                                  float16 wc, float16 num, int16 ok, uint *zbits, uint *at) {
-    int16 dx = row ? (int16)c : col ? (int16)0 : (int16)(c & 1);
-    int16 dy = row ? (int16)0 : col ? (int16)c : (int16)(c >> 1);
-    int16 px = dx * (int)SUB_ONE, py = dy * (int)SUB_ONE;
-    int16 e_ab = (bx - ax) * (py - ay) - (by - ay) * (px - ax);
-    int16 e_bc = (cx - bx) * (py - by) - (cy - by) * (px - bx);
-    int16 e_ca = (ax - cx) * (py - cy) - (ay - cy) * (px - cx);
-    int16 in = ok & (xs0 + dx <= xs1) & (ys0 + dy <= ys1) &
-               (e_ab + bab >= 0) & (e_bc + bbc >= 0) & (e_ca + bca >= 0);
-    float16 den = convert_float16(e_bc) * wa + convert_float16(e_ca) * wb +
-                  convert_float16(e_ab) * wc;
-    float16 z = num / den;   /* as raster_triangle32 */
-    vstore16(as_uint16(z), 0, zbits);
-    vstore16(as_uint16((ys0 + dy) * W + xs0 + dx), 0, at);
-    return lane_mask(in);
-}
-
 /* raster_triangle32's setup for 16 faces at once, from their snapped corners q and depths z
  * and the first pixel centre of each box (xs0, ys0): canonical rotation (first the vertex
  * with the smallest (y, x); keeps the winding), coordinates relative to that pixel centre,
@@ -184,6 +158,42 @@ static inline setup16 face_setup16(int16 q0x, int16 q0y, int16 q1x, int16 q1y, i
     return t;
 }
 
+/* raster_triangle32's edge functions E_ab, E_bc, E_ca of 16 faces set up by face_setup16, at
+ * the pixel centres (dx, dy) relative to each box's first centre (into e); the mask of the lanes
+ * of `use` whose centre the face covers (top-left rule: biases of the edges not owned). */
+static inline uint cover16(const setup16 *t, int16 dx, int16 dy, int16 use, int16 *e) {
+    int16 px = dx * (int)SUB_ONE, py = dy * (int)SUB_ONE;
+    e[0] = (t->bx - t->ax) * (py - t->ay) - (t->by - t->ay) * (px - t->ax);
+    e[1] = (t->cx - t->bx) * (py - t->by) - (t->cy - t->by) * (px - t->bx);
+    e[2] = (t->ax - t->cx) * (py - t->cy) - (t->ay - t->cy) * (px - t->cx);
+    return lane_mask(use & (e[0] + t->bab >= 0) & (e[1] + t->bbc >= 0) & (e[2] + t->bca >= 0));
+}
+
+/* The depth at those centres from their edge functions e (cover16), as raster_triangle32:
+ * z = area / (E_bc / za + E_ca / zb + E_ab / zc) without per-vertex reciprocals. */
+static inline float16 depth16(const setup16 *t, const int16 *e) {
+    float16 den = convert_float16(e[1]) * t->wa + convert_float16(e[2]) * t->wb +
+                  convert_float16(e[0]) * t->wc;
+    return t->num / den;
+}
+
+/* Candidate c (0..3) of 16 tiny triangles: the c-th pixel centre of a row (row lanes), of a
+ * column (col lanes) or of the 2 x 2 box (other lanes), from the box's first centre (xs0, ys0).
+ * Stores its depth bits and its pixel index in the view, and returns the mask of the lanes that
+ * cover it (ok set, centre inside the box and inside the triangle); other lanes' values are
+ * meaningless. */
+static inline uint tiny_candidate(int c, int16 row, int16 col, int16 xs0, int16 xs1, int16 ys0,
+                                  int16 ys1, int W, const setup16 *t, int16 ok, uint *zbits,
+                                  uint *at) {
+    int16 dx = row ? (int16)c : col ? (int16)0 : (int16)(c & 1);
+    int16 dy = row ? (int16)0 : col ? (int16)c : (int16)(c >> 1);
+    int16 e[3];
+    uint m = cover16(t, dx, dy, ok & (xs0 + dx <= xs1) & (ys0 + dy <= ys1), e);
+    vstore16(as_uint16(depth16(t, e)), 0, zbits);
+    vstore16(as_uint16((ys0 + dy) * W + xs0 + dx), 0, at);
+    return m;
+}
+
 #define MEDIUM_CELLS 16
 /* 16 unclipped faces whose boxes hold at most MEDIUM_CELLS pixel centres (lanes set in live),
  * drawn as raster_triangle32 draws them (same canonical rotation, origin, winding, biases, edge
@@ -207,10 +217,7 @@ static void draw_medium16(uint16 face, int16 live, global const uint *face_a,
     span16(min(q0y, min(q1y, q2y)), max(q0y, max(q1y, q2y)), H, &ys0, &ys1);
     int16 nx = xs1 - xs0, ny = ys1 - ys0;
     setup16 t = face_setup16(q0x, q0y, q1x, q1y, q2x, q2y, z0, z1, z2, xs0, ys0, live);
-    int16 ax = t.ax, ay = t.ay, bx = t.bx, by = t.by, cx = t.cx, cy = t.cy, area = t.area;
-    int16 bab = t.bab, bbc = t.bbc, bca = t.bca;
-    float16 wa = t.wa, wb = t.wb, wc = t.wc, num = t.num;
-    int16 ok = live & (area != 0);
+    int16 ok = live & (t.area != 0);
     int16 cells = ok ? (nx + 1) * (ny + 1) : (int16)0;
     int8 c8 = max(cells.lo, cells.hi);
     int4 c4 = max(c8.lo, c8.hi);
@@ -218,17 +225,11 @@ static void draw_medium16(uint16 face, int16 live, global const uint *face_a,
     int steps = max(c2.x, c2.y);
     int16 dx = 0, dy = 0;   /* the lane's current centre, relative to its box's first */
     for (int s = 0; s < steps; ++s) {
-        int16 px = dx * (int)SUB_ONE, py = dy * (int)SUB_ONE;
-        int16 e_ab = (bx - ax) * (py - ay) - (by - ay) * (px - ax);
-        int16 e_bc = (cx - bx) * (py - by) - (cy - by) * (px - bx);
-        int16 e_ca = (ax - cx) * (py - cy) - (ay - cy) * (px - cx);
-        uint m = lane_mask(ok & (dy <= ny) & (e_ab + bab >= 0) & (e_bc + bbc >= 0) &
-                           (e_ca + bca >= 0));
+        int16 e[3];
+        uint m = cover16(&t, dx, dy, ok & (dy <= ny), e);
         if (m) {
-            float16 den = convert_float16(e_bc) * wa + convert_float16(e_ca) * wb +
-                          convert_float16(e_ab) * wc;
             uint zbits[LANES16], at[LANES16], ids[LANES16];
-            vstore16(as_uint16(num / den), 0, zbits);   /* as raster_triangle32 */
+            vstore16(as_uint16(depth16(&t, e)), 0, zbits);
             vstore16(as_uint16((ys0 + dy) * W + xs0 + dx), 0, at);
             vstore16(face, 0, ids);
             for (; m; m &= m - 1) {
@@ -321,14 +322,11 @@ kernel void raster_views_serial(global const float *verts, global const uint *fa
         float16 z2 = GATHER16(float16, zv, i2);
         /* relative to the box's first pixel centre, as raster_triangle32 */
         setup16 t = face_setup16(q0x, q0y, q1x, q1y, q2x, q2y, z0, z1, z2, xs0, ys0, work);
-        int16 ax = t.ax, ay = t.ay, bx = t.bx, by = t.by, cx = t.cx, cy = t.cy, area = t.area;
-        int16 bab = t.bab, bbc = t.bbc, bca = t.bca;
-        float16 wa = t.wa, wb = t.wb, wc = t.wc, num = t.num;
-        int16 ok = work & (area != 0);
+        int16 ok = work & (t.area != 0);
         uint zbits[4][LANES16], at[4][LANES16], covered[4];
         for (int c = 0; c < 4; ++c)
-            covered[c] = tiny_candidate(c, row, col, xs0, xs1, ys0, ys1, W, ax, ay, bx, by, cx, cy,
-                                        bab, bbc, bca, wa, wb, wc, num, ok, zbits[c], at[c]);
+            covered[c] = tiny_candidate(c, row, col, xs0, xs1, ys0, ys1, W, &t, ok, zbits[c],
+                                        at[c]);
         /* merge the covered candidates (lanes of each bit mask, lowest first) */
         for (int c = 0; c < 4; ++c)
             for (uint m = covered[c]; m; m &= m - 1) {
