@@ -61,6 +61,8 @@ def shade_views(mesh: Mesh, views: ViewSet, *, colors: np.ndarray | Sequence | N
         raise ValueError(f"ambient={ambient} must be in [0, 1]")
     if specular < 0.0 or shininess <= 0.0:
         raise ValueError(f"specular={specular} must be >= 0 and shininess={shininess} > 0")
+    if lanes not in (None, 1, 16):
+        raise ValueError(f"lanes must be 1, 16 or None, got {lanes!r}")
     light = np.asarray(light_dir, np.float64)
     if light.shape != (3,) or not np.all(np.isfinite(light)) or not np.linalg.norm(light) > 0:
         raise ValueError(f"light_dir must be a finite non-zero 3-vector, got {light_dir!r}")
@@ -143,8 +145,6 @@ def _shade_device(rt: Runtime, views, normals, v0, face_material, albedo, light,
     n = V * H * W
     if lanes is None:
         lanes = 16 if rt.device.type & cl.device_type.CPU else 1
-    if lanes not in (1, 16):
-        raise ValueError(f"lanes must be 1, 16 or None, got {lanes!r}")
     if prm["int_shininess"][0] == 0 or (H * W) % 16:
         lanes = 1
     k = rt.kernel("shade", "shade_pixels16" if lanes == 16 else "shade_pixels", opts)
