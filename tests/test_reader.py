@@ -78,6 +78,7 @@ out, arrays = {}, {}
 for m in cat.meshes():
     views = cat.views(m.id[:8])                                 # an 8-digit prefix names it
     rec = {"n_views": len(views), "angles": [(v.index, v.azimuth, v.elevation) for v in views],
+           "view_angles": [(a.index, a.azimuth, a.elevation) for a in cat.view_angles(m.id)],
            "K": views[0].K.tolist(), "w2c": [v.w2c.tolist() for v in views],
            "parts": [(p.index, p.name, p.part, p.props) for p in cat.parts(m.id)],
            "by_angle": [cat.nearest_view(m.id, a, e) for a, e in
@@ -150,6 +151,7 @@ def test_reader_installed_alone_reads_every_artifact(built, tmp_path):
         assert rec["n_views"] == ring.n_views == 16
         assert [tuple(a) for a in rec["angles"]] == \
             [(v, ring.azimuth[v], ring.elevation[v]) for v in range(ring.n_views)]
+        assert rec["view_angles"] == rec["angles"]
         assert np.array_equal(rec["K"], ring.K) and np.array_equal(rec["w2c"], ring.w2c)
         assert rec["orientation"] == json.loads(json.dumps(ref["orientation"]))   # the stage's record
         assert rec["orientation"]["source"] == "auto" and len(rec["orientation"]["rotation"]) == 3

@@ -13,7 +13,7 @@ __version__ = "0.1.0"
 from ._db import SCHEMA_VERSION, CatalogError, options_hash  # noqa: E402
 from .entry import CatalogEntry, MaterialRow, ViewRow  # noqa: E402
 from .reader import (MIN_ID_PREFIX, CatalogReader, FeatureTable, MeshEntry,  # noqa: E402
-                     MeshInfo, PartRow, ViewInfo, ViewRecord)
+                     MeshInfo, PartRow, ViewAngles, ViewInfo, ViewRecord)
 from .store import Catalog  # noqa: E402
 
 
@@ -24,4 +24,4 @@ def open(path) -> CatalogReader:  # noqa: A001 - ucad_catalog.open(path), like g
 
 __all__ = ["MIN_ID_PREFIX", "SCHEMA_VERSION", "Catalog", "CatalogEntry", "CatalogError",
            "CatalogReader", "FeatureTable", "MaterialRow", "MeshEntry", "MeshInfo", "PartRow",
-           "ViewInfo", "ViewRecord", "ViewRow", "open", "options_hash"]
+           "ViewAngles", "ViewInfo", "ViewRecord", "ViewRow", "open", "options_hash"]

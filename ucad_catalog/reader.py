@@ -115,6 +115,16 @@ class ViewInfo:
     stats: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class ViewAngles:
+    """One camera's index and azimuth / elevation (degrees): a ``ViewInfo`` without the
+    matrices (``CatalogReader.view_angles``)."""
+
+    index: int
+    azimuth: float
+    elevation: float
+
+
 @dataclass
 class ViewRecord:
     """One view: cameras (K 3x3, w2c 4x4 float64) and maps (H, W): mat_id uint16, tri_id uint32,
@@ -352,6 +362,13 @@ class CatalogReader:
                 for r in self._conn.execute(
                     "SELECT view, azimuth, elevation, K, w2c, stats FROM views WHERE mesh_id=? "
                     "ORDER BY view", (mid,))]
+
+    def view_angles(self, key: str) -> list[ViewAngles]:
+        """Every view's index, azimuth and elevation (degrees), in view order: ``views``
+        without parsing the cameras' matrices (~0.1 against ~2 ms for 144 views)."""
+        return [ViewAngles(*r) for r in self._conn.execute(
+            "SELECT view, azimuth, elevation FROM views WHERE mesh_id=? ORDER BY view",
+            (self._mesh_id(key),))]
 
     def nearest_view(self, key: str, azimuth: float | None = None,
                      elevation: float | None = None) -> int:
