@@ -72,6 +72,7 @@ largest separable part, live in ``ucad_cl/light.py``.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
@@ -126,6 +127,7 @@ POSE_PROXY_CELLS = 256      # ... clustered on diagonal / 256 (decimate.render_p
 CANDIDATES = 5              # distinct meshes listed by retrieval
 INDEX_FROM = 32768          # retrieval reads the search index (if fresh) over this many rows ...
 INDEX_ROWS = 4096           # ... and keeps the rows nearest in its projections (docs/FIT.md)
+SHADE_THREADS = 2           # threads shading the re-rank's stored views (_describe_fine)
 PRESELECT_ROWS = 2048       # ... then by float32 dot products of the full rows, for the exact rank
 REFINE_MESHES = 3           # object: stored silhouettes of the first meshes seed GrabCut again
 PREFILTER_MESHES = 20       # retrieval: of this many first meshes by HOG, the FINE_MESHES of
@@ -389,7 +391,7 @@ class _Fit:
         self.notes: list[str] = []
         self.db: FeatureTable | SearchIndex | None = None
         self.described: dict[tuple[str, int], _Described] = {}   # (sha, view) -> re-rank's
-        self.view_infos: dict[str, list] = {}                      # sha -> its stored views
+        self.view_infos: dict[str, list] = {}                      # sha -> its views' angles
         self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
         self._t = time.perf_counter()
 
@@ -578,7 +580,8 @@ class _Fit:
         qf = unit_rows(q_fine[None])[0][0]
         q = unit_rows(np.asarray(query)[None])[0][0]
         table = self._database()                   # mt.mesh indexes its meshes (= metas)
-        imgs, masks, todo, rows = [], [], [], []
+        todo: list[tuple[str, int, int]] = []      # (sha, view, materials) to describe
+        rows = []
         kept = self._prefiltered(edges, metas, best)
         for mt in kept:
             sha = metas[mt.mesh].sha256
@@ -589,27 +592,13 @@ class _Fit:
             sel = [ring[(at + d) % len(ring)][1] for d in range(-FINE_VIEWS, FINE_VIEWS + 1)]
             first = int(np.searchsorted(table.mesh, mt.mesh))    # its rows, in view order
             d = 2.0 - 2.0 * unit_rows(table.rows(first + np.asarray(sel)))[0] @ q
-            albedo = None                           # read for a view not described yet
             for v, dv in zip(sel, d):
                 rows.append((mt.mesh, v, float(dv)))
                 have = self.described.get((sha, v))
-                if (sha, v) in todo or (have is not None and have.fine is not None):
-                    continue
-                if albedo is None:
-                    albedo = np.full((metas[mt.mesh].n_materials + 1, 3), 0.8)
-                    for row in self.r.parts(sha):
-                        albedo[row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
-                rec = self.r.view(sha, v)
-                if have is None:                    # (else _prefiltered described it)
-                    self.described[sha, v] = _Described(rec.mat_id,
-                                                        boundary_points(rec.mat_id))
-                imgs.append(shade_stored_view(rec.depth, rec.mat_id, rec.tri_id, rec.K, albedo))
-                masks.append(np.isfinite(rec.depth))
-                todo.append((sha, v))
-        if todo:                                    # one HOG launch for every new view
-            new = unit_rows(ex.extract(np.stack(imgs), np.stack(masks)).feats)[0]
-            for key, row in zip(todo, new):
-                self.described[key].fine = row
+                if (have is None or have.fine is None) and (sha, v) not in [t[:2] for t in todo]:
+                    todo.append((sha, v, metas[mt.mesh].n_materials))
+        if todo:
+            self._describe_fine(ex, todo)
         scored: list[tuple[float, int, int, int]] = []
         if rows:
             seen = [self.described[metas[k].sha256, v] for k, v, _ in rows]
@@ -628,6 +617,30 @@ class _Fit:
         ranked = {mt.mesh for mt in kept}
         return ([(k, v, s) for s, _, k, v in scored]
                 + [(mt.mesh, mt.view, mt.score) for mt in best if mt.mesh not in ranked])
+
+    def _describe_fine(self, ex: HogExtractor, todo: list[tuple[str, int, int]]) -> None:
+        """The finer HOG of each stored view (sha, view, materials) of ``todo`` into
+        ``described`` (and its boundaries, where ``_prefiltered`` did not read it): the views
+        read in turn, each shaded (``shade_stored_view``, the catalogue's base colours) on
+        ``SHADE_THREADS`` threads while the next is read, then one HOG launch for all."""
+        albedo: dict[str, np.ndarray] = {}
+        shaded, masks = [], []
+        with ThreadPoolExecutor(SHADE_THREADS) as pool:
+            for sha, v, n_materials in todo:
+                if sha not in albedo:
+                    albedo[sha] = np.full((n_materials + 1, 3), 0.8)
+                    for row in self.r.parts(sha):
+                        albedo[sha][row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
+                rec = self.r.view(sha, v)
+                shaded.append(pool.submit(shade_stored_view, rec.depth, rec.mat_id, rec.tri_id,
+                                          rec.K, albedo[sha]))
+                masks.append(np.isfinite(rec.depth))
+                if (sha, v) not in self.described:
+                    self.described[sha, v] = _Described(rec.mat_id, boundary_points(rec.mat_id))
+        images = np.stack([f.result() for f in shaded])
+        new = unit_rows(ex.extract(images, np.stack(masks)).feats)[0]
+        for (sha, v, _), row in zip(todo, new):
+            self.described[sha, v].fine = row
 
     def _prefiltered(self, edges, metas, best: list[CatalogMatch]) -> list[CatalogMatch]:
         """The meshes of ``best`` (HOG order) that ``_fine_rerank`` describes: of the first
@@ -650,9 +663,10 @@ class _Fit:
         return [pool[r] for r in keep]
 
     def _views(self, sha: str) -> list:
-        """The catalogue's views of a mesh (``CatalogReader.views``), read once per photo."""
+        """The angles of a mesh's stored views (``CatalogReader.view_angles``), read once per
+        photo."""
         if sha not in self.view_infos:
-            self.view_infos[sha] = self.r.views(sha)
+            self.view_infos[sha] = self.r.view_angles(sha)
         return self.view_infos[sha]
 
     def _database(self) -> FeatureTable | SearchIndex:
