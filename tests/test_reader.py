@@ -432,19 +432,26 @@ def test_schema_1_catalogue_is_upgraded_by_the_writer(tmp_path):
 
 
 # ---------------------------------------------------------------------------- one-part decoder
-@pytest.mark.parametrize("head_bytes", [None, 16])
-def test_one_part_decoder_equals_openexr(tmp_path, monkeypatch, head_bytes):
+@pytest.mark.parametrize("head_bytes, inflate", [(None, "libdeflate"), (16, "libdeflate"),
+                                                  (None, "zlib")])
+def test_one_part_decoder_equals_openexr(tmp_path, monkeypatch, head_bytes, inflate):
     """ViewStackFile against OpenEXR's own decoder: ZIP (compressible and incompressible
     chunks), ZIPS, no compression, a single-part file, empty views, one part whose header has
     one more attribute (the others repeat a layout); PIZ goes through OpenEXR.
     With a 16-byte first read the headers are read in doubling steps (as a long stack's are);
-    a stack cut or removed after it was opened gives ValueError naming it at the read."""
+    a stack cut or removed after it was opened gives ValueError naming it at the read. ZIP
+    chunks inflate through libdeflate, or through zlib where ``deflate`` is not installed (the
+    reader alone)."""
     import OpenEXR
 
     from ucad_catalog import exr
 
     if head_bytes is not None:
         monkeypatch.setattr(exr, "_HEAD_BYTES", head_bytes)
+    if inflate == "zlib":
+        monkeypatch.setitem(sys.modules, "deflate", None)     # import deflate: ImportError
+    else:
+        pytest.importorskip("deflate")
 
     rng = np.random.default_rng(3)
     H, W = 37, 29
