@@ -386,7 +386,7 @@ def _unzip(raw: bytes, size: int) -> np.ndarray:
     return out
 
 
-def _inflate(raw: bytes, size: int) -> bytes:
+def _inflate(raw: bytes, size: int) -> bytes | bytearray:
     """A zlib stream of ``size`` bytes inflated: by libdeflate (the ``deflate`` package, the
     writer's; ~2x zlib's speed) when it is installed, else by zlib. The same bytes either way;
     a stream that is corrupt or not ``size`` bytes long raises ValueError (libdeflate) or
