@@ -81,7 +81,7 @@ import numpy as np
 
 from ucad_catalog import CatalogError
 from ucad_catalog.parts import PART_MATERIALS, PART_NAMES
-from ucad_catalog.reader import CatalogReader, FeatureTable, MeshInfo
+from ucad_catalog.reader import CatalogReader, FeatureTable, MeshInfo, ViewAngles
 from ucad_catalog.searchindex import SearchIndex
 
 from .artifacts import CameraRing, Mesh
@@ -127,7 +127,6 @@ POSE_PROXY_CELLS = 256      # ... clustered on diagonal / 256 (decimate.render_p
 CANDIDATES = 5              # distinct meshes listed by retrieval
 INDEX_FROM = 32768          # retrieval reads the search index (if fresh) over this many rows ...
 INDEX_ROWS = 4096           # ... and keeps the rows nearest in its projections (docs/FIT.md)
-SHADE_THREADS = 2           # threads shading the re-rank's stored views (_describe_fine)
 PRESELECT_ROWS = 2048       # ... then by float32 dot products of the full rows, for the exact rank
 REFINE_MESHES = 3           # object: stored silhouettes of the first meshes seed GrabCut again
 PREFILTER_MESHES = 20       # retrieval: of this many first meshes by HOG, the FINE_MESHES of
@@ -143,6 +142,7 @@ REFINE_CORE = 0.04          # ... their core (eroded by this share of the box si
 MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of the prior
 SEED_MASK_STEP = 10.0       # ... and each seed alone too, over stored rings of at most this
 #                             azimuth step (degrees; docs/FIT.md)
+SHADE_THREADS = 2           # threads shading the re-rank's stored views (_describe_fine)
 
 
 class PhotoSegmenter(Protocol):
@@ -391,7 +391,7 @@ class _Fit:
         self.notes: list[str] = []
         self.db: FeatureTable | SearchIndex | None = None
         self.described: dict[tuple[str, int], _Described] = {}   # (sha, view) -> re-rank's
-        self.view_infos: dict[str, list] = {}                      # sha -> its views' angles
+        self.angles: dict[str, list[ViewAngles]] = {}             # sha -> its views' angles
         self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
         self._t = time.perf_counter()
 
@@ -581,6 +581,7 @@ class _Fit:
         q = unit_rows(np.asarray(query)[None])[0][0]
         table = self._database()                   # mt.mesh indexes its meshes (= metas)
         todo: list[tuple[str, int, int]] = []      # (sha, view, materials) to describe
+        queued: set[tuple[str, int]] = set()
         rows = []
         kept = self._prefiltered(edges, metas, best)
         for mt in kept:
@@ -595,7 +596,8 @@ class _Fit:
             for v, dv in zip(sel, d):
                 rows.append((mt.mesh, v, float(dv)))
                 have = self.described.get((sha, v))
-                if (have is None or have.fine is None) and (sha, v) not in [t[:2] for t in todo]:
+                if (have is None or have.fine is None) and (sha, v) not in queued:
+                    queued.add((sha, v))
                     todo.append((sha, v, metas[mt.mesh].n_materials))
         if todo:
             self._describe_fine(ex, todo)
@@ -662,12 +664,12 @@ class _Fit:
         keep = sorted(rank for _, rank in sorted(pre)[:FINE_MESHES])
         return [pool[r] for r in keep]
 
-    def _views(self, sha: str) -> list:
+    def _views(self, sha: str) -> list[ViewAngles]:
         """The angles of a mesh's stored views (``CatalogReader.view_angles``), read once per
         photo."""
-        if sha not in self.view_infos:
-            self.view_infos[sha] = self.r.view_angles(sha)
-        return self.view_infos[sha]
+        if sha not in self.angles:
+            self.angles[sha] = self.r.view_angles(sha)
+        return self.angles[sha]
 
     def _database(self) -> FeatureTable | SearchIndex:
         """Where retrieval's stored rows come from: the catalogue's search index when it is
