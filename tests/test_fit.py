@@ -392,6 +392,30 @@ def test_fine_rerank_scores_match_the_meshes_own_renders(catalogue):
             assert abs(c.score - total) < 0.1 * fit.FINE_WEIGHT * d[1], (c, d, d_edge)
 
 
+def test_retrieval_the_same_on_one_or_two_shading_threads(catalogue, monkeypatch):
+    """The re-rank shades its stored views on SHADE_THREADS threads while reading the next:
+    from a box in clutter (GrabCut, four object masks, every mesh re-ranked), one thread and
+    two give the same answer, candidates, scores, pose and colours, and so do two runs."""
+    import ucad_cl.fit as fit
+    from ucad_cl.refphoto import render_reference
+
+    m, mesh, rows = _mesh(catalogue, 1)
+    ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=300.0, elevation=15.0,
+                           seed=8, background="clutter")
+
+    def answer():
+        out = fit.fit_photo(ref.image, box=ref.box, catalog=catalogue).to_json()
+        out.pop("seconds")
+        return out
+
+    runs = []
+    for threads in (1, 2, 2):
+        monkeypatch.setattr(fit, "SHADE_THREADS", threads)
+        runs.append(answer())
+    assert runs[0] == runs[1] == runs[2]
+    assert runs[0]["mesh_id"] == m.sha256 and len(runs[0]["candidates"]) == 5
+
+
 def test_prefilter_passes_the_meshes_nearest_by_hog_and_edges(catalogue, monkeypatch):
     """With more meshes than FINE_MESHES, the re-rank describes those of the first
     PREFILTER_MESHES by HOG of least d + EDGE_WEIGHT x d_edge at their HOG-best view: recomputed
