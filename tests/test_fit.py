@@ -820,3 +820,38 @@ def test_retrieval_keeps_the_object_mask_whose_answer_is_nearest(catalogue, monk
             obj, _, got, _ = fit._Fit(r, None)._object_and_mesh(ref.image, first, None)
             assert np.array_equal(obj.mask, masks[0].mask)
     assert won_alone >= 1
+
+
+def test_retrieval_searches_a_repeated_object_mask_once(catalogue, monkeypatch):
+    """An object mask equal to one already tried is not searched again (it would give the same
+    answer): with every seed's GrabCut giving the voted mask, retrieval searches once and
+    answers as the voted mask's own search."""
+    import ucad_cl.fit as fit
+    from ucad_catalog.reader import CatalogReader
+    from ucad_cl.foreground import object_mask
+    from ucad_cl.refphoto import render_reference
+
+    m, mesh, rows = _mesh(catalogue, 2)
+    ref = render_reference(mesh, [x.part for x in rows], COLORS, azimuth=40.0, elevation=12.0,
+                           seed=8, background="clutter")
+    monkeypatch.setattr(fit, "SEED_MASK_STEP", 360.0)       # seed masks over this 30 deg ring
+    refined, pick = fit._Fit._refined_object, fit._Fit._pick_mesh
+    voted, searched = [], []
+
+    def same_mask(self, photo, first, placed):               # every seed: the voted mask
+        if not voted:
+            voted.append(refined(self, photo, first, placed))
+        return voted[0]
+
+    monkeypatch.setattr(fit._Fit, "_refined_object", same_mask)
+    monkeypatch.setattr(fit._Fit, "_pick_mesh",
+                        lambda self, photo, obj, key: searched.append(obj) or pick(self, photo,
+                                                                                     obj, key))
+    with CatalogReader(catalogue) as r:
+        first = object_mask(ref.image, box=ref.box, follow_edges=True)
+        obj, meta, got, _ = fit._Fit(r, None)._object_and_mesh(ref.image, first, None)
+        assert len(searched) == 1 and searched[0] is voted[0] is obj
+        _, alone, _ = pick(fit._Fit(r, None), ref.image, voted[0], None)
+    assert [(c.mesh_id, c.view, c.score) for c in got] == \
+        [(c.mesh_id, c.view, c.score) for c in alone]
+    assert meta.sha256 == m.sha256

@@ -500,7 +500,11 @@ class _Fit:
                         hypotheses.append(alone)
             self._lap("object")
         meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
+        tried = [obj.mask]
         for alt in hypotheses:                  # (ties: the mask voted by every seed)
+            if any(np.array_equal(alt.mask, m) for m in tried):
+                continue                        # a mask already tried: the same answer
+            tried.append(alt.mask)
             m2, c2, v2 = self._pick_mesh(photo, alt, None)
             if c2[0].score < candidates[0].score:
                 meta, candidates, best_view = m2, c2, v2
