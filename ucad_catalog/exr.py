@@ -40,7 +40,7 @@ import struct
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -295,6 +295,7 @@ class ViewStackFile:
         self._starts = np.unique(np.concatenate([p["offsets"] for p in self.parts]))
         self._ends = np.append(self._starts[1:], self._size)
         self._fallback: Any = None                  # OpenEXR parts, when the fast path cannot
+        self._inflate = _inflater()                 # decided once a stack, not once a chunk
 
     @property
     def n_views(self) -> int:
@@ -349,7 +350,7 @@ class ViewStackFile:
                                  f"truncated")
             want = n * line_bytes
             block = (np.frombuffer(raw, np.uint8) if size == want or part["compression"] == 0
-                     else _unzip(raw, want))
+                     else _unzip(raw, want, self._inflate))
             rows[r0:r0 + n] = block.reshape(n, line_bytes)
         out = {}
         H_full, W_full = dy1 - dy0 + 1, dx1 - dx0 + 1
@@ -372,9 +373,11 @@ class ViewStackFile:
         return {c: _full_image(p, c, _OUT_DTYPE.get(c, np.float32)) for c in channels}
 
 
-def _unzip(raw: bytes, size: int) -> np.ndarray:
-    """OpenEXR's ZIP/ZIPS chunk: zlib, then undo the byte predictor and the two-half interleave."""
-    t = np.frombuffer(_inflate(raw, size), np.uint8)
+def _unzip(raw: bytes, size: int, inflate: Callable[[bytes, int], bytes | bytearray]
+           ) -> np.ndarray:
+    """OpenEXR's ZIP/ZIPS chunk: zlib (``inflate``, from ``_inflater``), then undo the byte
+    predictor and the two-half interleave."""
+    t = np.frombuffer(inflate(raw, size), np.uint8)
     if t.size != size:
         raise ValueError(f"chunk inflates to {t.size} bytes, expected {size}")
     d = t - np.uint8(128)                              # wraps mod 256, as the encoder's + 128
@@ -386,19 +389,25 @@ def _unzip(raw: bytes, size: int) -> np.ndarray:
     return out
 
 
-def _inflate(raw: bytes, size: int) -> bytes | bytearray:
-    """A zlib stream of ``size`` bytes inflated: by libdeflate (the ``deflate`` package, the
-    writer's; ~2x zlib's speed) when it is installed, else by zlib. The same bytes either way;
-    a stream that is corrupt or not ``size`` bytes long raises ValueError (libdeflate) or
-    zlib.error / a short result (zlib), which ``ViewStackFile.read`` reports."""
+def _inflater() -> Callable[[bytes, int], bytes | bytearray]:
+    """How a zlib stream of ``size`` bytes is inflated: by libdeflate (the ``deflate`` package,
+    the writer's; ~2x zlib's speed) when it is installed, else by zlib. The same bytes either
+    way; a stream that is corrupt or not ``size`` bytes long raises ValueError (libdeflate) or
+    zlib.error / gives a short result (zlib), which ``ViewStackFile.read`` reports. Looked up
+    once a stack: a failed import costs ~50 us, about as much as inflating a chunk."""
     try:
         import deflate
     except ImportError:                                  # the reader alone: zlib
-        return zlib.decompress(raw, bufsize=size)
-    try:
-        return deflate.zlib_decompress(raw, size)
-    except deflate.DeflateError as exc:
-        raise ValueError(f"chunk does not inflate to {size} bytes (libdeflate: {exc})") from None
+        return lambda raw, size: zlib.decompress(raw, bufsize=size)
+
+    def inflate(raw: bytes, size: int) -> bytearray:
+        try:
+            return deflate.zlib_decompress(raw, size)
+        except deflate.DeflateError as exc:
+            raise ValueError(f"chunk does not inflate to {size} bytes (libdeflate: {exc})") \
+                from None
+
+    return inflate
 
 
 def _parse_headers(data: bytes) -> tuple[list[dict], bool]:
