@@ -584,8 +584,7 @@ class _Fit:
         qf = unit_rows(q_fine[None])[0][0]
         q = unit_rows(np.asarray(query)[None])[0][0]
         table = self._database()                   # mt.mesh indexes its meshes (= metas)
-        todo: list[tuple[str, int, int]] = []      # (sha, view, materials) to describe
-        queued: set[tuple[str, int]] = set()
+        todo: dict[tuple[str, int], int] = {}      # (sha, view) to describe -> its materials
         rows = []
         kept = self._prefiltered(edges, metas, best)
         for mt in kept:
@@ -600,9 +599,8 @@ class _Fit:
             for v, dv in zip(sel, d):
                 rows.append((mt.mesh, v, float(dv)))
                 have = self.described.get((sha, v))
-                if (have is None or have.fine is None) and (sha, v) not in queued:
-                    queued.add((sha, v))
-                    todo.append((sha, v, metas[mt.mesh].n_materials))
+                if have is None or have.fine is None:
+                    todo.setdefault((sha, v), metas[mt.mesh].n_materials)
         if todo:
             self._describe_fine(ex, todo)
         scored: list[tuple[float, int, int, int]] = []
@@ -624,15 +622,15 @@ class _Fit:
         return ([(k, v, s) for s, _, k, v in scored]
                 + [(mt.mesh, mt.view, mt.score) for mt in best if mt.mesh not in ranked])
 
-    def _describe_fine(self, ex: HogExtractor, todo: list[tuple[str, int, int]]) -> None:
-        """The finer HOG of each stored view (sha, view, materials) of ``todo`` into
+    def _describe_fine(self, ex: HogExtractor, todo: dict[tuple[str, int], int]) -> None:
+        """The finer HOG of each stored view (sha, view) of ``todo`` (-> its materials) into
         ``described`` (and its boundaries, where ``_prefiltered`` did not read it): the views
         read in turn, each shaded (``shade_stored_view``, the catalogue's base colours) on
         ``SHADE_THREADS`` threads while the next is read, then one HOG launch for all."""
         albedo: dict[str, np.ndarray] = {}
         shaded, masks = [], []
         with ThreadPoolExecutor(SHADE_THREADS) as pool:
-            for sha, v, n_materials in todo:
+            for (sha, v), n_materials in todo.items():
                 if sha not in albedo:
                     albedo[sha] = np.full((n_materials + 1, 3), 0.8)
                     for row in self.r.parts(sha):
@@ -645,7 +643,7 @@ class _Fit:
                     self.described[sha, v] = _Described(rec.mat_id, boundary_points(rec.mat_id))
         images = np.stack([f.result() for f in shaded])
         new = unit_rows(ex.extract(images, np.stack(masks)).feats)[0]
-        for (sha, v, _), row in zip(todo, new):
+        for (sha, v), row in zip(todo, new):
             self.described[sha, v].fine = row
 
     def _prefiltered(self, edges, metas, best: list[CatalogMatch]) -> list[CatalogMatch]:
