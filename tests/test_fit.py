@@ -658,6 +658,39 @@ def test_moved_mesh_file_falls_back_to_the_stored_view(photo, catalogue, tmp_pat
     assert doc["parts"]["body"]["status"] in ("fitted", "flagged")
 
 
+def _segfaulting_reader(path, clean=True, **kwargs):
+    import os
+    import signal
+    os.kill(os.getpid(), signal.SIGSEGV)
+
+
+def test_mesh_reader_crash_falls_back_and_no_child_is_left(photo, catalogue, monkeypatch):
+    """The fit reads the mesh in a child interpreter it starts before retrieval (its reader
+    imported there meanwhile: system.IsolatedChild): the mesh read there gives the fit's answer
+    (the refined pose); a reader that crashes (SIGSEGV) costs the fit its refined pose, not the
+    process: the nearest stored view, with a note naming the crash. No child is left either way."""
+    import functools
+
+    import cv2
+    import psutil
+
+    import ucad_cl.fit as fit_mod
+    from ucad_cl.ingest import load_mesh_isolated
+
+    path, box, m = photo
+    image = cv2.imread(str(path))[:, :, ::-1].copy()
+    before = {p.pid for p in psutil.Process().children()}
+    res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12])
+    assert res.mesh is not None and res.pose.source == "refined"
+    monkeypatch.setattr(fit_mod, "load_mesh_isolated",
+                        functools.partial(load_mesh_isolated, loader=_segfaulting_reader))
+    res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12])
+    assert res.mesh is None and res.pose.source == "stored view"
+    assert any("cannot be read" in n and "SIGSEGV" in n for n in res.notes), res.notes
+    assert res.parts["body"].status in ("fitted", "flagged")
+    assert {p.pid for p in psutil.Process().children()} <= before
+
+
 def test_photo_list_with_progress(photo, catalogue, tmp_path, capsys):
     from ucad_cl.cli import main
 

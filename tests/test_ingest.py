@@ -515,6 +515,46 @@ def test_isolated_matches_in_process():
     assert a.materials == b.materials and a.node_names == b.node_names
 
 
+def _in_modules(name):
+    return name in sys.modules
+
+
+def _exits_slowly(seconds):
+    import atexit
+    atexit.register(time.sleep, seconds)       # runs only if the interpreter shuts down
+    return "answered"
+
+
+def test_isolated_child_warms_before_its_call_and_leaves_at_once():
+    """system.IsolatedChild: the modules ``warm`` names are imported before the call (a module
+    that does not import is skipped; without ``warm`` the same call says not imported); one
+    call each; the child leaves right after answering (no interpreter shutdown waited for:
+    an atexit handler does not run) unless the call checks its exit (``clean_exit``); close()
+    kills a child never called."""
+    import psutil
+
+    from ucad_cl.system import IsolatedChild
+
+    with IsolatedChild(warm=("no_such_module_ucad", "xml.dom.pulldom")) as child:
+        assert child.call(_in_modules, "xml.dom.pulldom", timeout=60) is True
+        with pytest.raises(RuntimeError, match="one call"):
+            child.call(_in_modules, "xml.dom.pulldom", timeout=60)
+    assert IsolatedChild().call(_in_modules, "xml.dom.pulldom", timeout=60) is False
+    t0 = time.monotonic()
+    assert IsolatedChild().call(_exits_slowly, 30, timeout=60) == "answered"
+    assert time.monotonic() - t0 < 20
+    t0 = time.monotonic()
+    assert IsolatedChild().call(_exits_slowly, 2, timeout=60, clean_exit=True) == "answered"
+    assert time.monotonic() - t0 >= 2
+    before = {p.pid for p in psutil.Process().children()}
+    child = IsolatedChild(warm=("trimesh",))
+    (new,) = [p for p in psutil.Process().children() if p.pid not in before]
+    child.close()
+    assert not new.is_running()
+    with pytest.raises(RuntimeError, match="one call"):
+        child.call(_in_modules, "x", timeout=60)
+
+
 def test_isolated_errors(tmp_path):
     with pytest.raises(IngestError) as e:
         load_mesh_isolated(tmp_path / "nope.glb", timeout=60)

@@ -33,9 +33,13 @@
    the first ``CANDIDATES`` distinct meshes are reported as ``candidates`` (mesh, view pose,
    feature score; lower is better).
 3. **Pose**: ``pose.estimate_pose`` with the mesh re-read from the recorded library (as
-   ``export-glb`` does: refused when the file moved or changed), its coarse ring taken from the
+   ``export-glb`` does: refused when the file moved or changed; read in a child interpreter
+   started with the fit, ``system.IsolatedChild``, so its reader's import runs beside
+   retrieval and a reader that crashes or hangs costs the pose, not the process), its coarse
+   ring taken from the
    catalogue's stored features (``catalog_ring``, refinement renders at most ``RING_SIDE``
-   pixels); when the file is gone, the nearest stored view of that mesh is used as is, scaled
+   pixels); when the file is gone or unreadable, the nearest stored view of that mesh is used
+   as is, scaled
    and shifted onto the object's box (``pose.source = "stored view"``, and a note says so).
    Then azimuth and elevation are touched up by ``ROT_STEPS`` (at most ``ROT_RANGE``) for the
    best silhouette IoU, the render's silhouette is shifted by whole pixels (at most ``SHIFT``
@@ -92,7 +96,7 @@ from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import (ObjectMask, box_stretch, check_image, mask_box, object_mask,
                          refine_with_silhouette)
-from .ingest import IngestError, load_mesh
+from .ingest import READER_MODULES, IngestError, load_mesh_isolated
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
                     plausible_cast, predict, shading)
@@ -102,6 +106,7 @@ from .render import render_views
 from .runtime import Runtime
 from .segment import OnnxSegmenter
 from .shade import face_normals, shade_stored_view
+from .system import IsolatedChild
 
 RING_SIDE = 192             # pose refinement render size, pixels
 WORK_SIDE = 384             # longer side of the working frame, pixels
@@ -393,6 +398,7 @@ class _Fit:
         self.described: dict[tuple[str, int], _Described] = {}   # (sha, view) -> re-rank's
         self.angles: dict[str, list[ViewAngles]] = {}             # sha -> its views' angles
         self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
+        self.loader: IsolatedChild | None = None                   # reads the first mesh
         self._t = time.perf_counter()
 
     def _lap(self, stage: str) -> None:
@@ -401,6 +407,12 @@ class _Fit:
         self._t = now
 
     def run(self, photo, box, mask, mesh_key, segmenter) -> FitResult:
+        # the mesh is read in a child interpreter started now: its reader's import (~0.4 s of
+        # a core) runs beside retrieval, not after it (``system.IsolatedChild``)
+        with IsolatedChild(warm=READER_MODULES) as self.loader:
+            return self._steps(photo, box, mask, mesh_key, segmenter)
+
+    def _steps(self, photo, box, mask, mesh_key, segmenter) -> FitResult:
         photo = check_image(photo)
         obj = object_mask(photo, box=box, mask=mask, follow_edges=True)   # foreground.py
         if obj.source == "box":
@@ -742,7 +754,9 @@ class _Fit:
             if content_sha256(src) != meta.sha256:
                 return None, (f"{src} changed since it was catalogued: fitted on the nearest "
                               "stored view, no GLB")
-            mesh = in_frame(load_mesh(src, orientation=None), meta.file_to_norm)
+            child, self.loader = self.loader, None     # the warm child, once
+            mesh = in_frame(load_mesh_isolated(src, orientation=None, child=child),
+                            meta.file_to_norm)
         except (IngestError, ValueError, OSError) as exc:
             return None, f"{src} cannot be read ({exc}): fitted on the nearest stored view"
         if len(mesh.materials) != meta.n_materials:

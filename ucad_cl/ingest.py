@@ -78,7 +78,9 @@ Conventions and decisions (see also ``ucad_cl/artifacts.py``):
   before trimesh can hand back placeholder zeros, and a decode that still yields an all-zero
   primitive is rejected the same way. ``EXT_meshopt_compression`` is rejected.
 * **Isolation.** ``load_mesh_isolated`` runs the loader in a fresh ``python -c`` child; it costs
-  about 0.7-1 s per file (interpreter, NumPy and trimesh imports) on top of the load.
+  about 0.6-0.9 s per file (interpreter, NumPy and trimesh imports) on top of the load, unless
+  the child was started earlier with ``READER_MODULES`` to import (``system.IsolatedChild``,
+  as the fit does: then ~0.02 s and the pickled mesh's transfer).
 * **Errors** are :class:`IngestError` (a ``ValueError``) with ``.path``, ``.reason`` (a code of
   ``ucad_cl.reasons``) and a message naming the file. ``MemoryError`` is not turned into an
   ``IngestError``: the caller decides (the build records ``too_large`` only for a mesh that
@@ -108,7 +110,7 @@ import numpy as np
 from . import reasons
 from .artifacts import IngestReport, Material, Mesh, node_stem
 from .orient import orient_mesh
-from .system import IsolatedCallFailed, call_isolated
+from .system import IsolatedCallFailed, IsolatedChild
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 DRACO = "KHR_draco_mesh_compression"
@@ -117,6 +119,7 @@ MAX_MATERIALS = 65534          # material id = index + 1 must fit uint16 (0 = ba
 MAX_NAME_CHARS = 1024          # material names and alpha modes are cut to this many characters
 GLTF_DEFAULT = Material("default", (1.0, 1.0, 1.0, 1.0), "OPAQUE", 1.0, 1.0)
 IDENTITY_TAG = b"ucad-mesh/1"  # first bytes hashed into every mesh identity (see module doc)
+READER_MODULES = ("ucad_cl.ingest", "trimesh")   # what load_mesh imports (IsolatedChild's warm)
 _GL_TRIANGLES = 4
 _TRIMESH_PRIMITIVE_MODES = (0, 1, 4, 5)   # modes trimesh turns into a geometry (points, lines, tris)
 _READ_CHUNK = 1 << 20
@@ -242,7 +245,7 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 
 def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean: bool = True,
-                       loader=None, **kwargs) -> Mesh:
+                       loader=None, child: IsolatedChild | None = None, **kwargs) -> Mesh:
     """``load_mesh(path, clean=clean, **kwargs)`` in a fresh child interpreter
     (``system.call_isolated``), so a native crash or hang cannot kill us (the CLI's ``render``,
     ``parts`` and ``pose`` load user files this way; ``build`` isolates loading in its workers
@@ -253,11 +256,12 @@ def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean
     and raises reason ``timeout``; any other exception than ``IngestError`` raises reason
     ``unreadable`` naming it. ``loader`` (a picklable module-level function
     ``loader(path, clean=..., **kwargs) -> Mesh``) replaces ``load_mesh``, for tests; ``kwargs``
-    (budgets, orientation, overrides) must pickle.
+    (budgets, orientation, overrides) must pickle. ``child``: a child started earlier
+    (``READER_MODULES`` warm: ``ucad_cl.fit`` starts it before retrieval) instead of a new one.
     """
     try:
-        return call_isolated(loader or load_mesh, str(path), timeout=timeout, clean=clean,
-                             **kwargs)
+        return (child or IsolatedChild()).call(loader or load_mesh, str(path), timeout=timeout,
+                                               clean=clean, **kwargs)
     except IsolatedCallFailed as exc:
         if exc.kind == "timeout":
             raise IngestError(path, "timeout",
