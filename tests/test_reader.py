@@ -334,6 +334,46 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path, capsys)
         damaged.write_bytes(back)
 
 
+def test_search_index_reads_rows_whatever_wrote_the_object(built, tmp_path):
+    """``SearchIndex.rows`` takes an object that starts with ``np.save``'s own header for the
+    shape (``npy_header_bytes``: what the build writes) without parsing it, and reads any other
+    ``.npy`` of the same rows the same (a 2.0 header, float64, Fortran order: parsed); an
+    object of another shape is an error naming the mesh."""
+    import io
+    import shutil
+
+    from ucad_catalog.searchindex import npy_header_bytes
+
+    _, cat, _ = built
+    buf = io.BytesIO()
+    np.save(buf, np.zeros((5, 7), np.float32))
+    assert buf.getvalue().startswith(npy_header_bytes((5, 7)))
+    assert len(buf.getvalue()) == len(npy_header_bytes((5, 7))) + 5 * 7 * 4
+    copy = tmp_path / "cat"
+    shutil.copytree(cat, copy)
+    with CatalogReader(copy) as r:
+        t = r.feature_table()
+        idx, _ = r.search_index()
+        path = idx.paths[1]
+        rows = t.rows_of(1)
+        assert path.read_bytes().startswith(npy_header_bytes(rows.shape))
+        assert np.array_equal(idx.rows(np.arange(16, 32)), rows)
+    for other in (lambda f: np.lib.format.write_array(f, rows, version=(2, 0)),
+                  lambda f: np.save(f, rows.astype(np.float64)),
+                  lambda f: np.save(f, np.asfortranarray(rows)),
+                  lambda f: np.save(f, rows[:8])):
+        with open(path, "wb") as f:
+            other(f)
+        with CatalogReader(copy) as r:          # a new reader: the object read anew
+            idx, _ = r.search_index()
+            if len(np.load(path)) != len(rows):
+                with pytest.raises(CatalogError, match=f"mesh {idx.meshes[1].sha256[:12]}: "
+                                   r"features.npy cannot be read .*\(shape \(8, "):
+                    idx.rows(np.array([17, 20]))
+            else:
+                assert np.array_equal(idx.rows(np.array([31, 17, 20])), rows[[15, 1, 4]])
+
+
 def brute_nearest(ring, az: float, el: float) -> int:
     """Smallest angle between unit viewing directions, ties to the lower index (loop)."""
     def unit(a, e):

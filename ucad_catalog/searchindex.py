@@ -29,6 +29,7 @@ No OpenCL here.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import resource
@@ -152,6 +153,7 @@ class SearchIndex:
     skipped: tuple[tuple[str, str], ...] = ()
     sq_norms: np.ndarray = field(init=False, repr=False)              # |proj|^2 per row
     _start: dict[int, int] = field(default_factory=dict, repr=False)   # data offset per mesh
+    _headers: dict[int, bytes] = field(default_factory=dict, repr=False)   # rows -> npy header
 
     def __post_init__(self) -> None:
         self.sq_norms = np.einsum("ij,ij->i", self.proj, self.proj)
@@ -192,25 +194,49 @@ class SearchIndex:
         lo, hi = np.searchsorted(self.mesh, [k, k + 1])
         n, D = int(hi - lo), self.mean.shape[0]
         try:
-            if k not in self._start:
-                shape, raw = npy_header(path)
-                if shape != (n, D):
-                    raise ValueError(f"shape {shape}, the index says {(n, D)}")
-                self._start[k] = path.stat().st_size - n * D * 4 if raw else -1
-            start = self._start[k]
-            if start < 0:
-                out[at] = np.load(path, allow_pickle=False)[views]
-                return
             fd = os.open(path, os.O_RDONLY)
             try:
-                for i, v in zip(at, views):
-                    if os.preadv(fd, [out[i].data.cast("B")], start + int(v) * D * 4) != D * 4:
-                        raise EOFError("short read")
+                if k not in self._start:
+                    self._start[k] = self._data_start(fd, path, n, D)
+                start = self._start[k]
+                if start >= 0:
+                    for i, v in zip(at, views):
+                        if (os.preadv(fd, [out[i].data.cast("B")], start + int(v) * D * 4)
+                                != D * 4):
+                            raise EOFError("short read")
             finally:
                 os.close(fd)
+            if start < 0:
+                out[at] = np.load(path, allow_pickle=False)[views]
         except (OSError, ValueError, EOFError) as exc:
             raise CatalogError(f"mesh {self.meshes[k].sha256[:12]}: features.npy cannot be "
                                f"read as the search index says ({exc})") from None
+
+    def _data_start(self, fd: int, path: Path, n: int, D: int) -> int:
+        """Where the (n, D) raw float32 rows start in the open object ``fd``, -1 when they are
+        not stored raw (then np.load reads it). An object that starts with ``np.save``'s own
+        header for that shape and is exactly that long (the build's) is taken without parsing
+        the header (one small read: ~1,000 objects a photo); any other is parsed
+        (``npy_header``); ValueError when its shape is not what the index says."""
+        head = self._headers.get(n)
+        if head is None:
+            head = self._headers[n] = npy_header_bytes((n, D))
+        if (os.pread(fd, len(head), 0) == head
+                and os.fstat(fd).st_size == len(head) + n * D * 4):
+            return len(head)
+        shape, raw = npy_header(path)
+        if shape != (n, D):
+            raise ValueError(f"shape {shape}, the index says {(n, D)}")
+        return os.fstat(fd).st_size - n * D * 4 if raw else -1
+
+
+def npy_header_bytes(shape: tuple[int, ...]) -> bytes:
+    """The header ``np.save`` writes for a C-order little-endian float32 array of ``shape``
+    (format 1.0), the one the build's ``features.npy`` objects start with."""
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buf, {"descr": "<f4", "fortran_order": False, "shape": tuple(int(x) for x in shape)})
+    return buf.getvalue()
 
 
 def load_search_index(root: Path, key, metas: list["MeshInfo"],
