@@ -664,11 +664,13 @@ def _segfaulting_reader(path, clean=True, **kwargs):
     os.kill(os.getpid(), signal.SIGSEGV)
 
 
-def test_mesh_reader_crash_falls_back_and_no_child_is_left(photo, catalogue, monkeypatch):
-    """The fit reads the mesh in a child interpreter it starts before retrieval (its reader
-    imported there meanwhile: system.IsolatedChild): the mesh read there gives the fit's answer
-    (the refined pose); a reader that crashes (SIGSEGV) costs the fit its refined pose, not the
-    process: the nearest stored view, with a note naming the crash. No child is left either way."""
+def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogue, monkeypatch):
+    """The fit reads the mesh in a child interpreter (``fit.MeshLoader``: one per photo, or one
+    given for a batch, its reader imported there before the first load): the mesh read there
+    gives the fit's answer (the refined pose); one loader serves several photos with one
+    child; a reader that crashes (SIGSEGV) costs that fit its refined pose, not the process
+    (the nearest stored view, with a note naming the crash), and the next load starts a new
+    child. No child is left once the fits and the loader are done."""
     import functools
 
     import cv2
@@ -680,15 +682,32 @@ def test_mesh_reader_crash_falls_back_and_no_child_is_left(photo, catalogue, mon
     path, box, m = photo
     image = cv2.imread(str(path))[:, :, ::-1].copy()
     before = {p.pid for p in psutil.Process().children()}
+
+    def children():
+        return {p.pid for p in psutil.Process().children()} - before
+
     res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12])
-    assert res.mesh is not None and res.pose.source == "refined"
-    monkeypatch.setattr(fit_mod, "load_mesh_isolated",
-                        functools.partial(load_mesh_isolated, loader=_segfaulting_reader))
-    res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12])
-    assert res.mesh is None and res.pose.source == "stored view"
-    assert any("cannot be read" in n and "SIGSEGV" in n for n in res.notes), res.notes
-    assert res.parts["body"].status in ("fitted", "flagged")
-    assert {p.pid for p in psutil.Process().children()} <= before
+    assert res.mesh is not None and res.pose.source == "refined" and not children()
+    with fit_mod.MeshLoader() as meshes:
+        for _ in range(2):
+            again = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12],
+                                      meshes=meshes)
+            assert again.pose.source == "refined" and len(children()) == 1
+        a, b = res.to_json(), again.to_json()
+        a.pop("seconds"), b.pop("seconds")
+        assert json.dumps(a) == json.dumps(b)
+        with monkeypatch.context() as mp:
+            mp.setattr(fit_mod, "load_mesh_isolated",
+                       functools.partial(load_mesh_isolated, loader=_segfaulting_reader))
+            res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12],
+                                    meshes=meshes)
+        assert res.mesh is None and res.pose.source == "stored view"
+        assert any("cannot be read" in n and "SIGSEGV" in n for n in res.notes), res.notes
+        assert res.parts["body"].status in ("fitted", "flagged")
+        res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12],
+                                meshes=meshes)
+        assert res.pose.source == "refined"
+    assert not children()
 
 
 def test_photo_list_with_progress(photo, catalogue, tmp_path, capsys):

@@ -525,34 +525,49 @@ def _exits_slowly(seconds):
     return "answered"
 
 
-def test_isolated_child_warms_before_its_call_and_leaves_at_once():
-    """system.IsolatedChild: the modules ``warm`` names are imported before the call (a module
-    that does not import is skipped; without ``warm`` the same call says not imported); one
-    call each; the child leaves right after answering (no interpreter shutdown waited for:
-    an atexit handler does not run) unless the call checks its exit (``clean_exit``); close()
-    kills a child never called."""
+def _pid():
+    return os.getpid()
+
+
+def test_isolated_child_warms_answers_calls_and_leaves_at_once():
+    """system.IsolatedChild: the modules ``warm`` names are imported before the first call (a
+    module that does not import is skipped; without ``warm`` the same call says not imported);
+    one child answers call after call until a call crashes it (then ``alive`` is False and a
+    call says it died) or it is closed; a closed child leaves at once (no interpreter shutdown
+    waited for: an atexit handler does not run) unless its last call asked for a clean exit
+    (its exit checked); close() kills a child never called."""
     import psutil
 
-    from ucad_cl.system import IsolatedChild
+    from ucad_cl.system import IsolatedCallFailed, IsolatedChild, call_isolated
 
     with IsolatedChild(warm=("no_such_module_ucad", "xml.dom.pulldom")) as child:
         assert child.call(_in_modules, "xml.dom.pulldom", timeout=60) is True
-        with pytest.raises(RuntimeError, match="one call"):
-            child.call(_in_modules, "xml.dom.pulldom", timeout=60)
-    assert IsolatedChild().call(_in_modules, "xml.dom.pulldom", timeout=60) is False
+        first = child.call(_pid, timeout=60)
+        assert child.call(_pid, timeout=60) == first != os.getpid() and child.alive
+        with pytest.raises(ValueError, match="bad input"):
+            child.call(_raises_value_error, "input", timeout=60)
+        assert child.call(_pid, timeout=60) == first              # an exception is an answer
+        with pytest.raises(IsolatedCallFailed, match="SIGSEGV"):
+            child.call(_segfault_loader, "x", timeout=60)
+        assert not child.alive
+        with pytest.raises(IsolatedCallFailed, match="died"):
+            child.call(_pid, timeout=60)
+    with pytest.raises(RuntimeError, match="closed"):
+        child.call(_pid, timeout=60)
+    assert call_isolated(_in_modules, "xml.dom.pulldom", timeout=60) is False
     t0 = time.monotonic()
-    assert IsolatedChild().call(_exits_slowly, 30, timeout=60) == "answered"
+    assert call_isolated(_exits_slowly, 30, timeout=60) == "answered"
+    with IsolatedChild() as child:
+        assert child.call(_exits_slowly, 30, timeout=60) == "answered"
     assert time.monotonic() - t0 < 20
     t0 = time.monotonic()
-    assert IsolatedChild().call(_exits_slowly, 2, timeout=60, clean_exit=True) == "answered"
+    assert call_isolated(_exits_slowly, 2, timeout=60, clean_exit=True) == "answered"
     assert time.monotonic() - t0 >= 2
     before = {p.pid for p in psutil.Process().children()}
     child = IsolatedChild(warm=("trimesh",))
     (new,) = [p for p in psutil.Process().children() if p.pid not in before]
     child.close()
-    assert not new.is_running()
-    with pytest.raises(RuntimeError, match="one call"):
-        child.call(_in_modules, "x", timeout=60)
+    assert not new.is_running() and not child.alive
 
 
 def test_isolated_errors(tmp_path):

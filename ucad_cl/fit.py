@@ -34,14 +34,12 @@
    feature score; lower is better).
 3. **Pose**: ``pose.estimate_pose`` with the mesh re-read from the recorded library (as
    ``export-glb`` does: refused when the file moved or changed; read in a child interpreter
-   started with the fit, ``system.IsolatedChild``, so its reader's import runs beside
-   retrieval and a reader that crashes or hangs costs the pose, not the process), its coarse
-   ring taken from the
-   catalogue's stored features (``catalog_ring``, refinement renders at most ``RING_SIDE``
-   pixels); when the file is gone or unreadable, the nearest stored view of that mesh is used
-   as is, scaled
-   and shifted onto the object's box (``pose.source = "stored view"``, and a note says so).
-   Then azimuth and elevation are touched up by ``ROT_STEPS`` (at most ``ROT_RANGE``) for the
+   started with the fit, ``MeshLoader``, so its reader's import runs beside retrieval and a
+   reader that crashes or hangs costs the pose, not the process), its coarse ring taken from
+   the catalogue's stored features (``catalog_ring``, refinement renders at most
+   ``RING_SIDE`` pixels); when the file is gone or unreadable, the nearest stored view of that
+   mesh is used as is, scaled and shifted onto the object's box (``pose.source = "stored
+   view"``, and a note says so). Then azimuth and elevation are touched up by ``ROT_STEPS`` (at most ``ROT_RANGE``) for the
    best silhouette IoU, the render's silhouette is shifted by whole pixels (at most ``SHIFT``
    of the working side) to best overlap the photo's object (IoU; ties: the smaller shift, then
    row-major order), and the shift is folded into ``K``.
@@ -298,28 +296,63 @@ class FitResult:
 
 def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
               catalog: str | Path | CatalogReader, mesh: str | None = None,
-              segmenter: PhotoSegmenter | None = None,
-              runtime: Runtime | None = None) -> FitResult:
+              segmenter: PhotoSegmenter | None = None, runtime: Runtime | None = None,
+              meshes: MeshLoader | None = None) -> FitResult:
     """Fit the part materials of the catalogued vehicle in ``photo`` ((H, W, 3) uint8 RGB),
     given by ``box`` (x0, y0, x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W) bool), against
     ``catalog`` (a path or an open reader); ``mesh`` (id, id prefix, path or file name) skips
-    retrieval. ValueError with a one-line message for bad input (see the module docstring),
-    a damaged catalogue included (an object unreadable or gone: "the catalogue ...")."""
+    retrieval; ``meshes``: a ``MeshLoader`` to reuse over a batch of photos (default: one
+    started for this photo). ValueError with a one-line message for bad input (see the module
+    docstring), a damaged catalogue included (an object unreadable or gone: "the catalogue
+    ...")."""
     if isinstance(catalog, CatalogReader):
-        return _run(catalog, runtime, photo, box, mask, mesh, segmenter)
+        return _run(catalog, runtime, meshes, photo, box, mask, mesh, segmenter)
     try:
         reader = CatalogReader(catalog)
     except CatalogError as exc:
         raise ValueError(str(exc)) from None
     with reader:
-        return _run(reader, runtime, photo, box, mask, mesh, segmenter)
+        return _run(reader, runtime, meshes, photo, box, mask, mesh, segmenter)
 
 
-def _run(reader: CatalogReader, runtime, photo, box, mask, mesh, segmenter) -> FitResult:
+class MeshLoader:
+    """Reads catalogued meshes (``ingest.load_mesh``, in the file's own frame) in a child
+    interpreter (``system.IsolatedChild``) started at construction, which imports the
+    reader's modules meanwhile (trimesh and SciPy: ~0.4 s of a core, beside a photo's
+    retrieval instead of after it; a batch of photos pays it once). A reader that crashes or
+    hangs costs one load (``IngestError``), not the process; the next load starts a new
+    child. ``close`` ends the child (also on leaving a ``with`` block)."""
+
+    def __init__(self) -> None:
+        self._child = IsolatedChild(warm=READER_MODULES)
+
+    def load(self, path: Path) -> Mesh:
+        if not self._child.alive:
+            self._child.close()
+            self._child = IsolatedChild(warm=READER_MODULES)
+        return load_mesh_isolated(path, orientation=None, child=self._child)
+
+    def close(self) -> None:
+        self._child.close()
+
+    def __enter__(self) -> "MeshLoader":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _run(reader: CatalogReader, runtime, meshes, photo, box, mask, mesh,
+         segmenter) -> FitResult:
     """``_Fit.run`` with the catalogue's read errors (and any file read error) met anywhere in
-    the fit turned into the one-line ValueError (the CLI prints it, never a traceback)."""
+    the fit turned into the one-line ValueError (the CLI prints it, never a traceback); a
+    ``MeshLoader`` started for the photo when none is given (its child imports the mesh
+    reader while retrieval runs)."""
+    if meshes is None:
+        with MeshLoader() as own:
+            return _run(reader, runtime, own, photo, box, mask, mesh, segmenter)
     try:
-        return _Fit(reader, runtime).run(photo, box, mask, mesh, segmenter)
+        return _Fit(reader, runtime, meshes).run(photo, box, mask, mesh, segmenter)
     except CatalogError as exc:
         raise ValueError(f"the catalogue is damaged: {exc}") from None
     except OSError as exc:                     # a file the fit reads that the reader did not wrap
@@ -390,15 +423,14 @@ class _Described:
 
 
 class _Fit:
-    def __init__(self, reader: CatalogReader, runtime: Runtime | None):
-        self.r, self.runtime = reader, runtime
+    def __init__(self, reader: CatalogReader, runtime: Runtime | None, meshes: MeshLoader):
+        self.r, self.runtime, self.meshes = reader, runtime, meshes
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
         self.db: FeatureTable | SearchIndex | None = None
         self.described: dict[tuple[str, int], _Described] = {}   # (sha, view) -> re-rank's
         self.angles: dict[str, list[ViewAngles]] = {}             # sha -> its views' angles
         self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
-        self.loader: IsolatedChild | None = None                   # reads the first mesh
         self._t = time.perf_counter()
 
     def _lap(self, stage: str) -> None:
@@ -407,12 +439,6 @@ class _Fit:
         self._t = now
 
     def run(self, photo, box, mask, mesh_key, segmenter) -> FitResult:
-        # the mesh is read in a child interpreter started now: its reader's import (~0.4 s of
-        # a core) runs beside retrieval, not after it (``system.IsolatedChild``)
-        with IsolatedChild(warm=READER_MODULES) as self.loader:
-            return self._steps(photo, box, mask, mesh_key, segmenter)
-
-    def _steps(self, photo, box, mask, mesh_key, segmenter) -> FitResult:
         photo = check_image(photo)
         obj = object_mask(photo, box=box, mask=mask, follow_edges=True)   # foreground.py
         if obj.source == "box":
@@ -754,9 +780,7 @@ class _Fit:
             if content_sha256(src) != meta.sha256:
                 return None, (f"{src} changed since it was catalogued: fitted on the nearest "
                               "stored view, no GLB")
-            child, self.loader = self.loader, None     # the warm child, once
-            mesh = in_frame(load_mesh_isolated(src, orientation=None, child=child),
-                            meta.file_to_norm)
+            mesh = in_frame(self.meshes.load(src), meta.file_to_norm)
         except (IngestError, ValueError, OSError) as exc:
             return None, f"{src} cannot be read ({exc}): fitted on the nearest stored view"
         if len(mesh.materials) != meta.n_materials:

@@ -110,7 +110,7 @@ import numpy as np
 from . import reasons
 from .artifacts import IngestReport, Material, Mesh, node_stem
 from .orient import orient_mesh
-from .system import IsolatedCallFailed, IsolatedChild
+from .system import IsolatedCallFailed, IsolatedChild, call_isolated
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 DRACO = "KHR_draco_mesh_compression"
@@ -256,12 +256,15 @@ def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean
     and raises reason ``timeout``; any other exception than ``IngestError`` raises reason
     ``unreadable`` naming it. ``loader`` (a picklable module-level function
     ``loader(path, clean=..., **kwargs) -> Mesh``) replaces ``load_mesh``, for tests; ``kwargs``
-    (budgets, orientation, overrides) must pickle. ``child``: a child started earlier
-    (``READER_MODULES`` warm: ``ucad_cl.fit`` starts it before retrieval) instead of a new one.
+    (budgets, orientation, overrides) must pickle. ``child``: a child started earlier (with
+    ``READER_MODULES`` warm: ``ucad_cl.fit.MeshLoader``) instead of a new one; it stays open.
     """
     try:
-        return (child or IsolatedChild()).call(loader or load_mesh, str(path), timeout=timeout,
-                                               clean=clean, **kwargs)
+        if child is not None:
+            return child.call(loader or load_mesh, str(path), timeout=timeout, clean=clean,
+                              **kwargs)
+        return call_isolated(loader or load_mesh, str(path), timeout=timeout, clean=clean,
+                             **kwargs)
     except IsolatedCallFailed as exc:
         if exc.kind == "timeout":
             raise IngestError(path, "timeout",

@@ -98,17 +98,20 @@ def call_isolated(func, *args, timeout: float, clean_exit: bool = False, **kwarg
     """
     if not timeout > 0:
         raise ValueError(f"timeout must be > 0 seconds, got {timeout}")
-    return IsolatedChild().call(func, *args, timeout=timeout, clean_exit=clean_exit, **kwargs)
+    with IsolatedChild() as child:
+        return child.call(func, *args, timeout=timeout, clean_exit=clean_exit, **kwargs)
 
 
 class IsolatedChild:
-    """The child interpreter of one ``call_isolated`` call, started now, called later: it imports
-    the modules ``warm`` names (errors ignored: the call meets them again) while this process
-    goes on, then waits for its call. Why: a mesh reader's import (trimesh and the SciPy modules
-    it imports: ~0.4 s of one core) runs on the other core while a photo's retrieval runs here,
-    instead of after it (``ucad_cl.fit``; a thread would share this process's GIL with the
-    retrieval). ``call`` once (as ``call_isolated``); ``close`` kills a child never called (also
-    on leaving a ``with`` block)."""
+    """A child interpreter for isolated calls (``call_isolated`` makes one call in a new one),
+    started now: it imports the modules ``warm`` names (errors ignored: a call meets them
+    again) while this process goes on, then answers ``call``s one at a time until ``close``
+    (also on leaving a ``with`` block). Why: a mesh reader's import (trimesh and the SciPy
+    modules it imports: ~0.4 s of one core) runs beside a photo's retrieval instead of after
+    it, and a batch of photos pays it once (``ucad_cl.fit.MeshLoader``; a thread would share
+    this process's GIL with the retrieval). A call that crashes the child or runs past its
+    timeout ends it (``alive`` is then False and later calls raise ``IsolatedCallFailed``);
+    a call with ``clean_exit`` is the last: the child exits and its exit status is checked."""
 
     def __init__(self, warm: tuple[str, ...] = ()):
         read_fd, write_fd = os.pipe()
@@ -125,75 +128,89 @@ class IsolatedChild:
         finally:
             os.close(write_fd)
         self._conn = Connection(read_fd, writable=False)
-        self._called = False
+        self._calls = 0
+        self._closed = False
         self._send([p for p in sys.path if isinstance(p, str)], tuple(warm))
 
-    def _send(self, *messages) -> None:
+    @property
+    def alive(self) -> bool:
+        """Whether the child can still take a call."""
+        return not self._closed and self._proc.poll() is None
+
+    def _send(self, *messages, last: bool = False) -> None:
+        stdin = self._proc.stdin
+        assert stdin is not None
         try:
-            assert self._proc.stdin is not None
             for m in messages:
-                self._proc.stdin.write(pickle.dumps(m))
-            self._proc.stdin.flush()
+                stdin.write(pickle.dumps(m))
+            stdin.flush()
+            if last:
+                stdin.close()
         except BrokenPipeError:
-            pass                                    # the child died early: the call says so
+            pass                                    # the child died: the call says so
+
+    def _died(self) -> IsolatedCallFailed:
+        rc = self._proc.wait()
+        how = f"killed by signal {signal.Signals(-rc).name}" if rc < 0 else f"exit code {rc}"
+        return IsolatedCallFailed("crashed", f"died ({how})")
 
     def call(self, func, *args, timeout: float, clean_exit: bool = False, **kwargs):
         """``func(*args, **kwargs)`` in the child, as ``call_isolated`` (``timeout`` counts
         from now, a warm import still running included)."""
         if not timeout > 0:
             raise ValueError(f"timeout must be > 0 seconds, got {timeout}")
-        if self._called:
-            raise RuntimeError("an IsolatedChild answers one call")
-        self._called = True
+        if self._closed:
+            raise RuntimeError("this IsolatedChild is closed")
         proc, conn = self._proc, self._conn
+        if proc.poll() is not None:
+            raise self._died()
+        self._calls += 1
+        self._send((func, args, kwargs, clean_exit), last=clean_exit)
+        if not conn.poll(timeout):
+            proc.kill()
+            proc.wait()
+            raise IsolatedCallFailed("timeout", f"did not finish within {timeout:g} s (killed)")
         try:
-            self._send((func, args, kwargs, clean_exit))
+            kind, payload = conn.recv()
+        except (EOFError, OSError):
+            raise self._died() from None
+        if clean_exit:
             try:
-                assert proc.stdin is not None
-                proc.stdin.close()
-            except BrokenPipeError:
-                pass
-            if not conn.poll(timeout):
+                rc = proc.wait(timeout)
+            except subprocess.TimeoutExpired:
                 proc.kill()
-                proc.wait()
-                raise IsolatedCallFailed("timeout", f"did not finish within {timeout:g} s (killed)")
-            try:
-                kind, payload = conn.recv()
-            except (EOFError, OSError):
                 rc = proc.wait()
-                how = f"killed by signal {signal.Signals(-rc).name}" if rc < 0 else f"exit code {rc}"
-                raise IsolatedCallFailed("crashed", f"died ({how})") from None
-        finally:
-            conn.close()
-            if proc.poll() is None:
-                try:
-                    proc.wait(timeout if clean_exit else 5.0)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+            self.close()
+            if kind == "ok" and rc != 0:
+                how = (f"killed by signal {signal.Signals(-rc).name}" if rc < 0
+                       else f"exit code {rc}")
+                raise IsolatedCallFailed("crashed", f"answered, then died at exit ({how})")
         if kind == "raise":
             raise payload
         if kind != "ok":
             raise RuntimeError(payload)
-        if clean_exit and proc.returncode != 0:
-            rc = proc.returncode
-            how = f"killed by signal {signal.Signals(-rc).name}" if rc < 0 else f"exit code {rc}"
-            raise IsolatedCallFailed("crashed", f"answered, then died at exit ({how})")
         return payload
 
     def close(self) -> None:
-        """Kill the child unless it was called (a called child has exited or been killed)."""
-        if not self._called:
-            self._called = True
-            self._conn.close()
-            if self._proc.poll() is None:
-                self._proc.kill()
-            self._proc.wait()
-            if self._proc.stdin is not None:
-                try:
-                    self._proc.stdin.close()
-                except BrokenPipeError:
-                    pass
+        """End the child: one never called is killed, one called is told to leave (it does at
+        once) and killed if it has not within 5 s."""
+        if self._closed:
+            return
+        self._closed = True
+        proc = self._proc
+        if proc.poll() is None and not self._calls:
+            proc.kill()
+        try:
+            assert proc.stdin is not None
+            proc.stdin.close()
+        except BrokenPipeError:
+            pass
+        try:
+            proc.wait(5.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        self._conn.close()
 
     def __enter__(self) -> "IsolatedChild":
         return self
@@ -204,19 +221,46 @@ class IsolatedChild:
 
 def serve_isolated_call(fd: int) -> None:
     """Child side of ``IsolatedChild``: import the modules named on stdin (errors ignored),
-    read (func, args, kwargs, clean_exit) on stdin, answer on ``fd``: ("ok", result), ("raise",
-    exception) or ("error", "Type: message"); then, unless the parent checks how the child
-    exits (``clean_exit``), leave at once (``os._exit``): the interpreter's own shutdown, which
-    the parent would wait for, takes ~0.15 s once trimesh and SciPy are loaded."""
-    clean_exit = True
+    then read calls (func, args, kwargs, clean_exit) on stdin until it closes, answering each
+    on ``fd``: ("ok", result), ("raise", exception) or ("error", "Type: message"); then,
+    unless the last call asked for a clean exit (its status is checked), leave at once
+    (``os._exit``): the interpreter's own shutdown, which the parent would wait for, takes
+    ~0.15 s once trimesh and SciPy are loaded."""
     conn = Connection(fd, readable=False)
-    try:
-        for module in pickle.load(sys.stdin.buffer):
+    clean_exit = False
+    for module in pickle.load(sys.stdin.buffer):
+        try:
+            importlib.import_module(module)
+        except Exception:  # noqa: BLE001, S112 - a call imports it again and reports
+            continue
+    while True:
+        try:
+            func, args, kwargs, clean_exit = pickle.load(sys.stdin.buffer)
+        except EOFError:
+            break
+        except BaseException as e:  # noqa: BLE001 - an unreadable call: said, then the end
+            conn.send(("error", f"the call cannot be read ({type(e).__name__}: {e})"))
+            break
+        result = _answer(func, args, kwargs)
+        try:
+            conn.send(result)
+        except Exception as e:  # noqa: BLE001 - a result that does not pickle
+            conn.send(("error", f"the result of the isolated call does not pickle "
+                                f"({type(e).__name__}: {e})"))
+    conn.close()
+    if not clean_exit:
+        for stream in (sys.stdout, sys.stderr):
             try:
-                importlib.import_module(module)
-            except Exception:  # noqa: BLE001, S112 - the call imports it again and reports
-                continue
-        func, args, kwargs, clean_exit = pickle.load(sys.stdin.buffer)
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(0)
+
+
+def _answer(func, args, kwargs) -> tuple:
+    """What ``serve_isolated_call`` sends back for one call: the result, or the exception (as
+    text when it does not pickle)."""
+    try:
         if isinstance(func, str):                   # "module:function"
             module, name = func.split(":")
             func = getattr(importlib.import_module(module), name)
@@ -227,16 +271,4 @@ def serve_isolated_call(fd: int) -> None:
             result = ("raise", e)
         except Exception:  # noqa: BLE001 - an exception that does not pickle goes back as text
             result = ("error", f"{type(e).__name__}: {e}")
-    try:
-        conn.send(result)
-    except Exception as e:  # noqa: BLE001 - a result that does not pickle
-        conn.send(("error", f"the result of the isolated call does not pickle "
-                            f"({type(e).__name__}: {e})"))
-    conn.close()
-    if not clean_exit:
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except (OSError, ValueError):
-                pass
-        os._exit(0)
+    return result

@@ -105,14 +105,18 @@ def run_list(reader, args, segmenter) -> int:
     except (ValueError, OSError) as exc:
         print(f"{args.photos}: {exc}", file=sys.stderr)
         return 2
+    from ..fit import MeshLoader
+
     failed = 0
-    for path, box, mask, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
-        try:
-            res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out, segmenter)
-            tqdm.write(f"ok    {path} -> {out}.json ({res.mesh_path})")
-        except ValueError as exc:
-            failed += 1
-            tqdm.write(f"FAIL  {path}: {exc}", file=sys.stderr)
+    with MeshLoader() as meshes:        # one mesh-reading child for the list (fit.MeshLoader)
+        for path, box, mask, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
+            try:
+                res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out,
+                                   segmenter, meshes)
+                tqdm.write(f"ok    {path} -> {out}.json ({res.mesh_path})")
+            except ValueError as exc:
+                failed += 1
+                tqdm.write(f"FAIL  {path}: {exc}", file=sys.stderr)
     print(f"{len(jobs) - failed} fitted, {failed} failed; outputs in {args.out}")
     return 1 if failed else 0
 
@@ -173,13 +177,15 @@ def read_list(path: Path) -> list:
     return rows
 
 
-def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter):
-    """Fit one photo and write its three outputs; ValueError with one line on bad input."""
+def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter, meshes=None):
+    """Fit one photo and write its three outputs; ValueError with one line on bad input.
+    ``meshes``: a ``fit.MeshLoader`` kept over a list of photos (else one for this photo)."""
     from ..fit import fit_photo
 
     image = read_image(photo)
     mask = read_mask(mask_path, image.shape[:2]) if mask_path is not None else None
-    res = fit_photo(image, box=box, mask=mask, catalog=reader, mesh=mesh, segmenter=segmenter)
+    res = fit_photo(image, box=box, mask=mask, catalog=reader, mesh=mesh, segmenter=segmenter,
+                    meshes=meshes)
     try:
         out = write_outputs(res, out_dir, photo.stem)
     except OSError as exc:
