@@ -340,7 +340,7 @@ def _prior_props(part: str) -> tuple[float, float, float]:
 # ----------------------------------------------------------------------------- the run
 
 def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
-            runs: int = 1, meshes=None) -> dict[str, Score]:
+            runs: int = 1, mesh_loader=None) -> dict[str, Score]:
     from ucad_cl.fit import fit_photo
     from ucad_cl.pose import az_diff
 
@@ -350,7 +350,7 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
         given = {"mask": ref.mask} if row == "true object mask" else {"box": box}
         t = time.perf_counter()
         try:
-            res = fit_photo(ref.image, catalog=reader, mesh=key, meshes=meshes, **given)
+            res = fit_photo(ref.image, catalog=reader, mesh=key, mesh_loader=mesh_loader, **given)
         except ValueError as exc:
             print(f"  {v.name}: {row}: {exc}")
             out[row] = Score(seconds=time.perf_counter() - t,
@@ -361,7 +361,7 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
         times = [time.perf_counter() - t]
         for _ in range(runs - 1):                       # timing only: the same result again
             t = time.perf_counter()
-            fit_photo(ref.image, catalog=reader, mesh=key, meshes=meshes, **given)
+            fit_photo(ref.image, catalog=reader, mesh=key, mesh_loader=mesh_loader, **given)
             times.append(time.perf_counter() - t)
         sec = float(np.median(times))
         sc = score_colors({p: f.color_linear for p, f in res.parts.items()}, ref, pixels)
@@ -578,7 +578,7 @@ def main(argv=None) -> int:
     t_ref = 0.0
     from ucad_cl.fit import MeshLoader
 
-    with CatalogReader(cat) as reader, MeshLoader() as meshes:   # one mesh-reading child
+    with CatalogReader(cat) as reader, MeshLoader() as mesh_loader:   # one mesh-reading child
         metas = reader.meshes()
         accepted = {m.sha256 for m in metas if m.state == "accepted"}
         names = {m.sha256: m.path for m in metas}
@@ -593,7 +593,7 @@ def main(argv=None) -> int:
             t_ref += time.perf_counter() - t
             if args.save:
                 saved.append(save_reference(args.save, i, v, ref, box, key))
-            r = run_one(ref, box, v, reader, key, names, args.runs, meshes)
+            r = run_one(ref, box, v, reader, key, names, args.runs, mesh_loader)
             results.append((v, r))
             e = r["end to end"]
             print(f"  {i + 1:3d}/{len(vehicles)} {v.name[:32]:32s} body dE e2e {e.body:5.2f} "

@@ -134,7 +134,7 @@ def main(argv=None) -> int:
     rows = []
     from ucad_cl.fit import MeshLoader
 
-    with CatalogReader(cat) as reader, MeshLoader() as meshes:   # one mesh-reading child
+    with CatalogReader(cat) as reader, MeshLoader() as mesh_loader:   # one mesh-reading child
         metas = [m for m in reader.meshes() if m.state == "accepted"]
         ids = [m.sha256 for m in metas]
         feats = [np.asarray(reader.features(k), np.float64) for k in ids]
@@ -167,7 +167,7 @@ def main(argv=None) -> int:
                    "true_azimuth": ref.azimuth, "true_elevation": ref.elevation}
             if args.fit:
                 t = time.perf_counter()
-                res = fit_photo(ref.image, catalog=reader, meshes=meshes, **given)
+                res = fit_photo(ref.image, catalog=reader, mesh_loader=mesh_loader, **given)
                 row["fit_top1"] = res.mesh_id == truth
                 row["seconds"] = time.perf_counter() - t
                 row["got"] = reader.mesh(res.mesh_id).path

@@ -688,10 +688,10 @@ def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogu
 
     res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12])
     assert res.mesh is not None and res.pose.source == "refined" and not children()
-    with fit_mod.MeshLoader() as meshes:
+    with fit_mod.MeshLoader() as mesh_loader:
         for _ in range(2):
             again = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12],
-                                      meshes=meshes)
+                                      mesh_loader=mesh_loader)
             assert again.pose.source == "refined" and len(children()) == 1
         a, b = res.to_json(), again.to_json()
         a.pop("seconds"), b.pop("seconds")
@@ -700,12 +700,12 @@ def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogu
             mp.setattr(fit_mod, "load_mesh_isolated",
                        functools.partial(load_mesh_isolated, loader=_segfaulting_reader))
             res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12],
-                                    meshes=meshes)
+                                    mesh_loader=mesh_loader)
         assert res.mesh is None and res.pose.source == "stored view"
         assert any("cannot be read" in n and "SIGSEGV" in n for n in res.notes), res.notes
         assert res.parts["body"].status in ("fitted", "flagged")
         res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12],
-                                meshes=meshes)
+                                mesh_loader=mesh_loader)
         assert res.pose.source == "refined"
     assert not children()
 

@@ -39,10 +39,10 @@
    the catalogue's stored features (``catalog_ring``, refinement renders at most
    ``RING_SIDE`` pixels); when the file is gone or unreadable, the nearest stored view of that
    mesh is used as is, scaled and shifted onto the object's box (``pose.source = "stored
-   view"``, and a note says so). Then azimuth and elevation are touched up by ``ROT_STEPS`` (at most ``ROT_RANGE``) for the
-   best silhouette IoU, the render's silhouette is shifted by whole pixels (at most ``SHIFT``
-   of the working side) to best overlap the photo's object (IoU; ties: the smaller shift, then
-   row-major order), and the shift is folded into ``K``.
+   view"``, and a note says so). Then azimuth and elevation are touched up by ``ROT_STEPS``
+   (at most ``ROT_RANGE``) for the best silhouette IoU, the render's silhouette is shifted by
+   whole pixels (at most ``SHIFT`` of the working side) to best overlap the photo's object
+   (IoU; ties: the smaller shift, then row-major order), and the shift is folded into ``K``.
 4. **Part masks**: the render's part map (the catalogue's material -> part table) inside the
    photo's object, each part eroded by ``margin = max(1, round(MARGIN * d))`` pixels (``d`` the
    diagonal of the object's box in the working frame) so that a slightly wrong pose or outline
@@ -297,22 +297,22 @@ class FitResult:
 def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
               catalog: str | Path | CatalogReader, mesh: str | None = None,
               segmenter: PhotoSegmenter | None = None, runtime: Runtime | None = None,
-              meshes: MeshLoader | None = None) -> FitResult:
+              mesh_loader: MeshLoader | None = None) -> FitResult:
     """Fit the part materials of the catalogued vehicle in ``photo`` ((H, W, 3) uint8 RGB),
     given by ``box`` (x0, y0, x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W) bool), against
     ``catalog`` (a path or an open reader); ``mesh`` (id, id prefix, path or file name) skips
-    retrieval; ``meshes``: a ``MeshLoader`` to reuse over a batch of photos (default: one
+    retrieval; ``mesh_loader``: a ``MeshLoader`` to reuse over a batch of photos (default: one
     started for this photo). ValueError with a one-line message for bad input (see the module
     docstring), a damaged catalogue included (an object unreadable or gone: "the catalogue
     ...")."""
     if isinstance(catalog, CatalogReader):
-        return _run(catalog, runtime, meshes, photo, box, mask, mesh, segmenter)
+        return _run(catalog, runtime, mesh_loader, photo, box, mask, mesh, segmenter)
     try:
         reader = CatalogReader(catalog)
     except CatalogError as exc:
         raise ValueError(str(exc)) from None
     with reader:
-        return _run(reader, runtime, meshes, photo, box, mask, mesh, segmenter)
+        return _run(reader, runtime, mesh_loader, photo, box, mask, mesh, segmenter)
 
 
 class MeshLoader:
@@ -342,17 +342,17 @@ class MeshLoader:
         self.close()
 
 
-def _run(reader: CatalogReader, runtime, meshes, photo, box, mask, mesh,
+def _run(reader: CatalogReader, runtime, mesh_loader, photo, box, mask, mesh,
          segmenter) -> FitResult:
     """``_Fit.run`` with the catalogue's read errors (and any file read error) met anywhere in
     the fit turned into the one-line ValueError (the CLI prints it, never a traceback); a
     ``MeshLoader`` started for the photo when none is given (its child imports the mesh
     reader while retrieval runs)."""
-    if meshes is None:
+    if mesh_loader is None:
         with MeshLoader() as own:
             return _run(reader, runtime, own, photo, box, mask, mesh, segmenter)
     try:
-        return _Fit(reader, runtime, meshes).run(photo, box, mask, mesh, segmenter)
+        return _Fit(reader, runtime, mesh_loader).run(photo, box, mask, mesh, segmenter)
     except CatalogError as exc:
         raise ValueError(f"the catalogue is damaged: {exc}") from None
     except OSError as exc:                     # a file the fit reads that the reader did not wrap
@@ -423,8 +423,9 @@ class _Described:
 
 
 class _Fit:
-    def __init__(self, reader: CatalogReader, runtime: Runtime | None, meshes: MeshLoader):
-        self.r, self.runtime, self.meshes = reader, runtime, meshes
+    def __init__(self, reader: CatalogReader, runtime: Runtime | None,
+                 mesh_loader: MeshLoader):
+        self.r, self.runtime, self.mesh_loader = reader, runtime, mesh_loader
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
         self.db: FeatureTable | SearchIndex | None = None
@@ -780,7 +781,7 @@ class _Fit:
             if content_sha256(src) != meta.sha256:
                 return None, (f"{src} changed since it was catalogued: fitted on the nearest "
                               "stored view, no GLB")
-            mesh = in_frame(self.meshes.load(src), meta.file_to_norm)
+            mesh = in_frame(self.mesh_loader.load(src), meta.file_to_norm)
         except (IngestError, ValueError, OSError) as exc:
             return None, f"{src} cannot be read ({exc}): fitted on the nearest stored view"
         if len(mesh.materials) != meta.n_materials:

@@ -108,11 +108,11 @@ def run_list(reader, args, segmenter) -> int:
     from ..fit import MeshLoader
 
     failed = 0
-    with MeshLoader() as meshes:        # one mesh-reading child for the list (fit.MeshLoader)
+    with MeshLoader() as mesh_loader:        # one mesh-reading child for the list (fit.MeshLoader)
         for path, box, mask, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
             try:
                 res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out,
-                                   segmenter, meshes)
+                                   segmenter, mesh_loader)
                 tqdm.write(f"ok    {path} -> {out}.json ({res.mesh_path})")
             except ValueError as exc:
                 failed += 1
@@ -177,15 +177,15 @@ def read_list(path: Path) -> list:
     return rows
 
 
-def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter, meshes=None):
+def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter, mesh_loader=None):
     """Fit one photo and write its three outputs; ValueError with one line on bad input.
-    ``meshes``: a ``fit.MeshLoader`` kept over a list of photos (else one for this photo)."""
+    ``mesh_loader``: a ``fit.MeshLoader`` kept over a list of photos (else one for this photo)."""
     from ..fit import fit_photo
 
     image = read_image(photo)
     mask = read_mask(mask_path, image.shape[:2]) if mask_path is not None else None
     res = fit_photo(image, box=box, mask=mask, catalog=reader, mesh=mesh, segmenter=segmenter,
-                    meshes=meshes)
+                    mesh_loader=mesh_loader)
     try:
         out = write_outputs(res, out_dir, photo.stem)
     except OSError as exc:
