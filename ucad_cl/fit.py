@@ -424,7 +424,8 @@ class _Described:
 
 class _Fit:
     def __init__(self, reader: CatalogReader, runtime: Runtime | None,
-                 mesh_loader: MeshLoader):
+                 mesh_loader: MeshLoader | None = None):
+        """``mesh_loader``: what reads the retrieved mesh (None: a new child for each read)."""
         self.r, self.runtime, self.mesh_loader = reader, runtime, mesh_loader
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
@@ -781,7 +782,8 @@ class _Fit:
             if content_sha256(src) != meta.sha256:
                 return None, (f"{src} changed since it was catalogued: fitted on the nearest "
                               "stored view, no GLB")
-            mesh = in_frame(self.mesh_loader.load(src), meta.file_to_norm)
+            mesh = in_frame(self.mesh_loader.load(src) if self.mesh_loader is not None
+                            else load_mesh_isolated(src, orientation=None), meta.file_to_norm)
         except (IngestError, ValueError, OSError) as exc:
             return None, f"{src} cannot be read ({exc}): fitted on the nearest stored view"
         if len(mesh.materials) != meta.n_materials:
