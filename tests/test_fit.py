@@ -710,6 +710,24 @@ def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogu
     assert not children()
 
 
+def test_no_process_for_the_mesh_reader_is_one_line(photo, catalogue, tmp_path, capsys,
+                                                     monkeypatch):
+    """When no child process can be started for the mesh reader (process or memory limits),
+    the fit says so in one line with exit status 2, never a traceback."""
+    import ucad_cl.system as system
+    from ucad_cl.cli import main
+
+    def refuse(*args, **kwargs):
+        raise OSError(11, "Resource temporarily unavailable")
+
+    path, box, m = photo
+    monkeypatch.setattr(system.subprocess, "Popen", refuse)
+    rc = main(["fit", str(path), "--box", *map(str, box), "--catalog", str(catalogue),
+               "--mesh", m.sha256[:12], "--out", str(tmp_path / "o")])
+    err = _one_line_error(capsys, 2, rc)
+    assert "cannot start the mesh reader's process" in err and "Resource" in err
+
+
 def test_photo_list_with_progress(photo, catalogue, tmp_path, capsys):
     from ucad_cl.cli import main
 

@@ -349,7 +349,11 @@ def _run(reader: CatalogReader, runtime, mesh_loader, photo, box, mask, mesh,
     ``MeshLoader`` started for the photo when none is given (its child imports the mesh
     reader while retrieval runs)."""
     if mesh_loader is None:
-        with MeshLoader() as own:
+        try:
+            own = MeshLoader()
+        except OSError as exc:                  # no process to be had (limits, memory)
+            raise ValueError(f"cannot start the mesh reader's process: {exc}") from None
+        with own:
             return _run(reader, runtime, own, photo, box, mask, mesh, segmenter)
     try:
         return _Fit(reader, runtime, mesh_loader).run(photo, box, mask, mesh, segmenter)
