@@ -374,6 +374,39 @@ def test_search_index_reads_rows_whatever_wrote_the_object(built, tmp_path):
                 assert np.array_equal(idx.rows(np.array([31, 17, 20])), rows[[15, 1, 4]])
 
 
+def test_search_index_rows_in_prefetch_batches_leave_no_descriptor(built, tmp_path,
+                                                                  monkeypatch):
+    """``SearchIndex.rows`` asks the kernel for a batch of objects' rows before reading them
+    (``PREFETCH_MESHES`` objects a batch): any batch size gives the stored rows in the order
+    asked; no file descriptor stays open, also when an object is gone mid-way (an error
+    naming that mesh)."""
+    import shutil
+
+    from ucad_catalog import searchindex
+
+    _, cat, _ = built
+    copy = tmp_path / "cat"
+    shutil.copytree(cat, copy)
+    fds = lambda: len(os.listdir("/proc/self/fd"))
+    with CatalogReader(copy) as r:
+        t = r.feature_table()
+        idx, _ = r.search_index()
+        ask = np.array([len(t.feats) - 1, 0, 20, 19, 33, 3])
+        for size in (1, 2, 256):
+            monkeypatch.setattr(searchindex, "PREFETCH_MESHES", size)
+            before = fds()
+            assert np.array_equal(idx.rows(ask), t.feats[ask])
+            assert fds() == before
+        idx.paths[1].unlink()
+        monkeypatch.setattr(searchindex, "PREFETCH_MESHES", 2)
+        with CatalogReader(copy) as r2:
+            idx2, _ = r2.search_index()
+            before = fds()
+            with pytest.raises(CatalogError, match=f"mesh {idx2.meshes[1].sha256[:12]}"):
+                idx2.rows(ask)
+            assert fds() == before
+
+
 def brute_nearest(ring, az: float, el: float) -> int:
     """Smallest angle between unit viewing directions, ties to the lower index (loop)."""
     def unit(a, e):

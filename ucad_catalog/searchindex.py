@@ -53,6 +53,7 @@ DIMS = 64          # principal axes kept (the fit's top 20 meshes were identical
 FIT_STRIDE = 4     # every 4th row (or sparser) of each mesh fits the axes ...
 FIT_ROWS = 16384   # ... at most about this many in all (memory: FIT_ROWS x D x 4 bytes)
 INDEX_CHUNK = 1024  # rows per float64 block of the index's covariance (~15 MB a block)
+PREFETCH_MESHES = 256   # objects whose rows are asked for together (_advise) before reading
 
 
 def fit_pca(x: np.ndarray, dims: int, chunk: int) -> tuple[np.ndarray, np.ndarray]:
@@ -175,42 +176,86 @@ class SearchIndex:
 
     def rows(self, rows: np.ndarray) -> np.ndarray:
         """(len(rows), D) float32 full rows, read from the meshes' ``features.npy`` objects
-        (CatalogError when one is gone or no longer what the index says)."""
+        (CatalogError when one is gone or no longer what the index says). The objects are
+        taken ``PREFETCH_MESHES`` at a time: every row of a batch is asked of the kernel
+        first (``_open_advised``), then read, so that on a cold page cache the batch's disk
+        reads are waited for together rather than one after another."""
         rows = np.asarray(rows, np.int64)
         out = np.empty((len(rows), self.mean.shape[0]), np.float32)
         order = np.argsort(self.mesh[rows], kind="stable")
         meshes = self.mesh[rows][order]
         cuts = np.flatnonzero(np.diff(meshes)) + 1
-        for sel in np.split(order, cuts):
-            if len(sel):
-                self._read(int(self.mesh[rows[sel[0]]]), self.view[rows[sel]], out, sel)
+        sels = [sel for sel in np.split(order, cuts) if len(sel)]
+        ks = np.array([self.mesh[rows[sel[0]]] for sel in sels], np.int64)
+        counts = np.searchsorted(self.mesh, ks, "right") - np.searchsorted(self.mesh, ks)
+        groups = [(int(k), int(n), self.view[rows[sel]].tolist(), sel)
+                  for k, n, sel in zip(ks, counts, sels)]
+        for b in range(0, len(groups), PREFETCH_MESHES):
+            batch = groups[b:b + PREFETCH_MESHES]
+            fds: dict[int, int] = {}
+            try:
+                for k, n, views, _ in batch:
+                    fds[k] = self._open_advised(k, n, views)
+                for k, n, views, sel in batch:
+                    self._read(k, n, views, out, sel, fds[k])
+            finally:
+                for fd in fds.values():
+                    os.close(fd)
         return out
 
-    def _read(self, k: int, views: np.ndarray, out: np.ndarray, at: np.ndarray) -> None:
-        """Rows ``views`` of mesh ``k`` into ``out[at]``: each row read in place (one pread)
-        when the object holds raw float32 rows (its data offset found once per index), else
-        through np.load."""
-        path = self.paths[k]
-        lo, hi = np.searchsorted(self.mesh, [k, k + 1])
-        n, D = int(hi - lo), self.mean.shape[0]
+    def _open_advised(self, k: int, n: int, views: list[int]) -> int:
+        """Mesh ``k``'s object (``n`` rows) opened, the kernel asked to start reading its rows
+        ``views`` (and its header, until its data offset is known) into the page cache
+        (``POSIX_FADV_WILLNEED``: it returns at once; consecutive views one request)."""
+        D = self.mean.shape[0]
         try:
-            fd = os.open(path, os.O_RDONLY)
-            try:
-                if k not in self._start:
-                    self._start[k] = self._data_start(fd, path, n, D)
-                start = self._start[k]
-                if start >= 0:
-                    for i, v in zip(at, views):
-                        if (os.preadv(fd, [out[i].data.cast("B")], start + int(v) * D * 4)
-                                != D * 4):
-                            raise EOFError("short read")
-            finally:
-                os.close(fd)
+            fd = os.open(self.paths[k], os.O_RDONLY)
+        except OSError as exc:
+            raise CatalogError(f"mesh {self.meshes[k].sha256[:12]}: features.npy cannot be "
+                               f"read as the search index says ({exc})") from None
+        start = self._start.get(k)
+        if start is None:
+            start = len(self._header(n, D))         # the build's (np.save's) layout
+            os.posix_fadvise(fd, 0, start, os.POSIX_FADV_WILLNEED)
+        if start >= 0:
+            first = last = -2
+            for v in views + [-2]:                    # runs of consecutive views
+                if v == last + 1:
+                    last = v
+                    continue
+                if first >= 0:
+                    os.posix_fadvise(fd, start + first * D * 4, (last + 1 - first) * D * 4,
+                                     os.POSIX_FADV_WILLNEED)
+                first = last = v
+        return fd
+
+    def _read(self, k: int, n: int, views: list[int], out: np.ndarray, at: np.ndarray,
+              fd: int) -> None:
+        """Rows ``views`` of mesh ``k`` (``n`` rows, its object open as ``fd``) into
+        ``out[at]``: each row read in place (one pread) when the object holds raw float32
+        rows (its data offset found once per index), else through np.load."""
+        path = self.paths[k]
+        D = self.mean.shape[0]
+        try:
+            if k not in self._start:
+                self._start[k] = self._data_start(fd, path, n, D)
+            start = self._start[k]
             if start < 0:
                 out[at] = np.load(path, allow_pickle=False)[views]
+                return
+            for i, v in zip(at.tolist(), views):
+                if os.preadv(fd, [out[i].data.cast("B")], start + v * D * 4) != D * 4:
+                    raise EOFError("short read")
         except (OSError, ValueError, EOFError) as exc:
             raise CatalogError(f"mesh {self.meshes[k].sha256[:12]}: features.npy cannot be "
                                f"read as the search index says ({exc})") from None
+
+    def _header(self, n: int, D: int) -> bytes:
+        """``npy_header_bytes((n, D))``, kept per row count."""
+        head = self._headers.get(n)
+        if head is None:
+            head = self._headers[n] = npy_header_bytes((n, D))
+        return head
 
     def _data_start(self, fd: int, path: Path, n: int, D: int) -> int:
         """Where the (n, D) raw float32 rows start in the open object ``fd``, -1 when they are
@@ -218,9 +263,7 @@ class SearchIndex:
         header for that shape and is exactly that long (the build's) is taken without parsing
         the header (one small read: ~1,000 objects a photo); any other is parsed
         (``npy_header``); ValueError when its shape is not what the index says."""
-        head = self._headers.get(n)
-        if head is None:
-            head = self._headers[n] = npy_header_bytes((n, D))
+        head = self._header(n, D)
         if (os.pread(fd, len(head), 0) == head
                 and os.fstat(fd).st_size == len(head) + n * D * 4):
             return len(head)
