@@ -498,3 +498,16 @@ def npy_header(path: Path) -> tuple[tuple[int, ...], bool]:
         raise ValueError(f"{data} bytes of data, its header says {need}")
     raw = dtype == np.dtype("<f4") and not fortran and data == need
     return tuple(shape), bool(raw)
+
+
+def will_need(fd: int, offset: int, length: int) -> None:
+    """Ask the kernel to start reading bytes ``offset .. offset + length`` of the open file
+    ``fd`` into the page cache (``posix_fadvise(POSIX_FADV_WILLNEED)``: it returns at once),
+    so that reads of many scattered places wait for the disk together, not one after
+    another; nothing where the call does not exist (macOS, Windows) or is refused."""
+    advise = getattr(os, "posix_fadvise", None)
+    if advise is not None and length > 0:
+        try:
+            advise(fd, offset, length, os.POSIX_FADV_WILLNEED)
+        except OSError:
+            pass

@@ -43,7 +43,7 @@ import numpy as np
 
 from ._db import (INDEX_UNREADABLE, SEARCH_INDEX, TMP_PREFIX, CatalogError, check_catalog_db,
                   feature_key, feature_key_hash, feature_objects, locate_db, npy_header,
-                  open_search_index, search_index_key)
+                  open_search_index, search_index_key, will_need)
 
 if TYPE_CHECKING:
     from .reader import MeshInfo
@@ -206,7 +206,7 @@ class SearchIndex:
     def _open_advised(self, k: int, n: int, views: list[int]) -> int:
         """Mesh ``k``'s object (``n`` rows) opened, the kernel asked to start reading its rows
         ``views`` (and its header, until its data offset is known) into the page cache
-        (``POSIX_FADV_WILLNEED``: it returns at once; consecutive views one request)."""
+        (``_db.will_need``; consecutive views one request)."""
         D = self.mean.shape[0]
         try:
             fd = os.open(self.paths[k], os.O_RDONLY)
@@ -216,7 +216,7 @@ class SearchIndex:
         start = self._start.get(k)
         if start is None:
             start = len(self._header(n, D))         # the build's (np.save's) layout
-            os.posix_fadvise(fd, 0, start, os.POSIX_FADV_WILLNEED)
+            will_need(fd, 0, start)
         if start >= 0:
             first = last = -2
             for v in views + [-2]:                    # runs of consecutive views
@@ -224,8 +224,7 @@ class SearchIndex:
                     last = v
                     continue
                 if first >= 0:
-                    os.posix_fadvise(fd, start + first * D * 4, (last + 1 - first) * D * 4,
-                                     os.POSIX_FADV_WILLNEED)
+                    will_need(fd, start + first * D * 4, (last + 1 - first) * D * 4)
                 first = last = v
         return fd
 
