@@ -665,13 +665,17 @@ def _segfaulting_reader(path, clean=True, **kwargs):
 
 
 def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogue, monkeypatch):
-    """The fit reads the mesh in a child interpreter (``fit.MeshLoader``: one per photo, or one
-    given for a batch, its reader imported there before the first load): the mesh read there
-    gives the fit's answer (the refined pose); one loader serves several photos with one
-    child; a reader that crashes (SIGSEGV) costs that fit its refined pose, not the process
-    (the nearest stored view, with a note naming the crash), and the next load starts a new
-    child. No child is left once the fits and the loader are done."""
+    """``fit.MeshLoader``: isolated, the mesh is read in a child interpreter (its reader
+    imported there before the first load), the default in a process that has not imported
+    the reader (a fresh one; not this test process) and not used when the mesh is given (no
+    retrieval to hide the child's start behind); the mesh read there gives the fit's answer
+    (the same JSON as read here); one loader serves several photos with one child; a reader
+    that crashes (SIGSEGV) costs that fit its refined pose, not the process (the nearest
+    stored view, with a note naming the crash), and the next load starts a new child. No
+    child is left once the fits and the loader are done."""
     import functools
+    import subprocess
+    import sys
 
     import cv2
     import psutil
@@ -686,9 +690,15 @@ def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogu
     def children():
         return {p.pid for p in psutil.Process().children()} - before
 
+    code = "import ucad_cl.fit as f; m = f.MeshLoader(); print(m.isolated); m.close()"
+    fresh = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                           check=True, cwd=Path(__file__).resolve().parents[1]).stdout.split()
+    assert fresh == ["True"]
+    with fit_mod.MeshLoader() as here:
+        assert not here.isolated and not children()     # trimesh is imported in this process
     res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12])
     assert res.mesh is not None and res.pose.source == "refined" and not children()
-    with fit_mod.MeshLoader() as mesh_loader:
+    with fit_mod.MeshLoader(isolated=True) as mesh_loader:
         for _ in range(2):
             again = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12],
                                       mesh_loader=mesh_loader)
@@ -713,7 +723,10 @@ def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogu
 def test_no_process_for_the_mesh_reader_is_one_line(photo, catalogue, tmp_path, capsys,
                                                      monkeypatch):
     """When no child process can be started for the mesh reader (process or memory limits),
-    the fit says so in one line with exit status 2, never a traceback."""
+    the fit says so in one line with exit status 2, never a traceback (a process that has not
+    imported the reader: trimesh taken out of ``sys.modules`` for the test)."""
+    import sys
+
     import ucad_cl.system as system
     from ucad_cl.cli import main
 
@@ -721,9 +734,10 @@ def test_no_process_for_the_mesh_reader_is_one_line(photo, catalogue, tmp_path, 
         raise OSError(11, "Resource temporarily unavailable")
 
     path, box, m = photo
+    monkeypatch.delitem(sys.modules, "trimesh")
     monkeypatch.setattr(system.subprocess, "Popen", refuse)
     rc = main(["fit", str(path), "--box", *map(str, box), "--catalog", str(catalogue),
-               "--mesh", m.sha256[:12], "--out", str(tmp_path / "o")])
+               "--out", str(tmp_path / "o")])
     err = _one_line_error(capsys, 2, rc)
     assert "cannot start the mesh reader's process" in err and "Resource" in err
 

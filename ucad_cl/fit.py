@@ -33,10 +33,10 @@
    the first ``CANDIDATES`` distinct meshes are reported as ``candidates`` (mesh, view pose,
    feature score; lower is better).
 3. **Pose**: ``pose.estimate_pose`` with the mesh re-read from the recorded library (as
-   ``export-glb`` does: refused when the file moved or changed; read in a child interpreter
-   started with the fit, ``MeshLoader``, so its reader's import runs beside retrieval and a
-   reader that crashes or hangs costs the pose, not the process), its coarse ring taken from
-   the catalogue's stored features (``catalog_ring``, refinement renders at most
+   ``export-glb`` does: refused when the file moved or changed; with retrieval to run and the
+   reader not imported yet, read in a child interpreter started with the fit, ``MeshLoader``,
+   so that the reader's import runs beside retrieval and a reader that crashes or hangs costs
+   the pose, not the process), its coarse ring taken from the catalogue's stored features (``catalog_ring``, refinement renders at most
    ``RING_SIDE`` pixels); when the file is gone or unreadable, the nearest stored view of that
    mesh is used as is, scaled and shifted onto the object's box (``pose.source = "stored
    view"``, and a note says so). Then azimuth and elevation are touched up by ``ROT_STEPS``
@@ -73,6 +73,7 @@ largest separable part, live in ``ucad_cl/light.py``.
 """
 from __future__ import annotations
 
+import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -94,7 +95,7 @@ from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import (ObjectMask, box_stretch, check_image, mask_box, object_mask,
                          refine_with_silhouette)
-from .ingest import READER_MODULES, IngestError, load_mesh_isolated
+from .ingest import READER_MODULES, IngestError, load_mesh, load_mesh_isolated
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
                     plausible_cast, predict, shading)
@@ -316,24 +317,36 @@ def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
 
 
 class MeshLoader:
-    """Reads catalogued meshes (``ingest.load_mesh``, in the file's own frame) in a child
+    """Reads catalogued meshes (``ingest.load_mesh``, in the file's own frame). ``isolated``
+    (the default unless this process has imported the reader's modules already): in a child
     interpreter (``system.IsolatedChild``) started at construction, which imports the
     reader's modules meanwhile (trimesh and SciPy: ~0.4 s of a core, beside a photo's
-    retrieval instead of after it; a batch of photos pays it once). A reader that crashes or
-    hangs costs one load (``IngestError``), not the process; the next load starts a new
-    child. ``close`` ends the child (also on leaving a ``with`` block)."""
+    retrieval instead of after it; a batch of photos pays it once); a reader that crashes or
+    hangs then costs one load (``IngestError``), not the process, and the next load starts a
+    new child. Not isolated: in this process (where the modules are loaded already, or when
+    there is no retrieval to hide their import behind: a child's start would cost more than
+    it hides). ``close`` ends the child (also on leaving a ``with`` block)."""
 
-    def __init__(self) -> None:
-        self._child = IsolatedChild(warm=READER_MODULES)
+    def __init__(self, isolated: bool | None = None) -> None:
+        if isolated is None:
+            isolated = not all(m in sys.modules for m in READER_MODULES)
+        self._child = IsolatedChild(warm=READER_MODULES) if isolated else None
+
+    @property
+    def isolated(self) -> bool:
+        return self._child is not None
 
     def load(self, path: Path) -> Mesh:
+        if self._child is None:
+            return load_mesh(path, orientation=None)
         if not self._child.alive:
             self._child.close()
             self._child = IsolatedChild(warm=READER_MODULES)
         return load_mesh_isolated(path, orientation=None, child=self._child)
 
     def close(self) -> None:
-        self._child.close()
+        if self._child is not None:
+            self._child.close()
 
     def __enter__(self) -> "MeshLoader":
         return self
@@ -346,11 +359,11 @@ def _run(reader: CatalogReader, runtime, mesh_loader, photo, box, mask, mesh,
          segmenter) -> FitResult:
     """``_Fit.run`` with the catalogue's read errors (and any file read error) met anywhere in
     the fit turned into the one-line ValueError (the CLI prints it, never a traceback); a
-    ``MeshLoader`` started for the photo when none is given (its child imports the mesh
-    reader while retrieval runs)."""
+    ``MeshLoader`` started for the photo when none is given (with retrieval to run, its
+    child imports the mesh reader meanwhile)."""
     if mesh_loader is None:
-        try:
-            own = MeshLoader()
+        try:                                    # the mesh given: no retrieval to hide behind
+            own = MeshLoader(isolated=False) if mesh is not None else MeshLoader()
         except OSError as exc:                  # no process to be had (limits, memory)
             raise ValueError(f"cannot start the mesh reader's process: {exc}") from None
         with own:
