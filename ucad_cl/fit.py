@@ -36,10 +36,10 @@
    ``export-glb`` does: refused when the file moved or changed; with retrieval to run and the
    reader not imported yet, read in a child interpreter started with the fit, ``MeshLoader``,
    so that the reader's import runs beside retrieval and a reader that crashes or hangs costs
-   the pose, not the process), its coarse ring taken from the catalogue's stored features (``catalog_ring``, refinement renders at most
-   ``RING_SIDE`` pixels); when the file is gone or unreadable, the nearest stored view of that
-   mesh is used as is, scaled and shifted onto the object's box (``pose.source = "stored
-   view"``, and a note says so). Then azimuth and elevation are touched up by ``ROT_STEPS``
+   the pose, not the process), its coarse ring taken from the catalogue's stored features
+   (``catalog_ring``, refinement renders at most ``RING_SIDE`` pixels); when the file is gone
+   or unreadable, the nearest stored view of that mesh is used as is, scaled and shifted onto
+   the object's box (``pose.source = "stored view"``, and a note says so). Then azimuth and elevation are touched up by ``ROT_STEPS``
    (at most ``ROT_RANGE``) for the best silhouette IoU, the render's silhouette is shifted by
    whole pixels (at most ``SHIFT`` of the working side) to best overlap the photo's object
    (IoU; ties: the smaller shift, then row-major order), and the shift is folded into ``K``.
@@ -442,8 +442,9 @@ class _Described:
 class _Fit:
     def __init__(self, reader: CatalogReader, runtime: Runtime | None,
                  mesh_loader: MeshLoader | None = None):
-        """``mesh_loader``: what reads the retrieved mesh (None: a new child for each read)."""
-        self.r, self.runtime, self.mesh_loader = reader, runtime, mesh_loader
+        """``mesh_loader``: what reads the retrieved mesh (None: this process)."""
+        self.r, self.runtime = reader, runtime
+        self.mesh_loader = mesh_loader or MeshLoader(isolated=False)
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
         self.db: FeatureTable | SearchIndex | None = None
@@ -799,8 +800,7 @@ class _Fit:
             if content_sha256(src) != meta.sha256:
                 return None, (f"{src} changed since it was catalogued: fitted on the nearest "
                               "stored view, no GLB")
-            mesh = in_frame(self.mesh_loader.load(src) if self.mesh_loader is not None
-                            else load_mesh_isolated(src, orientation=None), meta.file_to_norm)
+            mesh = in_frame(self.mesh_loader.load(src), meta.file_to_norm)
         except (IngestError, ValueError, OSError) as exc:
             return None, f"{src} cannot be read ({exc}): fitted on the nearest stored view"
         if len(mesh.materials) != meta.n_materials:
