@@ -182,14 +182,15 @@ class SearchIndex:
         reads are waited for together rather than one after another."""
         rows = np.asarray(rows, np.int64)
         out = np.empty((len(rows), self.mean.shape[0]), np.float32)
+        if not len(rows):
+            return out
         order = np.argsort(self.mesh[rows], kind="stable")
         meshes = self.mesh[rows][order]
         cuts = np.flatnonzero(np.diff(meshes)) + 1
-        sels = [sel for sel in np.split(order, cuts) if len(sel)]
-        ks = np.array([self.mesh[rows[sel[0]]] for sel in sels], np.int64)
+        ks = meshes[np.r_[0, cuts]]                   # each group's mesh
         counts = np.searchsorted(self.mesh, ks, "right") - np.searchsorted(self.mesh, ks)
         groups = [(int(k), int(n), self.view[rows[sel]].tolist(), sel)
-                  for k, n, sel in zip(ks, counts, sels)]
+                  for k, n, sel in zip(ks, counts, np.split(order, cuts))]
         for b in range(0, len(groups), PREFETCH_MESHES):
             batch = groups[b:b + PREFETCH_MESHES]
             fds: dict[int, int] = {}
