@@ -578,7 +578,7 @@ def main(argv=None) -> int:
     t_ref = 0.0
     from ucad_cl.fit import MeshLoader
 
-    with CatalogReader(cat) as reader, MeshLoader() as mesh_loader:   # one mesh-reading child
+    with CatalogReader(cat) as reader, MeshLoader() as mesh_loader:   # one mesh reader for the run
         metas = reader.meshes()
         accepted = {m.sha256 for m in metas if m.state == "accepted"}
         names = {m.sha256: m.path for m in metas}

@@ -134,7 +134,7 @@ def main(argv=None) -> int:
     rows = []
     from ucad_cl.fit import MeshLoader
 
-    with CatalogReader(cat) as reader, MeshLoader() as mesh_loader:   # one mesh-reading child
+    with CatalogReader(cat) as reader, MeshLoader() as mesh_loader:   # one mesh reader for the run
         metas = [m for m in reader.meshes() if m.state == "accepted"]
         ids = [m.sha256 for m in metas]
         feats = [np.asarray(reader.features(k), np.float64) for k in ids]
