@@ -290,7 +290,7 @@ class CentredPhoto:
 
 
 def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
-                   frame: np.ndarray | None = None) -> CentredPhoto:
+                   frame: np.ndarray | None = None, K: np.ndarray | None = None) -> CentredPhoto:
     """Warp ``image``/``mask`` so that the centre of the mask's box (of ``frame``'s box when
     given: another (H, W) bool mask, e.g. the detector's box, warped alike into
     ``CentredPhoto.frame``) is on the optical axis.
@@ -303,10 +303,15 @@ def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
     error there only leaves part of the obliquity). The turn is a yaw about the camera's y axis
     then a pitch about the new x axis (an upright camera stays upright). The output is the
     warped box grown by 25 % on each side (bilinear image, nearest-neighbour masks, edge pixels
-    repeated)."""
+    repeated). ``K``: the photo's intrinsics when they are known (``image`` a window cut from
+    a larger photo and scaled: ``ucad_cl.fit``); ``fov_deg`` is then not used."""
     H, W = mask.shape
-    f = 0.5 * min(H, W) / np.tan(np.radians(fov_deg) / 2.0)
-    K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+    if K is None:
+        f = 0.5 * min(H, W) / np.tan(np.radians(fov_deg) / 2.0)
+        K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+    else:
+        K = np.asarray(K, np.float64)
+        f = float(K[0, 0])
     x0, y0, x1, y1 = mask_box(mask if frame is None else frame)
     R = axis_turn(K, ((x0 + x1) / 2.0, (y0 + y1) / 2.0))
     Hm = K @ R @ np.linalg.inv(K)

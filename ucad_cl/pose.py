@@ -180,14 +180,19 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
                   azimuth_step: float = 10.0, elevations: Sequence[float] = (0.0, 15.0, 30.0),
                   fov_deg: float = 40.0, size: int = 128, top: int = 5, refine: bool = True,
                   coarse: PoseRing | None = None, method: PoseMethod = ROBUST,
-                  runtime: Runtime | None = None) -> PoseEstimate:
+                  runtime: Runtime | None = None,
+                  intrinsics: np.ndarray | None = None) -> PoseEstimate:
     """Best ``top`` poses of ``mesh`` for the object in ``image`` ((H, W, 3) uint8 RGB), rendered
     on ``runtime`` (default ``get_runtime()``).
 
     The object is ``box`` (x0, y0, x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W) bool).
     The coarse ring has ``azimuth_step`` and ``elevations`` (or is ``coarse``, from
     ``pose_ring``; its parameters then win). ``refine=False``: coarse views only.
-    ValueError naming the problem for a bad image, an empty or tiny mask or box.
+    ``intrinsics``: the photo camera assumed (3x3: focal length and principal point in
+    ``image``'s pixels) when ``image`` is a window cut from a larger photo and scaled
+    (``ucad_cl.fit``); default: the principal point at the image centre and the focal length of
+    ``method.fov_prior`` over the narrower side. ValueError naming the problem for a bad image,
+    an empty or tiny mask or box.
     """
     obj = object_mask(image, box=box, mask=mask, grabcut=method.isolate)
     if top < 1:
@@ -201,7 +206,7 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
         obj = ObjectMask(mask=box_mask(obj.mask.shape, obj.box), source="box", box=obj.box,
                          kept=1.0)
     weights = dict(method.weights if obj.source == "mask" else method.box_weights)
-    search = _Search(mesh, coarse, weights, method, refine, runtime)
+    search = _Search(mesh, coarse, weights, method, refine, runtime, intrinsics)
     frame = None
     if method.box_frame is not None and obj.source != "mask":
         b, m = np.array(obj.box, float), np.array(mask_box(obj.mask), float)
@@ -403,8 +408,9 @@ class _Search:
     """One photo against one mesh: scoring, coarse ranking, refinement, twins."""
 
     def __init__(self, mesh, coarse: PoseRing, weights: dict, method: PoseMethod, refine: bool,
-                 runtime: Runtime | None = None):
+                 runtime: Runtime | None = None, intrinsics: np.ndarray | None = None):
         self.mesh, self.coarse, self.weights, self.runtime = mesh, coarse, weights, runtime
+        self.intrinsics = None if intrinsics is None else np.asarray(intrinsics, np.float64)
         self.method, self.refine = method, refine
         self.twins = method.twins
         ring = coarse.ring
@@ -421,10 +427,13 @@ class _Search:
         the crop, the centre and the size instead of ``mask``."""
         m = self.method
         self.image_shape = mask.shape
+        H, W = mask.shape
+        self.principal = ((W / 2.0, H / 2.0) if self.intrinsics is None else
+                          (float(self.intrinsics[0, 2]), float(self.intrinsics[1, 2])))
         self.box_photo = mask_box(mask if frame is None else frame)
         img = composite(image, mask) if m.isolate else image
         if m.fov_prior is not None:
-            c = centre_on_axis(img, mask, m.fov_prior, frame)
+            c = centre_on_axis(img, mask, m.fov_prior, frame, K=self.intrinsics)
             img, mask, frame = c.image, c.mask, c.frame
             self.fov_prior = m.fov_prior
         else:
@@ -551,7 +560,8 @@ class _Search:
     def _distance_estimate(self, best: _Pose) -> float:
         """Camera distance at which the best coarse view is as large (in angle) as the object
         in the photo under the assumed field of view."""
-        f_photo = 0.5 * min(self.image_shape) / np.tan(np.radians(self.fov_prior) / 2.0)
+        f_photo = (0.5 * min(self.image_shape) / np.tan(np.radians(self.fov_prior) / 2.0)
+                   if self.intrinsics is None else float(self.intrinsics[0, 0]))
         angle = self.photo_side / f_photo
         return max(self.coarse.ring.distance * best.side / angle, MIN_DISTANCE)
 
@@ -603,9 +613,9 @@ class _Search:
 
     def camera(self, p: _Pose) -> tuple[np.ndarray, np.ndarray]:
         """(K, w2c) of the photo for pose ``p`` (see the module docstring)."""
-        H, W = self.image_shape
         f = self.photo_side / max(p.side, 1e-9)
-        K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+        cx, cy = self.principal
+        K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
         x0, y0, x1, y1 = self.box_photo
         # the vehicle's centre projects where the render has it relative to the object's box
         R = axis_turn(K, ((x0 + x1) / 2.0 - f * p.offset[0], (y0 + y1) / 2.0 - f * p.offset[1]))
