@@ -154,7 +154,7 @@ def _projected_box(mesh, K, w2c) -> np.ndarray:
 
 
 def test_large_photo_is_analysed_in_a_window(catalogue):
-    """A 1600 x 1200 photo (over fit.ANALYSIS_PIXELS, its box over fit.ANALYSIS_SIDE) is analysed
+    """A 1600 x 1200 photo (over ANALYSIS_PIXELS, its box over ANALYSIS_SIDE) is analysed
     in a scaled window around the box: the answers are those of the same view rendered at a
     quarter of the size (azimuth within 3 deg, body colour within CIEDE2000 1 of the small
     photo's fit after one exposure factor), and the pose and object come back in the large photo's pixels: the mesh
@@ -162,7 +162,8 @@ def test_large_photo_is_analysed_in_a_window(catalogue):
     within 2 % of the box side), the object mask has the photo's shape and covers the true
     vehicle as well as the small photo's GrabCut does (IoU within 0.02; 0.99 from the true
     mask), for a box and for a mask."""
-    from ucad_cl.fit import ANALYSIS_PIXELS, ANALYSIS_SIDE, fit_photo
+    from ucad_cl.fit import fit_photo
+    from ucad_cl.foreground import ANALYSIS_PIXELS, ANALYSIS_SIDE
     from ucad_cl.refphoto import render_reference
 
     m, mesh, rows = _mesh(catalogue, 1)

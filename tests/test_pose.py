@@ -102,6 +102,26 @@ def test_recovers_the_true_pose_of_a_repainted_car_over_clutter(vehicle, coarse,
     assert best.score == pytest.approx(sum(w * best.cues[k] for k, w in weights.items()))
 
 
+@pytest.mark.parametrize("mode", ["box", "mask"])
+def test_large_photo_is_searched_in_a_window_and_answered_in_its_pixels(vehicle, coarse, mode):
+    """A 1600 x 1200 photo (over ANALYSIS_PIXELS; its box over ANALYSIS_SIDE) is searched in a
+    scaled window around the object (foreground.PhotoWindow): the pose is found as in the small
+    photos above, and the camera and the object come back in the photo's pixels (the render
+    with the reported K, w2c at the photo's size covers the true silhouette)."""
+    from ucad_cl.foreground import ANALYSIS_PIXELS, ANALYSIS_SIDE
+
+    mesh, parts = vehicle
+    img, box, mask, _ = _reference(mesh, parts, 37.3, 8.0, size=(1600, 1200))
+    assert mask.size > ANALYSIS_PIXELS and max(box[2] - box[0], box[3] - box[1]) > ANALYSIS_SIDE
+    where = dict(box=box) if mode == "box" else dict(mask=mask)
+    est = estimate_pose(img, mesh, coarse=coarse, top=2, **where)
+    assert az_diff(est.best.azimuth, 37.3) <= (5.0 if mode == "box" else 2.0), est.best
+    assert abs(est.best.elevation - 8.0) <= 6.0
+    assert est.object.mask.shape == mask.shape
+    assert _iou(est.object.mask, mask) > (0.7 if mode == "box" else 0.98)
+    assert _iou(_silhouette(mesh, est.best, mask.shape), mask) > 0.75
+
+
 def test_a_render_of_the_mesh_itself_is_found_within_one_degree(vehicle, coarse):
     """The reference is the renderer's own image (default colours and light, flat background):
     the search must land on it."""

@@ -64,12 +64,10 @@
 
 The working frame is the photo cropped to the object's box grown by ``CROP_GROW`` and scaled so
 its longer side is at most ``WORK_SIDE`` pixels (never enlarged); poses are reported for the
-full photo (``K``, ``w2c``: docs/CONVENTIONS.md). A photo of over ``ANALYSIS_PIXELS`` pixels, or
-whose box is longer than ``ANALYSIS_SIDE``, is analysed by steps 1-6 in a window (``_Window``):
-the box grown by ``ANALYSIS_GROW`` of its longer side, scaled so the box is at most
-``ANALYSIS_SIDE`` long, pose search told the whole photo's assumed camera; the pose and the
-object come back in the photo's pixels (a 12-megapixel photo cost ~3 s more than a small one,
-docs/FIT.md). Deterministic: GrabCut is reseeded, grids and
+full photo (``K``, ``w2c``: docs/CONVENTIONS.md). A large photo is analysed by steps 1-6 in a
+window around its box (``foreground.PhotoWindow``), pose search told the whole photo's assumed
+camera; the pose and the object come back in the photo's pixels (a 12-megapixel photo cost ~3 s
+more than a small one, docs/FIT.md). Deterministic: GrabCut is reseeded, grids and
 tie rules are fixed, so the same inputs give the same numbers.
 
 Why one module of over 800 lines: the six steps above share the working frame, the photo's
@@ -98,8 +96,8 @@ from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_l
 from .cues import boundary_points, edge_distance, edge_recall, photo_edges, region_residual
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
-from .foreground import (ObjectMask, box_stretch, check_image, mask_box, object_mask,
-                         pixel_box, refine_with_silhouette)
+from .foreground import (ObjectMask, PhotoWindow, box_stretch, check_image, mask_box,
+                         object_mask, refine_with_silhouette)
 from .ingest import READER_MODULES, IngestError, load_mesh, load_mesh_isolated
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
@@ -116,10 +114,6 @@ from .system import IsolatedChild
 RING_SIDE = 192             # pose refinement render size, pixels
 WORK_SIDE = 384             # longer side of the working frame, pixels
 CROP_GROW = 0.1             # the object's box grown by this share of its size on every side
-ANALYSIS_SIDE = 512         # a photo is analysed in a window (_Window) scaled so the object's
-#                             box is at most this long ...
-ANALYSIS_PIXELS = 1 << 20   # ... when the box is longer or the photo has more pixels than this
-ANALYSIS_GROW = 0.3         # the window: the box grown by this share of its longer side each way
 MARGIN = 0.006              # part-boundary erosion, share of the object box's diagonal
 SHIFT = 0.03                # silhouette alignment search, share of the working frame's side
 ROT_STEPS = (2.0, 1.0, 0.5)   # pose touch-up steps (degrees of azimuth / elevation)
@@ -461,7 +455,7 @@ class _Fit:
         self.described: dict[tuple[str, int], _Described] = {}   # (sha, view) -> re-rank's
         self.angles: dict[str, list[ViewAngles]] = {}             # sha -> its views' angles
         self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
-        self.intrinsics: np.ndarray | None = None   # the photo's assumed K in a _Window's pixels
+        self.intrinsics: np.ndarray | None = None   # the photo's assumed K in a window's pixels
         self._t = time.perf_counter()
 
     def _lap(self, stage: str) -> None:
@@ -471,11 +465,11 @@ class _Fit:
 
     def run(self, photo, box, mask, mesh_key, segmenter) -> FitResult:
         photo = check_image(photo)
-        window = _Window.around(photo.shape[:2], box, mask)
+        window = PhotoWindow.around(photo.shape[:2], box, mask)
         if window is not None:                  # a large photo: steps 1-6 run on a window of it
             full_shape = photo.shape[:2]
             photo, box, mask = window.cut(photo, box, mask)
-            self.intrinsics = window.intrinsics(full_shape)
+            self.intrinsics = window.intrinsics(full_shape, FOV_PRIOR)
         obj = object_mask(photo, box=box, mask=mask, follow_edges=True)   # foreground.py
         if obj.source == "box":
             x0, y0, x1, y1 = obj.box
@@ -915,102 +909,6 @@ class _Fit:
         view = -rays
         return _Frame(part_map=lut[np.minimum(mat, len(lut) - 1)], normal=_facing(nrm, view),
                       view=view, K=K_work, w2c=pose.w2c, mat_map=mat)
-
-
-@dataclass(frozen=True)
-class _Window:
-    """The part of a large photo the fit analyses: photo pixels [x0, x1) x [y0, y1) scaled by
-    ``scale`` (<= 1; a point maps by x' = scale (x - x0), pixel edges at integers, as
-    ``cv2.resize`` maps with fx = fy = scale). A 12-megapixel photo analysed whole cost ~3 s
-    more than a 0.2-megapixel one (full-size composites, masks and guided filters, a full-size
-    pose render), for nothing the steps use: every one of them looks at the object's box and
-    a margin, at most a few hundred pixels (GrabCut 96, the HOG crops 128, the working frame
-    ``WORK_SIDE``). Photos of at most ``ANALYSIS_PIXELS`` pixels whose box is at most
-    ``ANALYSIS_SIDE`` long are analysed whole, as before (the same answers)."""
-
-    x0: int
-    y0: int
-    x1: int
-    y1: int
-    scale: float
-
-    @staticmethod
-    def around(shape: tuple[int, int], box, mask) -> "_Window | None":
-        """The window of a photo of ``shape`` (H, W) around its object (``box``, or ``mask``'s
-        box), or None when the photo is analysed whole (small enough, or a box or mask that
-        ``object_mask`` will refuse with its own message)."""
-        H, W = shape
-        try:
-            if mask is not None:
-                m = np.asarray(mask)
-                if m.shape != (H, W) or not m.any():
-                    return None
-                x0, y0, x1, y1 = mask_box(m)
-            elif box is not None:
-                x0, y0, x1, y1 = pixel_box((H, W), box)
-            else:
-                return None
-        except ValueError:
-            return None
-        side = max(x1 - x0, y1 - y0)
-        scale = min(1.0, ANALYSIS_SIDE / side)
-        if scale == 1.0 and H * W <= ANALYSIS_PIXELS:
-            return None
-        if min(x1 - x0, y1 - y0) * scale < 8:  # too thin to scale: object_mask decides
-            return None
-        g = ANALYSIS_GROW * side
-        return _Window(max(0, int(np.floor(x0 - g))), max(0, int(np.floor(y0 - g))),
-                       min(W, int(np.ceil(x1 + g))), min(H, int(np.ceil(y1 + g))), scale)
-
-    def cut(self, photo: np.ndarray, box, mask):
-        """(window image, box, mask) in the window's pixels (the box as ``pixel_box`` rounds
-        it, then scaled; the mask by area, kept where at least half covered)."""
-        import cv2
-
-        sub = np.ascontiguousarray(photo[self.y0:self.y1, self.x0:self.x1])
-        img = sub if self.scale == 1.0 else cv2.resize(
-            sub, (0, 0), fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA)
-        if mask is not None:
-            m = (np.asarray(mask)[self.y0:self.y1, self.x0:self.x1] != 0).astype(np.uint8) * 255
-            if self.scale != 1.0:
-                m = cv2.resize(m, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_AREA)
-            return img, None, m >= 128
-        b = pixel_box(photo.shape[:2], box)
-        s = self.scale
-        return img, (s * (b[0] - self.x0), s * (b[1] - self.y0), s * (b[2] - self.x0),
-                     s * (b[3] - self.y0)), None
-
-    def _A(self) -> np.ndarray:
-        s = self.scale
-        return np.array([[s, 0.0, -s * self.x0], [0.0, s, -s * self.y0], [0.0, 0.0, 1.0]])
-
-    def intrinsics(self, shape: tuple[int, int]) -> np.ndarray:
-        """The camera pose search assumes for the whole photo (principal point at its centre,
-        ``FOV_PRIOR`` over its narrower side), in the window's pixels."""
-        H, W = shape
-        f = 0.5 * min(H, W) / np.tan(np.radians(FOV_PRIOR) / 2.0)
-        return self._A() @ np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
-
-    def photo_K(self, K: np.ndarray) -> np.ndarray:
-        """``K`` of the window's pixels -> the photo's (the camera's pose is the same)."""
-        return np.linalg.solve(self._A(), np.asarray(K, np.float64))
-
-    def photo_box(self, box) -> tuple[int, int, int, int]:
-        """An integer box of the window's pixels -> the photo's (rounded outward)."""
-        s = self.scale
-        return (self.x0 + int(np.floor(box[0] / s)), self.y0 + int(np.floor(box[1] / s)),
-                self.x0 + int(np.ceil(box[2] / s)), self.y0 + int(np.ceil(box[3] / s)))
-
-    def photo_object(self, obj: ObjectMask, shape: tuple[int, int]) -> ObjectMask:
-        """``obj`` of the window -> the photo's (H, W) mask (nearest neighbour)."""
-        import cv2
-
-        full = np.zeros(shape, bool)
-        w, h = self.x1 - self.x0, self.y1 - self.y0
-        m = obj.mask.astype(np.uint8)
-        up = m if self.scale == 1.0 else cv2.resize(m, (w, h), interpolation=cv2.INTER_NEAREST)
-        full[self.y0:self.y1, self.x0:self.x1] = up[:h, :w] > 0
-        return replace(obj, mask=full, box=self.photo_box(obj.box))
 
 
 def _part_lut(rows) -> np.ndarray:

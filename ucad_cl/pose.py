@@ -53,8 +53,8 @@ from .artifacts import CameraRing, Mesh
 from .cameras import look_at_w2c, make_ring
 from .cues import Cues, combine, cue_distances, hog_distance, query_cues, view_cues
 from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
-from .foreground import (RENDER_BACKGROUND, ObjectMask, axis_turn, centre_on_axis, composite,
-                         mask_box, object_mask, refine_with_silhouette)
+from .foreground import (RENDER_BACKGROUND, ObjectMask, PhotoWindow, axis_turn, centre_on_axis,
+                         check_image, composite, mask_box, object_mask, refine_with_silhouette)
 from .render import render_views
 from .runtime import Runtime
 from .search import search as knn_search
@@ -189,11 +189,19 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     The coarse ring has ``azimuth_step`` and ``elevations`` (or is ``coarse``, from
     ``pose_ring``; its parameters then win). ``refine=False``: coarse views only.
     ``intrinsics``: the photo camera assumed (3x3: focal length and principal point in
-    ``image``'s pixels) when ``image`` is a window cut from a larger photo and scaled
-    (``ucad_cl.fit``); default: the principal point at the image centre and the focal length of
-    ``method.fov_prior`` over the narrower side. ValueError naming the problem for a bad image,
-    an empty or tiny mask or box.
+    ``image``'s pixels) when ``image`` is a window cut from a larger photo and scaled (the fit
+    does so); default: the principal point at the image centre and the focal length of
+    ``method.fov_prior`` over the narrower side. Without it a large photo is searched in a
+    window around its object (``foreground.PhotoWindow``), and the candidates' ``K`` and the
+    object come back in the photo's pixels. ValueError naming the problem for a bad image, an
+    empty or tiny mask or box.
     """
+    window = (PhotoWindow.around(np.shape(image)[:2], box, mask) if intrinsics is None
+              else None)
+    if window is not None:
+        full_shape = np.shape(image)[:2]
+        image, box, mask = window.cut(check_image(image), box, mask)
+        intrinsics = window.intrinsics(full_shape, method.fov_prior or FOV_PRIOR)
     obj = object_mask(image, box=box, mask=mask, grabcut=method.isolate)
     if top < 1:
         raise ValueError(f"top={top} must be >= 1")
@@ -224,6 +232,10 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
             search.set_photo(image, obj.mask, frame)
             found = search.run()
     cands = search.report(found, top)
+    if window is not None:                  # back in the photo's pixels
+        for c in cands:
+            c.K = window.photo_K(c.K) if c.K is not None else None
+        obj = window.photo_object(obj, full_shape)
     runner = next((c for c in cands if c.flipped), None)
     ambiguous = bool(method.twins) and runner is not None and runner.gap < AMBIGUOUS_GAP
     return PoseEstimate(candidates=cands, object=obj, ambiguous=ambiguous)
