@@ -684,6 +684,39 @@ def test_grayscale_and_16_bit_photos_are_converted(photo, catalogue, tmp_path, c
     assert doc["mesh_id"] == m.sha256
 
 
+def test_jpeg_exif_orientation_is_applied(photo, catalogue, tmp_path, capsys):
+    """A phone JPEG stored sideways with EXIF orientation 6 (turn 90 deg clockwise to show) is
+    read as shown (PIL's exif_transpose as the reference), so the box drawn on the shown photo
+    finds the vehicle: the same mesh and body colour as the upright PNG."""
+    import cv2
+    from PIL import Image, ImageOps
+
+    from ucad_cl.cli import main
+    from ucad_cl.commands.fit import read_image
+
+    path, box, m = photo
+    upright = cv2.imread(str(path))[:, :, ::-1]
+    im = Image.fromarray(np.ascontiguousarray(np.rot90(upright)))      # stored turned left
+    exif = im.getexif()
+    exif[0x0112] = 6
+    turned = tmp_path / "phone.jpg"
+    im.save(turned, exif=exif.tobytes(), quality=100, subsampling=0)   # JPEG loss aside
+    shown = read_image(turned)
+    with Image.open(turned) as ref:
+        assert np.array_equal(shown, np.asarray(ImageOps.exif_transpose(ref).convert("RGB")))
+    assert shown.shape == upright.shape
+    assert np.abs(shown.astype(int) - upright).mean() < 3.0
+    out = tmp_path / "o"
+    for p in (path, turned):
+        assert main(["fit", str(p), "--box", *map(str, box), "--catalog", str(catalogue),
+                     "--mesh", m.sha256[:12], "--out", str(out)]) == 0
+    capsys.readouterr()
+    a, b = (json.loads((out / f"{p.stem}.json").read_text()) for p in (path, turned))
+    assert b["mesh_id"] == a["mesh_id"] == m.sha256
+    fa, fb = (np.array(d["parts"]["body"]["color_linear"]) for d in (a, b))
+    assert _de(fb, fa) < 1.0, (fa, fb)
+
+
 def test_moved_mesh_file_falls_back_to_the_stored_view(photo, catalogue, tmp_path, capsys):
     from ucad_cl.cli import main
 

@@ -195,8 +195,10 @@ def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter,
 
 
 def read_image(path: Path):
-    """(H, W, 3) uint8 RGB: grayscale and 16-bit images converted, alpha dropped; ValueError
-    for a missing, corrupt or huge file."""
+    """(H, W, 3) uint8 RGB as a viewer shows it (a JPEG's EXIF orientation applied, as
+    ``ucad-index pose`` and image viewers do: a phone photo's box is drawn on the turned
+    image): grayscale and 16-bit images converted, alpha dropped; ValueError for a missing,
+    corrupt or huge file."""
     import cv2
     import numpy as np
     from PIL import Image, UnidentifiedImageError
@@ -214,7 +216,8 @@ def read_image(path: Path):
     if w * h > MAX_PIXELS:
         raise ValueError(f"the image is {w}x{h}: larger than {MAX_PIXELS // 1_000_000} "
                          "megapixels; scale it down first")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)   # not UNCHANGED:
+    #                                                          it ignores the EXIF orientation
     if img is None or img.size == 0:
         raise ValueError("cannot read the image (corrupt or not an image)")
     if img.dtype == np.uint16:
