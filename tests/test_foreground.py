@@ -223,3 +223,50 @@ def test_axis_turn_puts_the_point_on_the_axis():
         assert abs(r[0]) < 1e-12 and abs(r[1]) < 1e-12 and r[2] > 0
         assert np.allclose(R @ R.T, np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
         assert abs(R[0, 1]) < 1e-12            # yaw, then pitch: the new x axis stays level
+
+
+def test_photo_window_only_for_large_photos_and_its_maps():
+    """PhotoWindow: none for a photo of at most ANALYSIS_PIXELS pixels whose box is at most
+    ANALYSIS_SIDE long (analysed whole: the same answers as before); else the box grown by
+    ANALYSIS_GROW of its side, clipped, scaled so the box is ANALYSIS_SIDE long. The maps agree
+    with the pixels cv2.resize gives (a marked pixel lands where x' = s (x - x0) says), the box
+    and the whole photo's camera map by the same affine, and a bad box or mask gives none (so
+    object_mask refuses it with its own message)."""
+    assert fg.PhotoWindow.around((360, 480), (100, 80, 400, 300), None) is None
+    assert fg.PhotoWindow.around((1080, 1920), (100, 80, 400, 300), None) is not None  # pixels
+    H, W = 3000, 4000
+    box = (1400.4, 800.2, 3200.0, 2000.0)
+    w = fg.PhotoWindow.around((H, W), box, None)
+    side = 3200 - 1400
+    assert w.scale == pytest.approx(fg.ANALYSIS_SIDE / side)
+    g = fg.ANALYSIS_GROW * side
+    assert (w.x0, w.y0, w.x1, w.y1) == (int(np.floor(1400 - g)), int(np.floor(800 - g)),
+                                        int(np.ceil(3200 + g)), int(np.ceil(2000 + g)))
+    img = np.zeros((H, W, 3), np.uint8)
+    img[1500:1520, 2000:2020] = 255                     # a 20 px square, centre (2010, 1510)
+    cut, b, m = w.cut(img, box, None)
+    assert m is None and cut.shape[:2] == (round((w.y1 - w.y0) * w.scale),
+                                            round((w.x1 - w.x0) * w.scale))
+    ys, xs = np.nonzero(cut[..., 0] > 127)
+    centre = np.array([xs.mean() + 0.5, ys.mean() + 0.5])      # pixel edges at integers
+    assert np.abs(centre - w.scale * (np.array([2010.0, 1510.0]) - (w.x0, w.y0))).max() < 0.6
+    assert b == pytest.approx((w.scale * (1400 - w.x0), w.scale * (800 - w.y0),
+                               w.scale * (3200 - w.x0), w.scale * (2000 - w.y0)))
+    f = 0.5 * H / np.tan(np.radians(45.0) / 2.0)
+    K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+    Kw = w.intrinsics((H, W), 45.0)
+    assert Kw[0, 0] == pytest.approx(w.scale * f) and Kw[0, 2] == pytest.approx(
+        w.scale * (W / 2.0 - w.x0))
+    assert np.allclose(w.photo_K(Kw), K)
+    mask = np.zeros((H, W), bool)
+    mask[1000:1900, 1500:3100] = True
+    wm = fg.PhotoWindow.around((H, W), None, mask)
+    _, b2, m2 = wm.cut(img, None, mask)
+    assert b2 is None and m2.sum() == pytest.approx(mask.sum() * wm.scale ** 2, rel=0.01)
+    obj = fg.ObjectMask(mask=m2, source="mask", box=fg.mask_box(m2))
+    back = wm.photo_object(obj, (H, W))
+    assert back.mask.shape == (H, W) and (back.mask ^ mask).sum() < 0.01 * mask.sum()
+    for bad in ((5000, 10, 5100, 20), (1, 2, 3)):            # outside the photo; malformed
+        assert fg.PhotoWindow.around((H, W), bad, None) is None
+    assert fg.PhotoWindow.around((H, W), None, np.zeros((H, W), bool)) is None
+    assert fg.PhotoWindow.around((H, W), None, np.ones((10, 10), bool)) is None
