@@ -402,8 +402,8 @@ def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
     error there only leaves part of the obliquity). The turn is a yaw about the camera's y axis
     then a pitch about the new x axis (an upright camera stays upright). The output is the
     warped box grown by 25 % on each side (bilinear image, nearest-neighbour masks, edge pixels
-    repeated). ``K``: the photo's intrinsics when they are known (``image`` a window cut from
-    a larger photo and scaled: ``ucad_cl.fit``); ``fov_deg`` is then not used."""
+    repeated). ``K``: the photo's intrinsics when they are known (``image`` a ``PhotoWindow``
+    of a larger photo); ``fov_deg`` is then not used."""
     H, W = mask.shape
     if K is None:
         f = 0.5 * min(H, W) / np.tan(np.radians(fov_deg) / 2.0)
