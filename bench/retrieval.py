@@ -138,7 +138,7 @@ def main(argv=None) -> int:
         metas = [m for m in reader.meshes() if m.state == "accepted"]
         ids = [m.sha256 for m in metas]
         feats = [np.asarray(reader.features(k), np.float64) for k in ids]
-        azs = [np.array([v.azimuth for v in reader.views(k)]) for k in ids]
+        azs = [np.array([v.azimuth for v in reader.view_angles(k)]) for k in ids]
         kinds = [kind_of(lib, m) for m in metas]
         print(f"catalogue {cat}: {len(ids)} accepted meshes, {sum(map(len, feats))} views")
         files = sorted(lib.glob("*.json"))
