@@ -576,7 +576,7 @@ def main(argv=None) -> int:
     results = []
     saved: list[dict] = []
     t_ref = 0.0
-    from ucad_cl.fit import MeshLoader
+    from ucad_cl.ingest import MeshLoader
 
     with CatalogReader(cat) as reader, MeshLoader() as mesh_loader:   # one mesh reader for the run
         metas = reader.meshes()

@@ -132,7 +132,7 @@ def main(argv=None) -> int:
     lib = args.library or library(args.work, args.seed, args.count)
     cat = args.catalog or catalogue(args.work, lib)
     rows = []
-    from ucad_cl.fit import MeshLoader
+    from ucad_cl.ingest import MeshLoader
 
     with CatalogReader(cat) as reader, MeshLoader() as mesh_loader:   # one mesh reader for the run
         metas = [m for m in reader.meshes() if m.state == "accepted"]

@@ -670,16 +670,20 @@ def test_grayscale_and_16_bit_photos_are_converted(photo, catalogue, tmp_path, c
 
     from ucad_cl.cli import main
 
+    import psutil
+
     path, box, m = photo
     img = cv2.imread(str(path))
     gray, deep = tmp_path / "gray.png", tmp_path / "deep.png"
+    before = {p.pid for p in psutil.Process().children()}
     cv2.imwrite(str(gray), cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
     cv2.imwrite(str(deep), img.astype(np.uint16) * 257)
     for p in (gray, deep):
         assert main(["fit", str(p), "--box", *map(str, box), "--catalog", str(catalogue),
                      "--mesh", m.sha256[:12], "--out", str(tmp_path / "o")]) == 0
         assert (tmp_path / "o" / f"{p.stem}.json").exists()
-    capsys.readouterr()
+        assert {p.pid for p in psutil.Process().children()} <= before   # the mesh reader's
+    capsys.readouterr()                                                  # child is gone
     doc = json.loads((tmp_path / "o" / "deep.json").read_text())
     assert doc["mesh_id"] == m.sha256
 
@@ -744,7 +748,7 @@ def _segfaulting_reader(path, clean=True, **kwargs):
 
 
 def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogue, monkeypatch):
-    """``fit.MeshLoader``: isolated, the mesh is read in a child interpreter (its reader
+    """``ingest.MeshLoader``: isolated, the mesh is read in a child interpreter (its reader
     imported there before the first load), the default in a process that has not imported
     the reader (a fresh one; not this test process) and not used when the mesh is given (no
     retrieval to hide the child's start behind); the mesh read there gives the fit's answer
@@ -760,6 +764,7 @@ def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogu
     import psutil
 
     import ucad_cl.fit as fit_mod
+    import ucad_cl.ingest as ingest_mod
     from ucad_cl.ingest import load_mesh_isolated
 
     path, box, m = photo
@@ -773,11 +778,11 @@ def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogu
     fresh = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                            check=True, cwd=Path(__file__).resolve().parents[1]).stdout.split()
     assert fresh == ["True"]
-    with fit_mod.MeshLoader() as here:
+    with ingest_mod.MeshLoader() as here:
         assert not here.isolated and not children()     # trimesh is imported in this process
     res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12])
     assert res.mesh is not None and res.pose.source == "refined" and not children()
-    with fit_mod.MeshLoader(isolated=True) as mesh_loader:
+    with ingest_mod.MeshLoader(isolated=True) as mesh_loader:
         for _ in range(2):
             again = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12],
                                       mesh_loader=mesh_loader)
@@ -786,7 +791,7 @@ def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogu
         a.pop("seconds"), b.pop("seconds")
         assert json.dumps(a) == json.dumps(b)
         with monkeypatch.context() as mp:
-            mp.setattr(fit_mod, "load_mesh_isolated",
+            mp.setattr(ingest_mod, "load_mesh_isolated",
                        functools.partial(load_mesh_isolated, loader=_segfaulting_reader))
             res = fit_mod.fit_photo(image, box=box, catalog=catalogue, mesh=m.sha256[:12],
                                     mesh_loader=mesh_loader)

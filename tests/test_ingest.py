@@ -570,6 +570,65 @@ def test_isolated_child_warms_answers_calls_and_leaves_at_once():
     assert not new.is_running() and not child.alive
 
 
+def _sleep_then_pid(seconds):
+    time.sleep(seconds)
+    return os.getpid()
+
+
+def test_isolated_child_submitted_call_runs_ahead():
+    """IsolatedChild.submit: the call runs in the child while this process goes on (a 1 s call
+    submitted, 1 s spent here, its answer then collected at once by the call with the same
+    arguments); any other call before that is refused; a crash during it is the collecting
+    call's; closing with a submitted call nobody collected kills the child (no wait for it)."""
+    from ucad_cl.system import IsolatedCallFailed, IsolatedChild
+
+    with IsolatedChild() as child:
+        child.call(_pid, timeout=60)                 # the interpreter is up
+        child.submit(_sleep_then_pid, 1.0)
+        with pytest.raises(RuntimeError, match="submitted"):
+            child.submit(_pid)
+        with pytest.raises(RuntimeError, match="submitted"):
+            child.call(_pid, timeout=60)
+        time.sleep(1.2)
+        t0 = time.monotonic()
+        assert child.call(_sleep_then_pid, 1.0, timeout=60) == child.call(_pid, timeout=60)
+        assert time.monotonic() - t0 < 0.5
+        child.submit(_segfault_loader, "x")
+        with pytest.raises(IsolatedCallFailed, match="SIGSEGV"):
+            child.call(_segfault_loader, "x", timeout=60)
+    child = IsolatedChild()
+    child.submit(_sleep_then_pid, 30.0)
+    t0 = time.monotonic()
+    child.close()
+    assert time.monotonic() - t0 < 5.0 and not child.alive
+
+
+def test_mesh_loader_prefetch_reads_ahead_and_gives_the_same_mesh(tmp_path):
+    """ingest.MeshLoader.prefetch: the read runs in the child ahead of ``load`` (which then
+    returns at once), the mesh is the one ``load_mesh`` gives here; a read ahead of another
+    file than the one loaded is dropped (a new child reads the right one), and a second
+    prefetch before any load too; in this process (not isolated) prefetch does nothing."""
+    path = _vehicle("openmaterial_truck/truck_example.gltf")
+    other = _vehicle("cesium_milk_truck.glb")
+    here = ingest.load_mesh(path, orientation=None)
+    with ingest.MeshLoader(isolated=True) as loader:
+        loader.prefetch(path)
+        time.sleep(3.0)                               # imports and the read happen meanwhile
+        t0 = time.monotonic()
+        got = loader.load(path)
+        assert time.monotonic() - t0 < 0.5
+        assert got.vertices.tobytes() == here.vertices.tobytes()
+        assert got.faces.tobytes() == here.faces.tobytes() and got.materials == here.materials
+        loader.prefetch(other)
+        assert loader.load(path).faces.tobytes() == here.faces.tobytes()
+        loader.prefetch(other)
+        loader.prefetch(path)
+        assert loader.load(path).face_material.tobytes() == here.face_material.tobytes()
+    with ingest.MeshLoader(isolated=False) as loader:
+        loader.prefetch(path)
+        assert loader.load(path).faces.tobytes() == here.faces.tobytes()
+
+
 def test_isolated_errors(tmp_path):
     with pytest.raises(IngestError) as e:
         load_mesh_isolated(tmp_path / "nope.glb", timeout=60)

@@ -76,7 +76,6 @@ largest separable part, live in ``ucad_cl/light.py``.
 """
 from __future__ import annotations
 
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -98,7 +97,7 @@ from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import (ObjectMask, PhotoWindow, box_stretch, check_image, mask_box,
                          object_mask, refine_with_silhouette)
-from .ingest import READER_MODULES, IngestError, load_mesh, load_mesh_isolated
+from .ingest import IngestError, MeshLoader
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
                     plausible_cast, predict, shading)
@@ -109,7 +108,6 @@ from .render import render_views
 from .runtime import Runtime
 from .segment import OnnxSegmenter
 from .shade import face_normals, shade_stored_view
-from .system import IsolatedChild
 
 RING_SIDE = 192             # pose refinement render size, pixels
 WORK_SIDE = 384             # longer side of the working frame, pixels
@@ -318,45 +316,6 @@ def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
         raise ValueError(str(exc)) from None
     with reader:
         return _run(reader, runtime, mesh_loader, photo, box, mask, mesh, segmenter)
-
-
-class MeshLoader:
-    """Reads catalogued meshes (``ingest.load_mesh``, in the file's own frame). ``isolated``
-    (the default unless this process has imported the reader's modules already): in a child
-    interpreter (``system.IsolatedChild``) started at construction, which imports the
-    reader's modules meanwhile (trimesh and SciPy: ~0.4 s of a core, beside a photo's
-    retrieval instead of after it; a batch of photos pays it once); a reader that crashes or
-    hangs then costs one load (``IngestError``), not the process, and the next load starts a
-    new child. Not isolated: in this process (where the modules are loaded already, or when
-    there is no retrieval to hide their import behind: a child's start would cost more than
-    it hides). ``close`` ends the child (also on leaving a ``with`` block)."""
-
-    def __init__(self, isolated: bool | None = None) -> None:
-        if isolated is None:
-            isolated = not all(m in sys.modules for m in READER_MODULES)
-        self._child = IsolatedChild(warm=READER_MODULES) if isolated else None
-
-    @property
-    def isolated(self) -> bool:
-        return self._child is not None
-
-    def load(self, path: Path) -> Mesh:
-        if self._child is None:
-            return load_mesh(path, orientation=None)
-        if not self._child.alive:
-            self._child.close()
-            self._child = IsolatedChild(warm=READER_MODULES)
-        return load_mesh_isolated(path, orientation=None, child=self._child)
-
-    def close(self) -> None:
-        if self._child is not None:
-            self._child.close()
-
-    def __enter__(self) -> "MeshLoader":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def _run(reader: CatalogReader, runtime, mesh_loader, photo, box, mask, mesh,

@@ -100,6 +100,7 @@ import os
 import re
 import stat
 import struct
+import sys
 import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -242,6 +243,68 @@ def unreadable_identity(path: str | os.PathLike) -> str:
 def file_sha256(path: str | os.PathLike) -> str:
     """Alias of ``mesh_identity`` (the name older callers use)."""
     return mesh_identity(path)
+
+
+class MeshLoader:
+    """Reads meshes in the file's own frame (``load_mesh(path, orientation=None)``: the frame
+    the catalogue records ``file_to_norm`` from) for a caller that reads several, or wants a
+    read started ahead. ``isolated`` (the default unless this process has imported
+    ``READER_MODULES`` already): in a child interpreter (``system.IsolatedChild``) started at
+    construction, which imports the reader's modules meanwhile (trimesh and SciPy: ~0.4 s of a
+    core, beside the caller's own work); a reader that crashes or hangs then costs one load
+    (``IngestError``), not the process, and the next load starts a new child. ``prefetch(path)``
+    starts that read in the child at once; the ``load(path)`` that follows collects it (the
+    fit's CLI so reads a given mesh while it imports its own modules, reads the photo and finds
+    the object: ``ucad_cl.commands.fit``). Not isolated: in this process (where the modules are
+    loaded already, or when nothing would run beside the child's start); ``prefetch`` then does
+    nothing. ``close`` ends the child (also on leaving a ``with`` block)."""
+
+    def __init__(self, isolated: bool | None = None) -> None:
+        if isolated is None:
+            isolated = not all(m in sys.modules for m in READER_MODULES)
+        self._child = IsolatedChild(warm=READER_MODULES) if isolated else None
+        self._ahead: str | None = None          # the path a prefetch is reading
+
+    @property
+    def isolated(self) -> bool:
+        return self._child is not None
+
+    def prefetch(self, path: str | os.PathLike) -> None:
+        """Start reading ``path`` in the child now (isolated only)."""
+        if self._child is None:
+            return
+        if self._ahead is not None or not self._child.alive:   # an unwanted read, or dead
+            self._renew()
+        assert self._child is not None
+        self._child.submit(load_mesh, str(path), clean=True, orientation=None)
+        self._ahead = str(path)
+
+    def load(self, path: str | os.PathLike) -> Mesh:
+        if self._child is None:
+            return load_mesh(path, orientation=None)
+        if self._ahead is not None and self._ahead != str(path):
+            self._renew()                       # the read ahead is of another file
+        elif self._ahead is None and not self._child.alive:
+            self._renew()
+        self._ahead = None
+        assert self._child is not None
+        return load_mesh_isolated(path, orientation=None, child=self._child)
+
+    def _renew(self) -> None:
+        assert self._child is not None
+        self._child.close()
+        self._child = IsolatedChild(warm=READER_MODULES)
+        self._ahead = None
+
+    def close(self) -> None:
+        if self._child is not None:
+            self._child.close()
+
+    def __enter__(self) -> "MeshLoader":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean: bool = True,

@@ -111,7 +111,9 @@ class IsolatedChild:
     it, and a batch of photos pays it once (``ucad_cl.fit.MeshLoader``; a thread would share
     this process's GIL with the retrieval). A call that crashes the child or runs past its
     timeout ends it (``alive`` is then False and later calls raise ``IsolatedCallFailed``);
-    a call with ``clean_exit`` is the last: the child exits and its exit status is checked."""
+    a call with ``clean_exit`` is the last: the child exits and its exit status is checked.
+    ``submit`` starts a call ahead (the child runs it while this process goes on); the ``call``
+    with the same arguments then collects its answer."""
 
     def __init__(self, warm: tuple[str, ...] = ()):
         read_fd, write_fd = os.pipe()
@@ -130,6 +132,7 @@ class IsolatedChild:
         self._conn = Connection(read_fd, writable=False)
         self._calls = 0
         self._closed = False
+        self._pending: tuple | None = None      # (func, args, kwargs) submitted, not collected
         self._send([p for p in sys.path if isinstance(p, str)], tuple(warm))
 
     @property
@@ -154,18 +157,40 @@ class IsolatedChild:
         how = f"killed by signal {signal.Signals(-rc).name}" if rc < 0 else f"exit code {rc}"
         return IsolatedCallFailed("crashed", f"died ({how})")
 
+    def submit(self, func, *args, **kwargs) -> None:
+        """Start ``func(*args, **kwargs)`` in the child now, without waiting; ``call`` with the
+        same arguments collects its answer (its timeout counts from that call). One at a time:
+        any other call before that is a RuntimeError. A child that died takes no call: the
+        collecting ``call`` says so."""
+        if self._closed:
+            raise RuntimeError("this IsolatedChild is closed")
+        if self._pending is not None:
+            raise RuntimeError("a submitted call is not collected yet")
+        self._pending = (func, args, kwargs)
+        if self._proc.poll() is None:
+            self._calls += 1
+            self._send((func, args, kwargs, False))
+
     def call(self, func, *args, timeout: float, clean_exit: bool = False, **kwargs):
         """``func(*args, **kwargs)`` in the child, as ``call_isolated`` (``timeout`` counts
-        from now, a warm import still running included)."""
+        from now, a warm import still running included), or the answer of that same call
+        ``submit``ted earlier."""
         if not timeout > 0:
             raise ValueError(f"timeout must be > 0 seconds, got {timeout}")
         if self._closed:
             raise RuntimeError("this IsolatedChild is closed")
         proc, conn = self._proc, self._conn
-        if proc.poll() is not None:
-            raise self._died()
-        self._calls += 1
-        self._send((func, args, kwargs, clean_exit), last=clean_exit)
+        if self._pending is not None:
+            if self._pending != (func, args, kwargs) or clean_exit:
+                raise RuntimeError("a different call was submitted and is not collected yet")
+            self._pending = None
+            if proc.poll() is not None and not conn.poll(0):
+                raise self._died()
+        else:
+            if proc.poll() is not None:
+                raise self._died()
+            self._calls += 1
+            self._send((func, args, kwargs, clean_exit), last=clean_exit)
         if not conn.poll(timeout):
             proc.kill()
             proc.wait()
@@ -192,13 +217,14 @@ class IsolatedChild:
         return payload
 
     def close(self) -> None:
-        """End the child: one never called is killed, one called is told to leave (it does at
-        once) and killed if it has not within 5 s."""
+        """End the child: one never called, or running a submitted call nobody collected, is
+        killed; one called is told to leave (it does at once) and killed if it has not within
+        5 s."""
         if self._closed:
             return
         self._closed = True
         proc = self._proc
-        if proc.poll() is None and not self._calls:
+        if proc.poll() is None and (not self._calls or self._pending is not None):
             proc.kill()
         try:
             assert proc.stdin is not None

@@ -86,15 +86,50 @@ def run(args) -> int:
         return 2
     with reader:
         if args.photo is not None:
+            loader = _loader_for(args.mesh)
             try:
                 res, out = fit_one(reader, args.photo, args.box, args.mask, args.mesh,
-                                   args.out, segmenter)
+                                   args.out, segmenter, loader)
             except ValueError as exc:
                 print(f"{args.photo}: {exc}", file=sys.stderr)
                 return 2
+            finally:
+                if loader is not None:
+                    loader.close()
             report(res, out)
             return 0
         return run_list(reader, args, segmenter)
+
+
+def _loader_for(mesh_key):
+    """With ``--mesh`` for one photo: an isolated ``ingest.MeshLoader`` started now, so that
+    ``fit_one`` can have the mesh read while this process imports the fit, reads the photo and
+    finds the object (the fit's ``load`` step then finds it read; docs/FIT.md); None without
+    ``--mesh`` (the fit starts its own beside retrieval) or when no process can be had (the
+    fit then reads the mesh in this process)."""
+    if mesh_key is None:
+        return None
+    from ..ingest import MeshLoader
+
+    try:
+        return MeshLoader()
+    except OSError:
+        return None
+
+
+def _read_ahead(reader, mesh_key, mesh_loader) -> None:
+    """Start reading the mesh ``mesh_key`` names in ``mesh_loader``'s child, when the
+    catalogue has it accepted and its file is there (anything else is the fit's to report)."""
+    from ucad_catalog import CatalogError
+
+    if mesh_key is None or mesh_loader is None or not mesh_loader.isolated:
+        return
+    try:
+        meta = reader.mesh(str(mesh_key))
+    except CatalogError:
+        return
+    if meta.state == "accepted" and meta.source.is_file():
+        mesh_loader.prefetch(meta.source)
 
 
 def run_list(reader, args, segmenter) -> int:
@@ -105,10 +140,10 @@ def run_list(reader, args, segmenter) -> int:
     except (ValueError, OSError) as exc:
         print(f"{args.photos}: {exc}", file=sys.stderr)
         return 2
-    from ..fit import MeshLoader
+    from ..ingest import MeshLoader
 
     failed = 0
-    with MeshLoader() as mesh_loader:        # one mesh-reading child for the list (fit.MeshLoader)
+    with MeshLoader() as mesh_loader:        # one mesh-reading child for the list
         for path, box, mask, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
             try:
                 res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out,
@@ -179,7 +214,9 @@ def read_list(path: Path) -> list:
 
 def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter, mesh_loader=None):
     """Fit one photo and write its three outputs; ValueError with one line on bad input.
-    ``mesh_loader``: a ``fit.MeshLoader`` kept over a list of photos (else one for this photo)."""
+    ``mesh_loader``: an ``ingest.MeshLoader`` kept over a list of photos, or started for this
+    photo's given mesh (else the fit starts one); a given mesh is read ahead in its child."""
+    _read_ahead(reader, mesh, mesh_loader)
     from ..fit import fit_photo
 
     image = read_image(photo)
