@@ -181,7 +181,7 @@ def run_catalog(args, image, mask) -> int:
 
     from ..features import HogExtractor
     from ..ingest import IngestError, load_mesh
-    from ..foreground import mask_box
+    from ..foreground import PhotoWindow, mask_box
     from ..pose import PoseCandidate, query_features, search_catalog
 
     from .common import open_reader
@@ -214,9 +214,16 @@ def run_catalog(args, image, mask) -> int:
         print(f"{args.catalog}: no accepted mesh with stored features", file=sys.stderr)
         return 2
     legacy = args.method == "legacy"
+    window = PhotoWindow.around(image.shape[:2], args.box, mask)   # a large photo: its window
     try:
-        query, obj = query_features(image, HogExtractor(), box=args.box, mask=mask,
-                                    isolate=not legacy)
+        if window is None:
+            query, obj = query_features(image, HogExtractor(), box=args.box, mask=mask,
+                                        isolate=not legacy)
+        else:
+            cut, box, cut_mask = window.cut(image, args.box, mask)
+            query, obj = query_features(cut, HogExtractor(), box=box, mask=cut_mask,
+                                        isolate=not legacy)
+            obj = window.photo_object(obj, image.shape[:2])
     except ValueError as exc:
         print(f"{args.image}: {exc}", file=sys.stderr)
         return 2
