@@ -336,6 +336,23 @@ def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
     assert c0["mesh"] == str(target) and c0["azimuth"] == float(best[1])
     assert np.asarray(c0["K"]).shape == (3, 3) and np.asarray(c0["w2c"]).shape == (4, 4)
     assert c0["distance"] > 0 and c0["score"] >= 0
+    # a large photo (1600 x 1280: foreground.PhotoWindow) of the same view: the same answer,
+    # its object in the large photo's pixels
+    views = render_views(mesh, make_ring(azimuths=[100.0], elevations=[12.0], size=(1600, 1280)))
+    big_img = shade_views(mesh, views, background=(70, 110, 50))[0]
+    ys, xs = np.nonzero(np.isfinite(views.depth[0]))
+    big = tmp_path / "big.png"
+    cv2.imwrite(str(big), np.ascontiguousarray(big_img[:, :, ::-1]))
+    big_box = (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)
+    assert main(["pose", str(big), "--box", *map(str, big_box), "--catalog", str(cat),
+                 "--top", "3", "--json"]) == 0
+    d2 = json.loads(capsys.readouterr().out)
+    b0 = d2["candidates"][0]
+    assert (b0["mesh"], b0["azimuth"], b0["elevation"]) == (c0["mesh"], c0["azimuth"],
+                                                          c0["elevation"])
+    assert b0["distance"] == pytest.approx(c0["distance"], rel=0.05)
+    side = max(big_box[2] - big_box[0], big_box[3] - big_box[1])
+    assert np.abs(np.subtract(d2["object"]["box"], big_box)).max() <= 0.02 * side
     assert main(["pose", str(ref), "--box", *box]) == 2           # neither MESH nor --catalog
 
 
