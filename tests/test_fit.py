@@ -721,6 +721,33 @@ def test_jpeg_exif_orientation_is_applied(photo, catalogue, tmp_path, capsys):
     assert _de(fb, fa) < 1.0, (fa, fb)
 
 
+def test_mask_files_0_1_0_255_soft_and_jpeg_give_the_vehicle(photo, tmp_path):
+    """read_mask: a 0/1 PNG, a 0/255 PNG, a soft matte (0-255, blurred edges) and the 0/255
+    mask saved as JPEG (its faint noise off the vehicle) all give the true mask within the
+    blur's / JPEG's boundary pixels (``> 0`` took the JPEG's noise: it is checked to have some);
+    an all-zero mask gives none (the fit then says the mask is empty)."""
+    import cv2
+
+    from ucad_cl.commands.fit import read_mask
+
+    path, box, m = photo
+    truth = cv2.imread(str(path.with_name("car_mask.png")), cv2.IMREAD_GRAYSCALE) > 0
+    u8 = truth.astype(np.uint8)
+    files = {"01.png": u8, "0255.png": u8 * 255,
+             "soft.png": cv2.GaussianBlur(u8 * 255, (5, 5), 1.5)}
+    for name, img in files.items():
+        cv2.imwrite(str(tmp_path / name), img)
+    cv2.imwrite(str(tmp_path / "mask.jpg"), u8 * 255, [cv2.IMWRITE_JPEG_QUALITY, 75])
+    noisy = cv2.imread(str(tmp_path / "mask.jpg"), cv2.IMREAD_GRAYSCALE)
+    assert ((noisy > 0) & ~truth).sum() > 50          # the noise a "> 0" rule took in
+    edge = cv2.dilate(u8, np.ones((5, 5), np.uint8)) != cv2.erode(u8, np.ones((5, 5), np.uint8))
+    for name in (*files, "mask.jpg"):
+        got = read_mask(tmp_path / name, truth.shape)
+        assert not ((got ^ truth) & ~edge).any(), name
+    cv2.imwrite(str(tmp_path / "zero.png"), u8 * 0)
+    assert not read_mask(tmp_path / "zero.png", truth.shape).any()
+
+
 def test_moved_mesh_file_falls_back_to_the_stored_view(photo, catalogue, tmp_path, capsys):
     from ucad_cl.cli import main
 

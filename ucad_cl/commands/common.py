@@ -1,5 +1,5 @@
-"""Helpers the catalogue commands share (``status``/``show``/``export`` and ``parts --catalog``);
-not a sub-command itself (no ``register``)."""
+"""Helpers the commands share (the catalogue commands ``status``/``show``/``export`` and ``parts
+--catalog``; ``fit`` and ``pose`` for their masks); not a sub-command itself (no ``register``)."""
 from __future__ import annotations
 
 import sys
@@ -14,6 +14,20 @@ def open_reader(path):
     except CatalogError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return None
+
+
+def vehicle_mask(values):
+    """(H, W) bool of a mask image's values ((H, W) or (H, W, C), any integer type; the
+    channels' largest): the pixels at least half the image's largest value, so 0/1 and 0/255
+    masks, a segmenter's soft matte and a JPEG-saved mask's faint noise all give the vehicle
+    (``> 0`` took a JPEG mask's noise for vehicle); an all-zero image gives none."""
+    import numpy as np
+
+    v = np.asarray(values)
+    if v.ndim == 3:
+        v = v.max(axis=2)
+    top = int(v.max()) if v.size else 0
+    return v >= max(1, (top + 1) // 2)
 
 
 def match_meshes(reader, key: str) -> list:

@@ -47,7 +47,8 @@ def register(sub) -> None:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
                    help="vehicle box in pixels (x1, y1 exclusive); GrabCut finds the vehicle")
-    g.add_argument("--mask", type=Path, help="vehicle mask image, same size (non-zero = vehicle)")
+    g.add_argument("--mask", type=Path, help="vehicle mask image, same size (vehicle: at least "
+                   "half its largest value)")
     p.add_argument("--photos", type=Path, default=None, metavar="LIST.csv",
                    help="fit every row of this CSV (path,x0,y0,x1,y1[,mesh]; or a header "
                         "naming the columns, e.g. path,mask,mesh)")
@@ -164,7 +165,7 @@ def read_list(path: Path) -> list:
 
     Without a header: columns path,x0,y0,x1,y1[,mesh]. With a header (first cell ``path``),
     columns by name, any of ``LIST_COLUMNS`` in any order: each row gives the box (x0..x1) or
-    a ``mask`` image (non-zero = vehicle), not both; an empty ``mesh`` means retrieval. Paths
+    a ``mask`` image (``common.vehicle_mask``), not both; an empty ``mesh`` means retrieval. Paths
     are relative to the list's folder. ValueError naming the line for a malformed row."""
     import csv
 
@@ -273,11 +274,15 @@ def read_image(path: Path):
 
 
 def read_mask(path: Path, shape):
+    """(H, W) bool of a mask image the photo's size (``common.vehicle_mask``); ValueError
+    naming the file for another size."""
+    from .common import vehicle_mask
+
     img = read_image(path)
     if img.shape[:2] != tuple(shape):
         raise ValueError(f"mask {path} is {img.shape[1]}x{img.shape[0]}, the photo "
                          f"{shape[1]}x{shape[0]}")
-    return img.max(axis=2) > 0
+    return vehicle_mask(img)
 
 
 def write_outputs(res, out_dir: Path, stem: str) -> Path:

@@ -46,7 +46,8 @@ def register(sub) -> None:
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
                    help="object box in pixels (x1, y1 exclusive), e.g. from a detector")
-    g.add_argument("--mask", type=Path, help="object mask image, same size (non-zero = object)")
+    g.add_argument("--mask", type=Path, help="object mask image, same size (object: at least "
+                   "half its largest value)")
     p.add_argument("--top", type=int, default=5, help="candidates to print (default 5)")
     p.add_argument("--step", type=float, default=10.0, help="coarse azimuth step, degrees")
     p.add_argument("--elevations", type=float, nargs="+", default=[0.0, 15.0, 30.0],
@@ -276,6 +277,8 @@ def _read_inputs(args):
     import cv2
     import numpy as np
 
+    from .common import vehicle_mask
+
     bgr = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
     if bgr is None:
         print(f"{args.image}: cannot read the image", file=sys.stderr)
@@ -291,7 +294,7 @@ def _read_inputs(args):
             print(f"{args.mask}: mask is {m.shape[1]}x{m.shape[0]} but {args.image} is "
                   f"{image.shape[1]}x{image.shape[0]}", file=sys.stderr)
             return None, None
-        mask = m > 0
+        mask = vehicle_mask(m)
     return image, mask
 
 
