@@ -34,9 +34,10 @@
    feature score; lower is better).
 3. **Pose**: ``pose.estimate_pose`` with the mesh re-read from the recorded library (as
    ``export-glb`` does: refused when the file moved or changed; with retrieval to run and the
-   reader not imported yet, read in a child interpreter started with the fit, ``MeshLoader``,
-   so that the reader's import runs beside retrieval and a reader that crashes or hangs costs
-   the pose, not the process), its coarse ring taken from the catalogue's stored features
+   reader not imported yet, read in a child interpreter started with the fit,
+   ``ingest.MeshLoader``, so that the reader's import runs beside retrieval and a reader that
+   crashes or hangs costs the pose, not the process; the CLI reads a given mesh there ahead),
+   its coarse ring taken from the catalogue's stored features
    (``catalog_ring``, refinement renders at most ``RING_SIDE`` pixels); when the file is gone
    or unreadable, the nearest stored view of that mesh is used as is, scaled and shifted onto
    the object's box (``pose.source = "stored view"``, and a note says so). Then azimuth and elevation are touched up by ``ROT_STEPS``

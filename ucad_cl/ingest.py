@@ -320,7 +320,7 @@ def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean
     ``unreadable`` naming it. ``loader`` (a picklable module-level function
     ``loader(path, clean=..., **kwargs) -> Mesh``) replaces ``load_mesh``, for tests; ``kwargs``
     (budgets, orientation, overrides) must pickle. ``child``: a child started earlier (with
-    ``READER_MODULES`` warm: ``ucad_cl.fit.MeshLoader``) instead of a new one; it stays open.
+    ``READER_MODULES`` warm: ``MeshLoader``) instead of a new one; it stays open.
     """
     try:
         if child is not None:

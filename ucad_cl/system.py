@@ -108,7 +108,7 @@ class IsolatedChild:
     again) while this process goes on, then answers ``call``s one at a time until ``close``
     (also on leaving a ``with`` block). Why: a mesh reader's import (trimesh and the SciPy
     modules it imports: ~0.4 s of one core) runs beside a photo's retrieval instead of after
-    it, and a batch of photos pays it once (``ucad_cl.fit.MeshLoader``; a thread would share
+    it, and a batch of photos pays it once (``ucad_cl.ingest.MeshLoader``; a thread would share
     this process's GIL with the retrieval). A call that crashes the child or runs past its
     timeout ends it (``alive`` is then False and later calls raise ``IsolatedCallFailed``);
     a call with ``clean_exit`` is the last: the child exits and its exit status is checked.
