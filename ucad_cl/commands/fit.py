@@ -33,6 +33,10 @@ The photo list: one photo a line, path,x0,y0,x1,y1[,mesh]; or with a header line
 columns, e.g. "path,mask,mesh" for vehicle masks from a segmenter (paths relative to the list).
 A mask finds the right mesh more often than a box (GrabCut's mask errors cost retrieval:
 docs/FIT.md, "The object mask's share of retrieval").
+
+Boxes and masks are in the photo as a viewer shows it (a JPEG's EXIF orientation applied). A
+phone-sized photo is fine: it is analysed in a window around the box, and the pose (K, w2c)
+comes back in the photo's pixels.
 """
 
 
