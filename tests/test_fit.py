@@ -868,6 +868,23 @@ def test_photo_list_with_progress(photo, catalogue, tmp_path, capsys):
     assert "missing.png: no such file" in captured.err
 
 
+def test_photo_list_saved_by_a_spreadsheet(tmp_path):
+    """A list saved by a spreadsheet (UTF-8 with a byte-order mark, CRLF line ends) reads as
+    the same list without them: the header is found and the first path has no stray mark."""
+    from ucad_cl.commands.fit import read_list
+
+    text = "path,x0,y0,x1,y1,mesh\na.png,1,2,30,40,\nb.png,5,6,70,80,3f2a9c01\n"
+    plain, excel = tmp_path / "plain.csv", tmp_path / "excel.csv"
+    plain.write_text(text, encoding="utf-8")
+    excel.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+    assert read_list(excel) == read_list(plain) == [
+        (tmp_path / "a.png", [1.0, 2.0, 30.0, 40.0], None, None),
+        (tmp_path / "b.png", [5.0, 6.0, 70.0, 80.0], None, "3f2a9c01")]
+    headless = tmp_path / "headless.csv"
+    headless.write_bytes(b"\xef\xbb\xbfa.png,1,2,30,40\r\n")
+    assert read_list(headless) == [(tmp_path / "a.png", [1.0, 2.0, 30.0, 40.0], None, None)]
+
+
 def test_photo_list_with_mask_column(photo, catalogue, tmp_path, capsys):
     """A list with a header naming its columns: a row with a vehicle mask is fitted on that
     mask (the JSON says so, as --mask does); a row giving a box and a mask, and a header with an

@@ -179,7 +179,7 @@ def read_list(path: Path) -> list:
 
     rows = []
     names = ["path", "x0", "y0", "x1", "y1", "mesh"]
-    with open(path, newline="", encoding="utf-8") as f:
+    with open(path, newline="", encoding="utf-8-sig") as f:     # a spreadsheet's BOM dropped
         for k, row in enumerate(csv.reader(f)):
             if not row or row[0].strip().startswith("#"):
                 continue
