@@ -262,6 +262,8 @@ def test_discover_layouts(tmp_path):
     manifest = tmp_path / "list.txt"
     manifest.write_text("# meshes\nglbs/000-001/bbb.glb\n")
     assert [Path(r.path).stem for r in discover(manifest)] == ["bbb"]
+    manifest.write_bytes(b"\xef\xbb\xbfglbs/000-001/bbb.glb\r\n")   # an editor's BOM, CRLF
+    assert [Path(r.path) for r in discover(manifest)] == [shard / "bbb.glb"]
     (tmp_path / "m.json").write_text(json.dumps({"paths": ["glbs/000-001/aaa.glb"]}))
     assert [Path(r.path).stem for r in discover(tmp_path / "m.json")] == ["aaa"]
     with pytest.raises(FileNotFoundError, match="does not exist"):

@@ -33,6 +33,12 @@ def test_text_and_json_files_read_the_same(tmp_path):
         "#3": "rim", "Body Paint 2": "body", "glass_01": "window"}
     assert a.for_mesh(tmp_path / "b.glb", "cd" * 32) == {}
     assert LabelOverrides.from_items(a.as_items()).as_items() == a.as_items()
+    # saved by an editor that writes a byte-order mark: the same fixes (the first line's key
+    # once carried the mark, so its fixes never matched a mesh)
+    for name in ("fixes.txt", "fixes.json"):
+        bom = tmp_path / f"bom_{name}"
+        bom.write_bytes(b"\xef\xbb\xbf" + (tmp_path / name).read_bytes())
+        assert LabelOverrides.read(bom).as_items() == a.as_items(), name
 
 
 @pytest.mark.parametrize("name,text,where,problem", [

@@ -376,6 +376,11 @@ def test_override_files(tmp_path):
     ov2 = OrientationOverrides.read(tmp_path / "o.txt")
     assert ov2.mode_for(tmp_path / "sub/car.obj", "x", "auto") == ("+Z", "-Y")
     assert ov2.mode_for("elsewhere", sha, "auto") == "file"
+    for name in ("o.json", "o.txt"):                  # an editor's byte-order mark: the same
+        bom = tmp_path / f"bom_{name}"
+        bom.write_bytes(b"\xef\xbb\xbf" + (tmp_path / name).read_bytes())
+        assert OrientationOverrides.read(bom).entries == OrientationOverrides.read(
+            tmp_path / name).entries, name
     (tmp_path / "bad.txt").write_text("x.obj +Z +Z\n")
     with pytest.raises(ValueError, match=r"bad.txt: entry 'x.obj': .*different axes"):
         OrientationOverrides.read(tmp_path / "bad.txt")

@@ -203,7 +203,7 @@ def _manifest_paths(manifest: Path) -> list[Path]:
         raise ValueError(f"manifest {shown} has {st.st_size} bytes, more than "
                          f"{MAX_MANIFEST_BYTES}")
     try:
-        text = manifest.read_text(encoding="utf-8")
+        text = manifest.read_text(encoding="utf-8-sig")      # an editor's BOM dropped
     except UnicodeDecodeError as e:
         raise ValueError(f"{shown}: not a mesh folder, a mesh file "
                          f"({', '.join(SUPPORTED_SUFFIXES)}) or a manifest (.txt one path "
@@ -261,7 +261,7 @@ def read_uid_list(path: str | os.PathLike, categories: Iterable[str] | None = No
             raise ValueError(f"{p}: --categories needs an annotations JSON, not a Parquet table")
         return _parquet_uids(p)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = p.read_text(encoding="utf-8-sig")             # an editor's BOM dropped
         data = json.loads(text) if p.suffix.lower() == ".json" else None
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{p}: not a uid list (text, one uid per line), a Parquet table "

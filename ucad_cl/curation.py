@@ -119,7 +119,7 @@ class LabelOverrides:
         """Parse an override file (JSON or text lines); ValueError names file, line, problem."""
         p = Path(path)
         try:
-            text = p.read_text(encoding="utf-8")
+            text = p.read_text(encoding="utf-8-sig")    # an editor's BOM dropped
         except (OSError, UnicodeDecodeError) as exc:
             raise ValueError(f"{p}: cannot read label overrides: {exc}") from None
         triples = _json_triples(p, text) if p.suffix.lower() == ".json" else _text_triples(p, text)

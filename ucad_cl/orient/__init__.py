@@ -225,7 +225,7 @@ class OrientationOverrides:
     def read(cls, path: str | os.PathLike) -> "OrientationOverrides":
         p = Path(path)
         try:
-            text = p.read_text(encoding="utf-8")
+            text = p.read_text(encoding="utf-8-sig")    # an editor's BOM dropped
         except (OSError, UnicodeDecodeError) as exc:
             raise ValueError(f"{p}: cannot read orientation overrides: {exc}") from None
         raw: dict = {}
