@@ -90,7 +90,7 @@ class MasksSegmenter:
         cpath = base / "confidence.json"
         if cpath.exists():
             try:
-                table = json.loads(cpath.read_text(encoding="utf-8"))
+                table = json.loads(cpath.read_text(encoding="utf-8-sig"))   # a BOM dropped
             except json.JSONDecodeError as exc:
                 raise ValueError(f"{cpath}: not valid JSON ({exc})") from exc
         for v in range(V):
@@ -223,7 +223,7 @@ class OnnxSegmenter:
 
     def __init__(self, model_path: str | Path, config: dict | str | Path):
         if not isinstance(config, dict):
-            config = json.loads(Path(config).read_text(encoding="utf-8"))
+            config = json.loads(Path(config).read_text(encoding="utf-8-sig"))   # a BOM dropped
         if "classes" not in config or "input_size" not in config:
             raise ValueError("ONNX config needs 'classes' {index: part} and 'input_size' [H, W]")
         self.classes = {int(k): str(v) for k, v in config["classes"].items()}
