@@ -231,12 +231,8 @@ class PhotoWindow:
         return np.array([[s, 0.0, -s * self.x0], [0.0, s, -s * self.y0], [0.0, 0.0, 1.0]])
 
     def intrinsics(self, shape: tuple[int, int], fov_deg: float) -> np.ndarray:
-        """The camera assumed for the whole photo of ``shape`` (H, W) (principal point at its
-        centre, ``fov_deg`` over its narrower side, as ``centre_on_axis`` assumes), in the
-        window's pixels."""
-        H, W = shape
-        f = 0.5 * min(H, W) / np.tan(np.radians(fov_deg) / 2.0)
-        return self._A() @ np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+        """``photo_intrinsics(shape, fov_deg)`` of the whole photo, in the window's pixels."""
+        return self._A() @ photo_intrinsics(shape, fov_deg)
 
     def photo_K(self, K: np.ndarray) -> np.ndarray:
         """``K`` of the window's pixels -> the photo's (the camera's pose is the same)."""
@@ -404,13 +400,8 @@ def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
     warped box grown by 25 % on each side (bilinear image, nearest-neighbour masks, edge pixels
     repeated). ``K``: the photo's intrinsics when they are known (``image`` a ``PhotoWindow``
     of a larger photo); ``fov_deg`` is then not used."""
-    H, W = mask.shape
-    if K is None:
-        f = 0.5 * min(H, W) / np.tan(np.radians(fov_deg) / 2.0)
-        K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
-    else:
-        K = np.asarray(K, np.float64)
-        f = float(K[0, 0])
+    K = photo_intrinsics(mask.shape, fov_deg) if K is None else np.asarray(K, np.float64)
+    f = float(K[0, 0])
     x0, y0, x1, y1 = mask_box(mask if frame is None else frame)
     R = axis_turn(K, ((x0 + x1) / 2.0, (y0 + y1) / 2.0))
     Hm = K @ R @ np.linalg.inv(K)
@@ -433,6 +424,15 @@ def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
     if not m.any() or (fr is not None and not fr.any()):   # degenerate: keep the photo
         return CentredPhoto(image=image, mask=mask, R=np.eye(3), K=K, f=float(f), frame=frame)
     return CentredPhoto(image=out, mask=m, R=R, K=K, f=float(f), frame=fr)
+
+
+def photo_intrinsics(shape: tuple[int, int], fov_deg: float) -> np.ndarray:
+    """(3, 3) K assumed for a photo of ``shape`` (H, W) whose camera is not known: the
+    principal point at the image centre, a field of view of ``fov_deg`` over the narrower
+    side (pose search's prior, ``centre_on_axis``)."""
+    H, W = shape
+    f = 0.5 * min(H, W) / np.tan(np.radians(fov_deg) / 2.0)
+    return np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
 
 
 def axis_turn(K: np.ndarray, point) -> np.ndarray:

@@ -54,7 +54,8 @@ from .cameras import look_at_w2c, make_ring
 from .cues import Cues, combine, cue_distances, hog_distance, query_cues, view_cues
 from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
 from .foreground import (RENDER_BACKGROUND, ObjectMask, PhotoWindow, axis_turn, centre_on_axis,
-                         check_image, composite, mask_box, object_mask, refine_with_silhouette)
+                         check_image, composite, mask_box, object_mask, photo_intrinsics,
+                         refine_with_silhouette)
 from .render import render_views
 from .runtime import Runtime
 from .search import search as knn_search
@@ -439,13 +440,12 @@ class _Search:
         the crop, the centre and the size instead of ``mask``."""
         m = self.method
         self.image_shape = mask.shape
-        H, W = mask.shape
-        self.principal = ((W / 2.0, H / 2.0) if self.intrinsics is None else
-                          (float(self.intrinsics[0, 2]), float(self.intrinsics[1, 2])))
+        self.camera0 = (self.intrinsics if self.intrinsics is not None else  # the photo's
+                        photo_intrinsics(mask.shape, m.fov_prior or FOV_PRIOR))   # assumed K
         self.box_photo = mask_box(mask if frame is None else frame)
         img = composite(image, mask) if m.isolate else image
         if m.fov_prior is not None:
-            c = centre_on_axis(img, mask, m.fov_prior, frame, K=self.intrinsics)
+            c = centre_on_axis(img, mask, m.fov_prior, frame, K=self.camera0)
             img, mask, frame = c.image, c.mask, c.frame
             self.fov_prior = m.fov_prior
         else:
@@ -572,9 +572,7 @@ class _Search:
     def _distance_estimate(self, best: _Pose) -> float:
         """Camera distance at which the best coarse view is as large (in angle) as the object
         in the photo under the assumed field of view."""
-        f_photo = (0.5 * min(self.image_shape) / np.tan(np.radians(self.fov_prior) / 2.0)
-                   if self.intrinsics is None else float(self.intrinsics[0, 0]))
-        angle = self.photo_side / f_photo
+        angle = self.photo_side / float(self.camera0[0, 0])
         return max(self.coarse.ring.distance * best.side / angle, MIN_DISTANCE)
 
     def _coarse_near(self, azimuth: float, elevation: float) -> _Pose:
@@ -626,8 +624,8 @@ class _Search:
     def camera(self, p: _Pose) -> tuple[np.ndarray, np.ndarray]:
         """(K, w2c) of the photo for pose ``p`` (see the module docstring)."""
         f = self.photo_side / max(p.side, 1e-9)
-        cx, cy = self.principal
-        K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        K = np.array([[f, 0.0, self.camera0[0, 2]], [0.0, f, self.camera0[1, 2]],
+                      [0.0, 0.0, 1.0]])
         x0, y0, x1, y1 = self.box_photo
         # the vehicle's centre projects where the render has it relative to the object's box
         R = axis_turn(K, ((x0 + x1) / 2.0 - f * p.offset[0], (y0 + y1) / 2.0 - f * p.offset[1]))

@@ -216,14 +216,12 @@ def run_catalog(args, image, mask) -> int:
         return 2
     legacy = args.method == "legacy"
     window = PhotoWindow.around(image.shape[:2], args.box, mask)   # a large photo: its window
+    img, box, obj_mask = ((image, args.box, mask) if window is None
+                          else window.cut(image, args.box, mask))
     try:
-        if window is None:
-            query, obj = query_features(image, HogExtractor(), box=args.box, mask=mask,
-                                        isolate=not legacy)
-        else:
-            cut, box, cut_mask = window.cut(image, args.box, mask)
-            query, obj = query_features(cut, HogExtractor(), box=box, mask=cut_mask,
-                                        isolate=not legacy)
+        query, obj = query_features(img, HogExtractor(), box=box, mask=obj_mask,
+                                    isolate=not legacy)
+        if window is not None:
             obj = window.photo_object(obj, image.shape[:2])
     except ValueError as exc:
         print(f"{args.image}: {exc}", file=sys.stderr)
