@@ -696,7 +696,7 @@ def test_jpeg_exif_orientation_is_applied(photo, catalogue, tmp_path, capsys):
     from PIL import Image, ImageOps
 
     from ucad_cl.cli import main
-    from ucad_cl.commands.fit import read_image
+    from ucad_cl.commands.common import read_image
 
     path, box, m = photo
     upright = cv2.imread(str(path))[:, :, ::-1]
@@ -728,7 +728,7 @@ def test_mask_files_0_1_0_255_soft_and_jpeg_give_the_vehicle(photo, tmp_path):
     an all-zero mask gives none (the fit then says the mask is empty)."""
     import cv2
 
-    from ucad_cl.commands.fit import read_mask
+    from ucad_cl.commands.common import read_mask
 
     path, box, m = photo
     truth = cv2.imread(str(path.with_name("car_mask.png")), cv2.IMREAD_GRAYSCALE) > 0

@@ -346,7 +346,23 @@ def test_cli_table_json_and_errors(tmp_path, capsys, runtime):
     assert doc["candidates"][1]["flipped"] and doc["candidates"][1]["twin"] in TWINS
     # errors name the file and the problem
     rc = main(["pose", str(tmp_path / "missing.png"), str(paths[0]), "--box", "0", "0", "5", "5"])
-    assert rc == 2 and "missing.png: cannot read" in capsys.readouterr().err
+    assert rc == 2 and "missing.png: no such file" in capsys.readouterr().err
+    # the photo read as fit reads it (commands.common.read_image): a corrupt file and one that
+    # declares 400 megapixels get one line each, the latter before it is decoded
+    from tests.test_fit import _png_header_only
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 20)
+    _png_header_only(tmp_path / "huge.png", 20000, 20000)
+    for name, what in (("bad.png", "cannot read the image"), ("huge.png", "megapixels")):
+        rc = main(["pose", str(tmp_path / name), str(paths[0]), "--box", "0", "0", "5", "5"])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and f"{name}: " in err and what in err and len(err.splitlines()) == 1
+    # a 16-bit grayscale photo is converted: the same pose as the 8-bit colour one
+    gray16 = cv2.cvtColor(img[:, :, ::-1], cv2.COLOR_BGR2GRAY).astype(np.uint16) * 257
+    cv2.imwrite(str(tmp_path / "gray16.png"), gray16)
+    rc = main(["pose", str(tmp_path / "gray16.png"), str(paths[0]), "--box", *map(str, box),
+               "--top", "1", "--json", "--out", str(tmp_path / "side3.png")])
+    assert rc == 0
+    assert az_diff(json.loads(capsys.readouterr().out)["candidates"][0]["azimuth"], 140.0) <= 10
     cv2.imwrite(str(tmp_path / "empty.png"), np.zeros(mask.shape, np.uint8))
     rc = main(["pose", str(tmp_path / "ref.png"), str(paths[0]), "--mask",
                str(tmp_path / "empty.png")])
@@ -354,7 +370,7 @@ def test_cli_table_json_and_errors(tmp_path, capsys, runtime):
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((10, 10), np.uint8))
     rc = main(["pose", str(tmp_path / "ref.png"), str(paths[0]), "--mask",
                str(tmp_path / "small.png")])
-    assert rc == 2 and "small.png: mask is 10x10" in capsys.readouterr().err
+    assert rc == 2 and "small.png is 10x10" in capsys.readouterr().err
     rc = main(["pose", str(tmp_path / "ref.png"), str(paths[0]), "--box", "500", "0", "600", "9"])
     assert rc == 2 and "is empty inside" in capsys.readouterr().err
 

@@ -1,8 +1,12 @@
 """Helpers the commands share (the catalogue commands ``status``/``show``/``export`` and ``parts
---catalog``; ``fit`` and ``pose`` for their masks); not a sub-command itself (no ``register``)."""
+--catalog``; ``fit`` and ``pose`` for their photos and masks); not a sub-command itself (no
+``register``)."""
 from __future__ import annotations
 
 import sys
+from pathlib import Path
+
+MAX_PIXELS = 50_000_000     # larger photos (and masks) are refused before they are decoded
 
 
 def open_reader(path):
@@ -28,6 +32,61 @@ def vehicle_mask(values):
         v = v.max(axis=2)
     top = int(v.max()) if v.size else 0
     return v >= max(1, (top + 1) // 2)
+
+
+def read_image(path):
+    """(H, W, 3) uint8 RGB as a viewer shows it (a JPEG's EXIF orientation applied, as
+    ``ucad-index pose`` and image viewers do: a phone photo's box is drawn on the turned
+    image): grayscale and 16-bit images converted, alpha dropped; ValueError for a missing,
+    corrupt or huge file."""
+    import cv2
+    import numpy as np
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError("no such file")
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+    except Image.DecompressionBombError:
+        raise ValueError(f"the image is larger than {MAX_PIXELS // 1_000_000} megapixels; "
+                         "scale it down first") from None
+    except (UnidentifiedImageError, OSError, ValueError):
+        raise ValueError("cannot read the image (corrupt or not an image)") from None
+    if w * h > MAX_PIXELS:
+        raise ValueError(f"the image is {w}x{h}: larger than {MAX_PIXELS // 1_000_000} "
+                         "megapixels; scale it down first")
+    img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)   # not UNCHANGED:
+    #                                                          it ignores the EXIF orientation
+    if img is None or img.size == 0:
+        raise ValueError("cannot read the image (corrupt or not an image)")
+    if img.dtype == np.uint16:
+        img = ((img.astype(np.uint32) + 128) // 257).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise ValueError(f"unsupported pixel type {img.dtype}")
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    elif img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+    elif img.shape[2] == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    else:
+        raise ValueError(f"unsupported channel count {img.shape[2]}")
+    return np.ascontiguousarray(img)
+
+
+def read_mask(path, shape):
+    """(H, W) bool of a mask image the photo's size (``vehicle_mask``); ValueError naming the
+    mask file when it cannot be read or is another size (callers prefix the photo's path)."""
+    try:
+        img = read_image(path)
+    except ValueError as exc:
+        raise ValueError(f"mask {path}: {exc}") from None
+    if img.shape[:2] != tuple(shape):
+        raise ValueError(f"mask {path} is {img.shape[1]}x{img.shape[0]}, the photo "
+                         f"{shape[1]}x{shape[0]}")
+    return vehicle_mask(img)
 
 
 def match_meshes(reader, key: str) -> list:

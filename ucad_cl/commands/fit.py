@@ -15,7 +15,6 @@ import json
 import sys
 from pathlib import Path
 
-MAX_PIXELS = 50_000_000     # larger photos are refused before they are decoded
 
 DESCRIPTION = """\
 Fit each part's material of a catalogued vehicle to a photo of it: the model and pose are
@@ -223,6 +222,7 @@ def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter,
     photo's given mesh (else the fit starts one); a given mesh is read ahead in its child."""
     _read_ahead(reader, mesh, mesh_loader)
     from ..fit import fit_photo
+    from .common import read_image, read_mask
 
     image = read_image(photo)
     mask = read_mask(mask_path, image.shape[:2]) if mask_path is not None else None
@@ -234,59 +234,6 @@ def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter,
         raise ValueError(f"cannot write the outputs to {out_dir}: {exc.strerror or exc}"
                          ) from None
     return res, out
-
-
-def read_image(path: Path):
-    """(H, W, 3) uint8 RGB as a viewer shows it (a JPEG's EXIF orientation applied, as
-    ``ucad-index pose`` and image viewers do: a phone photo's box is drawn on the turned
-    image): grayscale and 16-bit images converted, alpha dropped; ValueError for a missing,
-    corrupt or huge file."""
-    import cv2
-    import numpy as np
-    from PIL import Image, UnidentifiedImageError
-
-    if not path.is_file():
-        raise ValueError("no such file")
-    try:
-        with Image.open(path) as im:
-            w, h = im.size
-    except Image.DecompressionBombError:
-        raise ValueError(f"the image is larger than {MAX_PIXELS // 1_000_000} megapixels; "
-                         "scale it down first") from None
-    except (UnidentifiedImageError, OSError, ValueError):
-        raise ValueError("cannot read the image (corrupt or not an image)") from None
-    if w * h > MAX_PIXELS:
-        raise ValueError(f"the image is {w}x{h}: larger than {MAX_PIXELS // 1_000_000} "
-                         "megapixels; scale it down first")
-    img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)   # not UNCHANGED:
-    #                                                          it ignores the EXIF orientation
-    if img is None or img.size == 0:
-        raise ValueError("cannot read the image (corrupt or not an image)")
-    if img.dtype == np.uint16:
-        img = ((img.astype(np.uint32) + 128) // 257).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        raise ValueError(f"unsupported pixel type {img.dtype}")
-    if img.ndim == 2:
-        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
-    elif img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
-    elif img.shape[2] == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-    else:
-        raise ValueError(f"unsupported channel count {img.shape[2]}")
-    return np.ascontiguousarray(img)
-
-
-def read_mask(path: Path, shape):
-    """(H, W) bool of a mask image the photo's size (``common.vehicle_mask``); ValueError
-    naming the file for another size."""
-    from .common import vehicle_mask
-
-    img = read_image(path)
-    if img.shape[:2] != tuple(shape):
-        raise ValueError(f"mask {path} is {img.shape[1]}x{img.shape[0]}, the photo "
-                         f"{shape[1]}x{shape[0]}")
-    return vehicle_mask(img)
 
 
 def write_outputs(res, out_dir: Path, stem: str) -> Path:

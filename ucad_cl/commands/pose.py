@@ -271,28 +271,23 @@ def run_catalog(args, image, mask) -> int:
 
 
 def _read_inputs(args):
-    """(RGB image, mask or None), or (None, None) after printing why."""
-    import cv2
-    import numpy as np
+    """(RGB image, mask or None), or (None, None) after printing why: the photo and the mask
+    read as ``fit`` reads them (``common.read_image``: EXIF orientation applied, grayscale and
+    16-bit converted; a missing, corrupt or over-large file refused before it is decoded)."""
+    from .common import read_image, read_mask
 
-    from .common import vehicle_mask
-
-    bgr = cv2.imread(str(args.image), cv2.IMREAD_COLOR)
-    if bgr is None:
-        print(f"{args.image}: cannot read the image", file=sys.stderr)
+    try:
+        image = read_image(args.image)
+    except ValueError as exc:
+        print(f"{args.image}: {exc}", file=sys.stderr)
         return None, None
-    image = np.ascontiguousarray(bgr[:, :, ::-1])
     mask = None
     if args.mask is not None:
-        m = cv2.imread(str(args.mask), cv2.IMREAD_GRAYSCALE)
-        if m is None:
-            print(f"{args.mask}: cannot read the mask", file=sys.stderr)
+        try:
+            mask = read_mask(args.mask, image.shape[:2])
+        except ValueError as exc:
+            print(f"{args.image}: {exc}", file=sys.stderr)
             return None, None
-        if m.shape != image.shape[:2]:
-            print(f"{args.mask}: mask is {m.shape[1]}x{m.shape[0]} but {args.image} is "
-                  f"{image.shape[1]}x{image.shape[0]}", file=sys.stderr)
-            return None, None
-        mask = vehicle_mask(m)
     return image, mask
 
 
