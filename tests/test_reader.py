@@ -92,6 +92,10 @@ for m in cat.meshes():
         assert np.array_equal(cat.material_map(m.id, i), r.mat_id)
         assert np.array_equal(cat.depth(m.id, i), r.depth, equal_nan=True)
         assert np.array_equal(cat.triangle_map(m.id, i), r.tri_id)
+        bare = cat.view(m.id, i, part_masks=False)     # the maps and cameras alone
+        assert bare.part_masks == {} and r.part_masks and bare.stats == r.stats
+        assert all(np.array_equal(getattr(bare, k), getattr(r, k), equal_nan=True)
+                   for k in ("mat_id", "tri_id", "depth", "K", "w2c"))
         for part, mask in cat.part_masks(m.id, i).items():
             arrays[f"{m.id}/mask/{part}/{i}"] = mask
         if i < len(cat.edges(m.id)):                       # the label ring's views

@@ -98,15 +98,17 @@ def write_viewset_exr(path, views, mesh=None, *, material_names=None, file_to_no
         if v == 0:
             attrs["ucad:materials"] = _string(json.dumps(list(names), ensure_ascii=False))
         box = (slice(y0, y1), slice(x0, x1))
-        lines = np.stack([np.asarray(views.depth[v][box], "<f4").view("<u4"),   # channels in
-                          np.asarray(views.mat_id[v][box], "<u4"),             # name order:
-                          np.asarray(views.tri_id[v][box], "<u4")], axis=1)    # Z, mat, tri
+        lines = np.empty((y1 - y0, 3, x1 - x0), "<u4")     # channels in name order: Z, mat, tri
+        lines[:, 0] = np.asarray(views.depth[v][box], "<f4").view("<u4")
+        lines[:, 1] = views.mat_id[v][box]
+        lines[:, 2] = views.tri_id[v][box]
         parts.append((attrs, y0, lines))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_bytes(_encode(parts))
+        with open(tmp, "wb") as f:
+            f.writelines(_encode(parts))
         os.replace(tmp, path)
     finally:
         if tmp.exists():
@@ -126,8 +128,9 @@ _ZIP, _ZIP_LINES, _MULTIPART = 3, 16, 0x1000
 DEFLATE_LEVEL = 1    # libdeflate's level for ZIP chunks: 1-4 took the same time on view stacks
 
 
-def _encode(parts: list[tuple[dict, int, np.ndarray]]) -> bytes:
-    """The file's bytes for [(attributes, first line, (h, 3, w) uint32 lines)]."""
+def _encode(parts: list[tuple[dict, int, np.ndarray]]) -> list[bytes | bytearray]:
+    """The file's bytes for [(attributes, first line, (h, 3, w) uint32 lines)], as the pieces
+    to write in turn (not joined: a 144-view stack is ~10 MB)."""
     try:
         import deflate
     except ImportError:                                  # pragma: no cover - a broken install
@@ -155,28 +158,35 @@ def _encode(parts: list[tuple[dict, int, np.ndarray]]) -> bytes:
                                 for k, (t, val) in sorted(a.items())) + b"\0")
     head = _MAGIC + struct.pack("<I", 2 | _MULTIPART) + b"".join(headers) + b"\0"
     at = len(head) + 8 * sum(len(c) for c in chunks)
-    offsets, body = [], []
+    offsets: list[int] = []
+    body: list[bytes | bytearray] = []
     for p, ((_, y0, _), cs) in enumerate(zip(parts, chunks)):
         for k, data in enumerate(cs):
             offsets.append(at)
-            body.append(struct.pack("<3i", p, y0 + k * _ZIP_LINES, len(data)) + data)
+            body += (struct.pack("<3i", p, y0 + k * _ZIP_LINES, len(data)), data)
             at += 12 + len(data)
-    return head + np.asarray(offsets, "<u8").tobytes() + b"".join(body)
+    return [head, np.asarray(offsets, "<u8").tobytes(), *body]
 
 
 def _zip_ready(lines: np.ndarray) -> list[np.ndarray]:
     """Each chunk's bytes interleaved and predicted (OpenEXR's ZIP preprocessing), the full
-    chunks in one NumPy pass."""
+    chunks in one NumPy pass. The lines' bytes read as little-endian uint16 pairs: a chunk's
+    even bytes are the pairs' low bytes, its odd bytes their high bytes (contiguous casts,
+    ~1.5x faster than gathering every other byte)."""
     h = len(lines)
-    b = np.ascontiguousarray(lines).view(np.uint8).reshape(h, -1)
+    x = np.ascontiguousarray(lines, "<u4").reshape(h, -1).view("<u2")
     full = h // _ZIP_LINES
     out = []
-    for block in ([b[:full * _ZIP_LINES].reshape(full, -1)] if full else []) + (
-            [b[full * _ZIP_LINES:].reshape(1, -1)] if h % _ZIP_LINES else []):
-        t = np.concatenate([block[:, 0::2], block[:, 1::2]], axis=1)
-        d = t.copy()
-        d[:, 1:] -= t[:, :-1]
-        d[:, 1:] += 128                                 # mod 256, as OpenEXR's predictor
+    for block in ([x[:full * _ZIP_LINES].reshape(full, -1)] if full else []) + (
+            [x[full * _ZIP_LINES:].reshape(1, -1)] if h % _ZIP_LINES else []):
+        n, m = block.shape
+        t = np.empty((n, 2 * m), np.uint8)
+        np.copyto(t[:, :m], block, casting="unsafe")        # low bytes (mod 256)
+        np.copyto(t[:, m:], block >> 8, casting="unsafe")   # high bytes
+        d = np.empty_like(t)
+        d[:, 0] = t[:, 0]
+        np.subtract(t[:, 1:], t[:, :-1], out=d[:, 1:])      # wraps mod 256, as OpenEXR's
+        d[:, 1:] += 128                                     # predictor (b[i] - b[i-1] + 128)
         out.extend(d)
     return out
 

@@ -400,9 +400,11 @@ class CatalogReader:
 
     # ------------------------------------------------------------------ arrays
     def view(self, key: str, index: int | None = None, *, azimuth: float | None = None,
-             elevation: float | None = None) -> ViewRecord:
+             elevation: float | None = None, part_masks: bool = True) -> ViewRecord:
         """Cameras, maps and part masks of one view: by ``index``, or the view nearest to
-        ``azimuth`` / ``elevation`` (degrees, ``nearest_view``). Decodes only that view."""
+        ``azimuth`` / ``elevation`` (degrees, ``nearest_view``). Decodes only that view.
+        ``part_masks=False`` leaves ``ViewRecord.part_masks`` empty (a caller that needs the
+        maps only skips a table query and one comparison per part and pixel)."""
         sha = self._sha(key)
         if index is None:
             index = self.nearest_view(sha, azimuth, elevation)
@@ -419,7 +421,8 @@ class CatalogReader:
         return ViewRecord(sha, int(index), np.array(json.loads(row[2]), np.float64),
                           np.array(json.loads(row[3]), np.float64), row[0], row[1],
                           maps["mat"], maps["tri"], maps["Z"],
-                          self._masks(sha, maps["mat"]), json.loads(row[4]))
+                          self._masks(sha, maps["mat"]) if part_masks else {},
+                          json.loads(row[4]))
 
     def material_map(self, key: str, index: int) -> np.ndarray:
         """(H, W) uint16 material ids of one view (material index + 1; 0 background)."""

@@ -667,7 +667,7 @@ class _Fit:
                     albedo[sha] = np.full((n_materials + 1, 3), 0.8)
                     for row in self.r.parts(sha):
                         albedo[sha][row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
-                rec = self.r.view(sha, v)
+                rec = self.r.view(sha, v, part_masks=False)   # maps and K only
                 shaded.append(pool.submit(shade_stored_view, rec.depth, rec.mat_id, rec.tri_id,
                                           rec.K, albedo[sha]))
                 masks.append(np.isfinite(rec.depth))
@@ -845,7 +845,7 @@ class _Fit:
         """The nearest stored view (by HOG) placed onto the object's box."""
         if view is None:
             view = self._nearest_view(sha, photo, obj)
-        rec = self.r.view(sha, int(view))
+        rec = self.r.view(sha, int(view), part_masks=False)
         sil = rec.mat_id > 0
         if not sil.any():
             raise ValueError(f"stored view {view} of mesh {sha[:12]} shows nothing")
