@@ -18,7 +18,8 @@ Each reference draws (generator ``REF_SEED`` + index): body and part colours
 on the horizon for the reflections, sun one time in five absent, ground),
 an off-grid camera (azimuth 0-360, elevation 2-25 deg, field of view 35-60 deg, the vehicle off
 centre), clutter, noise and JPEG quality 70-95; the box given to the fit is the vehicle's mask box
-with each side moved by up to 3 % of its size.
+with each side moved by up to 3 % of its size (then moved out by ``--box-grow`` of its size: a
+user's or a detector's box is rarely pixel-tight; the same draws otherwise).
 
 The catalogue (``ucad_cl.build`` with default options, the shipped labeller) holds the real
 library (every file, the excluded ones too, as distractors) and the generated library: >= 100
@@ -200,7 +201,7 @@ def build_catalog(work: Path, synth_lib: Path, tag: str, segmenter: str,
     return cat
 
 
-def draw_reference(v: Vehicle, index: int, size, ref_seed: int = REF_SEED):
+def draw_reference(v: Vehicle, index: int, size, ref_seed: int = REF_SEED, grow: float = 0.0):
     rng = np.random.default_rng(ref_seed + index)
     colors = draw_car_colors(rng)
     light = draw_light(rng, sun=rng.uniform() < 0.8, skyline=True)
@@ -214,8 +215,9 @@ def draw_reference(v: Vehicle, index: int, size, ref_seed: int = REF_SEED):
     x0, y0, x1, y1 = ref.box
     j = rng.uniform(-0.03, 0.03, 4) * np.array([x1 - x0, y1 - y0, x1 - x0, y1 - y0])
     H, W = size
-    box = (float(np.clip(x0 + j[0], 0, W - 1)), float(np.clip(y0 + j[1], 0, H - 1)),
-           float(np.clip(x1 + j[2], 1, W)), float(np.clip(y1 + j[3], 1, H)))
+    g = grow * np.array([x1 - x0, y1 - y0])       # --box-grow: a looser box, as users draw them
+    box = (float(np.clip(x0 + j[0] - g[0], 0, W - 1)), float(np.clip(y0 + j[1] - g[1], 0, H - 1)),
+           float(np.clip(x1 + j[2] + g[0], 1, W)), float(np.clip(y1 + j[3] + g[1], 1, H)))
     return ref, box
 
 
@@ -548,6 +550,9 @@ def main(argv=None) -> int:
                          "the build's; e.g. 5 15, a catalogue of its own)")
     ap.add_argument("--ref-seed", type=int, default=REF_SEED,
                     help=f"reference draws: generator REF_SEED + index (default {REF_SEED})")
+    ap.add_argument("--box-grow", type=float, default=0.0, metavar="F",
+                    help="move every side of each box out by F of its size (default 0: the "
+                         "mask's box, jittered by up to 3 %%)")
     ap.add_argument("--runs", type=int, default=1,
                     help="fit each photo this many times; its seconds are their median")
     ap.add_argument("--save", type=Path, default=None, metavar="DIR",
@@ -589,7 +594,7 @@ def main(argv=None) -> int:
                 print(f"  {v.name}: not accepted in the catalogue, skipped")
                 continue
             t = time.perf_counter()
-            ref, box = draw_reference(v, i, args.size, args.ref_seed)
+            ref, box = draw_reference(v, i, args.size, args.ref_seed, args.box_grow)
             t_ref += time.perf_counter() - t
             if args.save:
                 saved.append(save_reference(args.save, i, v, ref, box, key))
@@ -600,8 +605,9 @@ def main(argv=None) -> int:
                   f"oracle {r['oracle'].body:5.2f} baseline {r['baseline'].body:5.2f}  "
                   f"top-1 {e.top1:.0f}  {e.seconds:.2f} s"
                   + ("" if e.top1 != 0 else f"  (got {e.mesh})"), flush=True)
-    print(f"\n{len(results)} references ({t_ref:.0f} s to draw them), catalogue of "
-          f"{len(accepted)} meshes; total {time.perf_counter() - t0:.0f} s\n")
+    print(f"\n{len(results)} references (seed {args.ref_seed}, boxes grown by {args.box_grow:g}; "
+          f"{t_ref:.0f} s to draw them), catalogue of {len(accepted)} meshes; total "
+          f"{time.perf_counter() - t0:.0f} s\n")
     for subset in ("all", "real", "generated"):
         print(table(results, subset) + "\n")
     print(part_table(results) + "\n")

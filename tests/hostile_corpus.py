@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -399,3 +400,13 @@ def remove_deep(folder: str | os.PathLike) -> None:
             else:
                 os.unlink(entry.path)
         os.rmdir(d)
+
+
+def png_header_only(path: Path, w: int, h: int) -> None:
+    """A PNG whose header claims w x h and that holds no pixel data (a decompression bomb's
+    shape: readers must refuse it from the header, not try to decode it)."""
+    def chunk(kind, data):
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b""))

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import json
 import struct
-import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.hostile_corpus import png_header_only
 from ucad_cl.build import BuildOptions, build
 from ucad_cl.colorimetry import delta_e2000, linear_to_lab
 
@@ -574,15 +574,6 @@ def test_retrieval_finds_the_mesh_and_cli_writes_outputs(catalogue, tmp_path, ca
 
 # ----------------------------------------------------------------------------- hostile input
 
-def _png_header_only(path: Path, w: int, h: int) -> None:
-    """A PNG whose header claims w x h (no pixel data worth decoding)."""
-    def chunk(kind, data):
-        return (struct.pack(">I", len(data)) + kind + data
-                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
-    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b""))
-
-
 @pytest.fixture(scope="module")
 def photo(catalogue, tmp_path_factory):
     import cv2
@@ -623,7 +614,7 @@ def test_hostile_inputs_get_one_line(catalogue, photo, tmp_path, capsys):
     err = _one_line_error(capsys, 2, main(base + [str(bad), "--box", *b]))
     assert "cannot read" in err
     huge = tmp_path / "huge.png"
-    _png_header_only(huge, 20000, 20000)
+    png_header_only(huge, 20000, 20000)
     err = _one_line_error(capsys, 2, main(base + [str(huge), "--box", *b]))
     assert "megapixels" in err
     err = _one_line_error(capsys, 2, main(["fit", "--catalog", cat, "--out", out, "--mesh",

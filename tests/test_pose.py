@@ -349,9 +349,9 @@ def test_cli_table_json_and_errors(tmp_path, capsys, runtime):
     assert rc == 2 and "missing.png: no such file" in capsys.readouterr().err
     # the photo read as fit reads it (commands.common.read_image): a corrupt file and one that
     # declares 400 megapixels get one line each, the latter before it is decoded
-    from tests.test_fit import _png_header_only
+    from tests.hostile_corpus import png_header_only
     (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 20)
-    _png_header_only(tmp_path / "huge.png", 20000, 20000)
+    png_header_only(tmp_path / "huge.png", 20000, 20000)
     for name, what in (("bad.png", "cannot read the image"), ("huge.png", "megapixels")):
         rc = main(["pose", str(tmp_path / name), str(paths[0]), "--box", "0", "0", "5", "5"])
         err = capsys.readouterr().err.strip()

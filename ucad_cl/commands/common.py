@@ -35,10 +35,10 @@ def vehicle_mask(values):
 
 
 def read_image(path):
-    """(H, W, 3) uint8 RGB as a viewer shows it (a JPEG's EXIF orientation applied, as
-    ``ucad-index pose`` and image viewers do: a phone photo's box is drawn on the turned
+    """(H, W, 3) uint8 RGB of a photo or mask file as a viewer shows it (a JPEG's EXIF
+    orientation applied, as image viewers do: a phone photo's box is drawn on the turned
     image): grayscale and 16-bit images converted, alpha dropped; ValueError for a missing,
-    corrupt or huge file."""
+    corrupt or huge file (over ``MAX_PIXELS``, refused from its header before decoding)."""
     import cv2
     import numpy as np
     from PIL import Image, UnidentifiedImageError
