@@ -176,7 +176,7 @@ def _zip_ready(lines: np.ndarray) -> list[np.ndarray]:
     h = len(lines)
     x = np.ascontiguousarray(lines, "<u4").reshape(h, -1).view("<u2")
     full = h // _ZIP_LINES
-    out = []
+    out: list[np.ndarray] = []
     for block in ([x[:full * _ZIP_LINES].reshape(full, -1)] if full else []) + (
             [x[full * _ZIP_LINES:].reshape(1, -1)] if h % _ZIP_LINES else []):
         n, m = block.shape
