@@ -388,3 +388,36 @@ def test_real_vehicle_pose(vehicles_dir, runtime):
     img, box, _, _ = _reference(mesh, {}, 61.7, 14.0, seed=2)
     best = estimate_pose(img, mesh, box=box, top=2).best
     assert az_diff(best.azimuth, 61.7) <= 5.0
+
+
+@pytest.mark.parametrize("size", [(240, 180), (1600, 1200)])
+def test_side_by_side_outline_is_the_silhouette_at_the_tiles_size(vehicle, runtime, size):
+    """`pose`'s PNG: the outline drawn on the photo's tile is the candidate's silhouette
+    rendered at the tile's size with the photo's camera mapped onto the crop (not a
+    full-size render): with the true camera it lies on the true mask's boundary, resampled as
+    the tile is (crop_window), within a pixel, for a small and a 1600 x 1200 photo."""
+    import cv2
+
+    from ucad_cl.commands.pose import side_by_side
+    from ucad_cl.features import crop_window, square_windows
+    from ucad_cl.pose import PoseCandidate
+
+    mesh, parts = vehicle
+    img, box, mask, ring = _reference(mesh, parts, 40.0, 12.0, size=size)
+    cand = PoseCandidate(40.0, 12.0, ring.distance, 0.0, 0, K=ring.K, w2c=ring.w2c[0])
+    out = side_by_side(img, mask, mesh, cand)
+    assert out.shape == (256, 512, 3)
+    tile = out[:, :256]
+    green = np.all(tile == (0, 255, 0), axis=2)
+    window = square_windows(mask[None])[0]
+    truth = (crop_window(mask.astype(np.float32), window, 256) > 0.5).astype(np.uint8)
+    contours, _ = cv2.findContours(truth, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    expected = cv2.drawContours(np.zeros((256, 256), np.uint8), contours, -1, 1, 1) > 0
+
+    def within_1px(a, b):                      # share of a's pixels within 1 px of b's
+        return (a & (cv2.dilate(b.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)).sum() \
+            / a.sum()
+
+    assert expected.sum() > 300 and within_1px(green, expected) >= 0.95
+    assert within_1px(expected, green) >= 0.95
+    assert np.array_equal(tile[~green], crop_window(img, window, 256)[~green])

@@ -294,30 +294,34 @@ def _read_inputs(args):
 def side_by_side(image, mask, mesh, cand, size: int = 256):
     """(size, 2*size, 3) uint8: the photo around the object with the outline (green) of the
     candidate's silhouette when it has a camera for the photo | the render of ``cand``, both
-    cropped by the pose features' rule."""
+    cropped by the pose features' rule. The outline is rendered at the tile's own size (the
+    photo's camera mapped onto the crop), not at the photo's: a 12-megapixel photo's outline
+    used to be a full-size render."""
     import cv2
     import numpy as np
 
     from ..cameras import make_ring
     from ..artifacts import CameraRing
-    from ..features import crop_square
+    from ..features import crop_square, crop_window, square_windows
     from ..foreground import RENDER_BACKGROUND
     from ..render import render_views
     from ..shade import shade_views
 
-    left = np.ascontiguousarray(image)
+    top, left, side = square_windows(np.asarray(mask, bool)[None])[0]
+    ref = crop_window(np.ascontiguousarray(image), (top, left, side), size)
     if cand.K is not None and cand.w2c is not None:
-        H, W = image.shape[:2]
-        ring = CameraRing(K=cand.K, w2c=cand.w2c[None], width=W, height=H,
-                          azimuth=np.array([cand.azimuth]), elevation=np.array([cand.elevation]),
-                          distance=cand.distance, near=0.01 * cand.distance)
+        s = size / side            # photo pixel coordinates -> the tile's: (x - left) * s
+        to_tile = np.array([[s, 0.0, -left * s], [0.0, s, -top * s], [0.0, 0.0, 1.0]])
+        ring = CameraRing(K=to_tile @ np.asarray(cand.K, np.float64), w2c=cand.w2c[None],
+                          width=size, height=size, azimuth=np.array([cand.azimuth]),
+                          elevation=np.array([cand.elevation]), distance=cand.distance,
+                          near=0.01 * cand.distance)
         sil = np.isfinite(render_views(mesh, ring).depth[0]).astype(np.uint8)
         contours, _ = cv2.findContours(sil, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        left = left.copy()
-        cv2.drawContours(left, contours, -1, (0, 255, 0), max(1, min(H, W) // 200))
-    ref, _ = crop_square(left[None], mask[None], size)
+        ref = ref.copy()
+        cv2.drawContours(ref, contours, -1, (0, 255, 0), 1)
     ring = make_ring(azimuths=[cand.azimuth], elevations=[cand.elevation], size=size)
     views = render_views(mesh, ring)
     rend = shade_views(mesh, views, background=RENDER_BACKGROUND)
     crop, _ = crop_square(rend, np.isfinite(views.depth), size)
-    return np.concatenate([ref[0], crop[0]], axis=1)
+    return np.concatenate([ref, crop[0]], axis=1)
