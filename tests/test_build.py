@@ -299,8 +299,10 @@ def test_real_models_build_without_crash(vehicles_dir, tmp_path, runtime):
     assert content["kenney_truck_green/vehicle-truck-green.glb"]["state"] == "rejected"
 
 
-def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
-    """`ucad-index pose IMAGE --box ... --catalog PATH`: the right mesh and the nearest view."""
+def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys, monkeypatch):
+    """`ucad-index pose IMAGE --box ... --catalog PATH`: the right mesh and the nearest view;
+    through the build's search index (as the fit reads rows: ``fit.catalog_rows``), the same
+    candidates; without the index when one is due, a note and every row."""
     import cv2
 
     from ucad_cl.cameras import make_ring
@@ -356,6 +358,24 @@ def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys):
     side = max(big_box[2] - big_box[0], big_box[3] - big_box[1])
     assert np.abs(np.subtract(d2["object"]["box"], big_box)).max() <= 0.02 * side
     assert main(["pose", str(ref), "--box", *box]) == 2           # neither MESH nor --catalog
+    capsys.readouterr()
+    import shutil
+
+    import ucad_cl.fit as fit
+    monkeypatch.setattr(fit, "INDEX_FROM", 0)          # the search index even for these rows
+    monkeypatch.setattr(fit, "INDEX_ROWS", 40)         # ... and only its 40 nearest rows ranked
+    assert main(["pose", str(ref), "--box", *box, "--catalog", str(cat), "--top", "3",
+                 "--json"]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["candidates"] == doc["candidates"] and "note" not in out.err
+    plain = tmp_path / "plain"
+    shutil.copytree(cat, plain)
+    (plain / "search_index.npz").unlink()
+    assert main(["pose", str(ref), "--box", *box, "--catalog", str(plain), "--top", "3",
+                 "--json"]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["candidates"] == doc["candidates"]
+    assert "note: no search index" in out.err and "every stored row read" in out.err
 
 
 def test_cli_parts_over_catalogue_and_render_edges(library, tmp_path, runtime, capsys):

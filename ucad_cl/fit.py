@@ -368,6 +368,19 @@ def catalog_ring(reader: CatalogReader, key: str) -> PoseRing:
                     extractor=HogExtractor(), azimuth_step=azimuth_step(el))
 
 
+def catalog_rows(reader: CatalogReader, query: np.ndarray
+                 ) -> tuple[list[MeshInfo], np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """The stored rows retrieval ranks a photo's features ``query`` (D,) against, read as the
+    fit reads them: (meshes, rows (n, D) float32, each row's mesh index into meshes and view,
+    notes). With the catalogue's search index (fresh, at least ``INDEX_FROM`` rows) its
+    ``INDEX_ROWS`` rows nearest to the query in projection; else every stored row
+    (``CatalogReader.feature_table``). ValueError naming the problem when the catalogue has no
+    usable features."""
+    f = _Fit(reader, None)
+    metas, rows, mesh_of, view_of = f._search_rows(query)
+    return metas, rows, mesh_of, view_of, f.notes
+
+
 def azimuth_step(elevations) -> float:
     """Azimuth step (degrees) of a stored ring from its views' elevations: 360 over the number
     of views at the first elevation (rings are elevation-major, ``cameras.make_ring``)."""

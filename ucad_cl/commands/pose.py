@@ -174,13 +174,15 @@ def candidate_json(c, rank: int) -> dict:
 
 
 def run_catalog(args, image, mask) -> int:
-    """Nearest stored views across the whole catalogue (the features the build stored)."""
+    """Nearest stored views across the whole catalogue (the features the build stored), the
+    rows read as the fit reads them (``fit.catalog_rows``: the search index's rows nearest to
+    the photo in projection when the catalogue is large, else every row) and ranked exactly;
+    the cameras are read for the listed rows only."""
     import cv2
     import numpy as np
 
-    from ucad_catalog import CatalogError
-
     from ..features import HogExtractor
+    from ..fit import catalog_rows
     from ..ingest import IngestError, load_mesh
     from ..foreground import PhotoWindow, mask_box
     from ..pose import PoseCandidate, query_features, search_catalog
@@ -190,53 +192,44 @@ def run_catalog(args, image, mask) -> int:
     reader = open_reader(args.catalog)
     if reader is None:
         return 2
-    with reader as r:
-        metas = r.meshes()
-        feats, mesh_ids, views, az, el, sides, dist, Ks, w2cs = [], [], [], [], [], [], [], [], []
-        for k, m in enumerate(metas):
-            try:
-                f = r.features(m.sha256)
-            except (CatalogError, KeyError):
-                continue                      # built with --no-features
-            rec = r.record(m.sha256)
-            for v in rec["views"]:
-                w2c = np.asarray(v["w2c"], np.float64)
-                K = np.asarray(v["K"], np.float64)
-                dist.append(float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3])))
-                sides.append(float(v["stats"].get("box_side", np.nan)) / min(K[:2, 2] * 2))
-                az.append(v["azimuth"])
-                el.append(v["elevation"])
-                views.append(v["index"])
-                mesh_ids.append(k)
-                Ks.append(K)
-                w2cs.append(w2c)
-            feats.append(f)
-    if not feats:
-        print(f"{args.catalog}: no accepted mesh with stored features", file=sys.stderr)
-        return 2
     legacy = args.method == "legacy"
     window = PhotoWindow.around(image.shape[:2], args.box, mask)   # a large photo: its window
     img, box, obj_mask = ((image, args.box, mask) if window is None
                           else window.cut(image, args.box, mask))
-    try:
-        query, obj = query_features(img, HogExtractor(), box=box, mask=obj_mask,
-                                    isolate=not legacy)
-        if window is not None:
-            obj = window.photo_object(obj, image.shape[:2])
-    except ValueError as exc:
-        print(f"{args.image}: {exc}", file=sys.stderr)
-        return 2
-    db = np.concatenate(feats)
-    top = min(args.top, len(db))
-    matches = search_catalog(query, db, np.asarray(mesh_ids), np.asarray(views),
-                             np.asarray(az), np.asarray(el), top=top)
+    with reader as r:
+        try:
+            query, obj = query_features(img, HogExtractor(), box=box, mask=obj_mask,
+                                        isolate=not legacy)
+            if window is not None:
+                obj = window.photo_object(obj, image.shape[:2])
+        except ValueError as exc:
+            print(f"{args.image}: {exc}", file=sys.stderr)
+            return 2
+        try:
+            metas, db, mesh_of, view_of, notes = catalog_rows(r, query)
+        except ValueError as exc:
+            print(f"{args.catalog}: {exc}", file=sys.stderr)
+            return 2
+        for note in notes:
+            print(f"note: {note}", file=sys.stderr)
+        zeros = np.zeros(len(db))                   # angles are read for the listed rows only
+        matches = search_catalog(query, db, mesh_of, view_of, zeros, zeros,
+                                 top=min(args.top, len(db)))
+        cameras: dict[int, dict] = {}
+        for mt in matches:
+            if mt.mesh not in cameras:
+                cameras[mt.mesh] = {v.index: v for v in r.views(metas[mt.mesh].sha256)}
     x0, y0, x1, y1 = mask_box(obj.mask)
     q_side = max(x1 - x0, y1 - y0) / min(obj.mask.shape)
-    rows = []
+    rows = []                                       # (match, its camera, distance estimate)
     for mt in matches:
-        d = dist[mt.row] * sides[mt.row] / q_side if q_side > 0 else float("nan")
-        rows.append((mt, d))
-    best = matches[0]
+        v = cameras[mt.mesh][mt.view]
+        w2c = np.asarray(v.w2c, np.float64)
+        K = np.asarray(v.K, np.float64)
+        dist = float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3]))
+        side = float(v.stats.get("box_side", np.nan)) / min(K[:2, 2] * 2)
+        rows.append((mt, v, dist * side / q_side if q_side > 0 else float("nan")))
+    best, best_cam, _ = rows[0]
     out = args.out or args.image.with_name(args.image.stem + "_pose.png")
     if args.json:
         print(json.dumps({
@@ -246,14 +239,15 @@ def run_catalog(args, image, mask) -> int:
                            "= front); K and w2c: the stored view's render camera",
             "candidates": [{"rank": i + 1, "mesh": str(metas[mt.mesh].source),
                             "sha256": metas[mt.mesh].sha256, "view": mt.view,
-                            "azimuth": mt.azimuth, "elevation": mt.elevation, "distance": d,
-                            "score": mt.score, "K": Ks[mt.row].tolist(),
-                            "w2c": w2cs[mt.row].tolist()} for i, (mt, d) in enumerate(rows)]},
+                            "azimuth": v.azimuth, "elevation": v.elevation, "distance": d,
+                            "score": mt.score, "K": np.asarray(v.K).tolist(),
+                            "w2c": np.asarray(v.w2c).tolist()}
+                           for i, (mt, v, d) in enumerate(rows)]},
             indent=1))
     else:
         print(f"{'rank':>4s} {'azimuth':>8s} {'elev':>6s} {'dist':>6s} {'score':>7s}  mesh (view)")
-        for i, (mt, d) in enumerate(rows):
-            print(f"{i + 1:4d} {mt.azimuth:8.1f} {mt.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
+        for i, (mt, v, d) in enumerate(rows):
+            print(f"{i + 1:4d} {v.azimuth:8.1f} {v.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
                   f"{metas[mt.mesh].source} ({mt.view})")
         print(object_line(obj))
     try:                          # in the frame the catalogue stored (its cameras are in it)
@@ -263,7 +257,10 @@ def run_catalog(args, image, mask) -> int:
     except (IngestError, ValueError) as exc:
         print(f"(no side-by-side PNG: {exc})", file=sys.stderr)
         return 0
-    cand = PoseCandidate(best.azimuth, best.elevation, dist[best.row], best.score, best.view)
+    w2c = np.asarray(best_cam.w2c, np.float64)
+    cand = PoseCandidate(best_cam.azimuth, best_cam.elevation,
+                         float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3])), best.score,
+                         best.view)
     cv2.imwrite(str(out), side_by_side(image, obj.mask, mesh, cand)[:, :, ::-1])
     if not args.json:
         print(f"wrote {out}")
