@@ -221,15 +221,15 @@ def run_catalog(args, image, mask) -> int:
                 cameras[mt.mesh] = {v.index: v for v in r.views(metas[mt.mesh].sha256)}
     x0, y0, x1, y1 = mask_box(obj.mask)
     q_side = max(x1 - x0, y1 - y0) / min(obj.mask.shape)
-    rows = []                                       # (match, its camera, distance estimate)
+    rows = []                # (match, its camera, the camera's distance, the photo's estimate)
     for mt in matches:
         v = cameras[mt.mesh][mt.view]
         w2c = np.asarray(v.w2c, np.float64)
         K = np.asarray(v.K, np.float64)
         dist = float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3]))
         side = float(v.stats.get("box_side", np.nan)) / min(K[:2, 2] * 2)
-        rows.append((mt, v, dist * side / q_side if q_side > 0 else float("nan")))
-    best, best_cam, _ = rows[0]
+        rows.append((mt, v, dist, dist * side / q_side if q_side > 0 else float("nan")))
+    best, best_cam, best_dist, _ = rows[0]
     out = args.out or args.image.with_name(args.image.stem + "_pose.png")
     if args.json:
         print(json.dumps({
@@ -242,11 +242,11 @@ def run_catalog(args, image, mask) -> int:
                             "azimuth": v.azimuth, "elevation": v.elevation, "distance": d,
                             "score": mt.score, "K": np.asarray(v.K).tolist(),
                             "w2c": np.asarray(v.w2c).tolist()}
-                           for i, (mt, v, d) in enumerate(rows)]},
+                           for i, (mt, v, _, d) in enumerate(rows)]},
             indent=1))
     else:
         print(f"{'rank':>4s} {'azimuth':>8s} {'elev':>6s} {'dist':>6s} {'score':>7s}  mesh (view)")
-        for i, (mt, v, d) in enumerate(rows):
+        for i, (mt, v, _, d) in enumerate(rows):
             print(f"{i + 1:4d} {v.azimuth:8.1f} {v.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
                   f"{metas[mt.mesh].source} ({mt.view})")
         print(object_line(obj))
@@ -257,10 +257,7 @@ def run_catalog(args, image, mask) -> int:
     except (IngestError, ValueError) as exc:
         print(f"(no side-by-side PNG: {exc})", file=sys.stderr)
         return 0
-    w2c = np.asarray(best_cam.w2c, np.float64)
-    cand = PoseCandidate(best_cam.azimuth, best_cam.elevation,
-                         float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3])), best.score,
-                         best.view)
+    cand = PoseCandidate(best_cam.azimuth, best_cam.elevation, best_dist, best.score, best.view)
     cv2.imwrite(str(out), side_by_side(image, obj.mask, mesh, cand)[:, :, ::-1])
     if not args.json:
         print(f"wrote {out}")
