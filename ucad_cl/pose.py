@@ -447,9 +447,6 @@ class _Search:
         if m.fov_prior is not None:
             c = centre_on_axis(img, mask, m.fov_prior, frame, K=self.camera0)
             img, mask, frame = c.image, c.mask, c.frame
-            self.fov_prior = m.fov_prior
-        else:
-            self.fov_prior = 2.0 * np.degrees(np.arctan(0.5 * min(self.size) / self.f_render))
         self.query = query_cues(img, mask, self.coarse.extractor, frame=frame)
         x0, y0, x1, y1 = mask_box(mask if frame is None else frame)
         self.photo_side = float(max(x1 - x0, y1 - y0))
