@@ -376,9 +376,9 @@ def catalog_rows(reader: CatalogReader, query: np.ndarray
     ``INDEX_ROWS`` rows nearest to the query in projection; else every stored row
     (``CatalogReader.feature_table``). ValueError naming the problem when the catalogue has no
     usable features."""
-    f = _Fit(reader, None)
-    metas, rows, mesh_of, view_of = f._search_rows(query)
-    return metas, rows, mesh_of, view_of, f.notes
+    notes: list[str] = []
+    metas, rows, mesh_of, view_of = _StoredRows(reader, notes).rows(query)
+    return metas, rows, mesh_of, view_of, notes
 
 
 def azimuth_step(elevations) -> float:
@@ -416,6 +416,75 @@ class _Described:
     fine: np.ndarray | None = None
 
 
+class _StoredRows:
+    """The stored rows retrieval ranks a photo against (``rows``), read once per photo; what
+    it finds worth saying (an index missing or not used, meshes left out) is appended to
+    ``notes``."""
+
+    def __init__(self, reader: CatalogReader, notes: list[str]):
+        self.r, self.notes = reader, notes
+        self.db: FeatureTable | SearchIndex | None = None
+        self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
+
+    def database(self) -> FeatureTable | SearchIndex:
+        """Where retrieval's stored rows come from: the catalogue's search index when it is
+        fresh (``CatalogReader.search_index``) and holds at least ``INDEX_FROM`` rows, else its
+        stacked features (``_table``: below that size reading them all costs less than the
+        index's row reads, 0.25 s over 123 meshes); the reader keeps both, so a batch of
+        photos reads them once."""
+        if self.db is None:
+            try:
+                index, why = self.r.search_index()
+            except CatalogError as exc:
+                raise ValueError(str(exc)) from None
+            if index is None or len(index.mesh) < INDEX_FROM:
+                self.db = self._table()
+                if index is None and len(self.db.mesh) >= INDEX_FROM:
+                    self.notes.append(f"{why}: every stored row read (`ucad-index build` on "
+                                      "the same library writes the index)")
+            else:
+                self.db = index
+                self._note_skipped(index.skipped)
+        return self.db
+
+    def _table(self) -> FeatureTable:
+        """The catalogue's stacked features (``CatalogReader.feature_table``)."""
+        try:
+            table = self.r.feature_table()
+        except CatalogError as exc:
+            raise ValueError(str(exc)) from None
+        if not len(table.feats):
+            raise ValueError("the catalogue has no accepted mesh with stored features")
+        self._note_skipped(table.skipped)
+        return table
+
+    def _note_skipped(self, skipped) -> None:
+        """A note naming the accepted meshes left out of retrieval (no or unreadable features)."""
+        if skipped:
+            sha, why = skipped[0]
+            self.notes.append(f"{len(skipped)} accepted mesh(es) left out of retrieval, "
+                              f"e.g. {sha[:12]}: {why}")
+
+    def rows(self, query) -> tuple[list[MeshInfo], np.ndarray, np.ndarray, np.ndarray]:
+        """(meshes, rows (n, D) float32, each row's mesh index and view): the stored rows a
+        query is ranked against. With the search index, its ``INDEX_ROWS`` rows nearest to the
+        query in projection, read in full (an object that no longer reads as the index says:
+        a note, and every stored row from then on); else every stored row."""
+        src = self.database()
+        if isinstance(src, SearchIndex):
+            near = src.preselect(query, INDEX_ROWS)
+            try:
+                new = [int(i) for i in near if int(i) not in self.index_rows]
+                if new:                         # rows read once per photo (several queries)
+                    self.index_rows.update(zip(new, src.rows(np.asarray(new, np.int64))))
+                rows = np.stack([self.index_rows[int(i)] for i in near])
+                return src.meshes, rows, src.mesh[near], src.view[near]
+            except CatalogError as exc:
+                self.notes.append(f"search index not used ({exc}): every stored row read")
+                src = self.db = self._table()
+        return src.meshes, src.feats, src.mesh, src.view
+
+
 class _Fit:
     def __init__(self, reader: CatalogReader, runtime: Runtime | None,
                  mesh_loader: MeshLoader | None = None):
@@ -424,10 +493,9 @@ class _Fit:
         self.mesh_loader = mesh_loader or MeshLoader(isolated=False)
         self.seconds: dict[str, float] = {}
         self.notes: list[str] = []
-        self.db: FeatureTable | SearchIndex | None = None
         self.described: dict[tuple[str, int], _Described] = {}   # (sha, view) -> re-rank's
         self.angles: dict[str, list[ViewAngles]] = {}             # sha -> its views' angles
-        self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
+        self.stored_rows = _StoredRows(reader, self.notes)          # retrieval's rows
         self.intrinsics: np.ndarray | None = None   # the photo's assumed K in a window's pixels
         self._t = time.perf_counter()
 
@@ -569,12 +637,12 @@ class _Fit:
 
     def _first_views(self, photo, obj: ObjectMask) -> list[tuple[str, int]]:
         """[(sha, view)] of the first ``REFINE_MESHES`` distinct meshes by float32 dot product
-        of the object's HOG with the stored rows retrieval searches (``_search_rows``: the
+        of the object's HOG with the stored rows retrieval searches (``_StoredRows.rows``: the
         order the exact search refines; ties: the lower row), each with its best row: the seeds
         of ``_refined_object``."""
         q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                               runtime=self.runtime)
-        metas, db, mesh_of, view_of = self._search_rows(q)
+        metas, db, mesh_of, view_of = self.stored_rows.rows(q)
         out: dict[int, int] = {}
         for row in np.argsort(-_dot_scores(db, q), kind="stable"):
             out.setdefault(int(mesh_of[row]), int(view_of[row]))
@@ -587,7 +655,7 @@ class _Fit:
             return self._given(key), [], None
         query, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                                   runtime=self.runtime)
-        metas, db, mesh_of, view_of = self._search_rows(query)
+        metas, db, mesh_of, view_of = self.stored_rows.rows(query)
         if len(db) > PRESELECT_ROWS:               # float32 dot products pick the rows that
             near = np.sort(np.argpartition(-_dot_scores(db, query), PRESELECT_ROWS)  # the
                            [:PRESELECT_ROWS])                        # exact search ranks
@@ -628,7 +696,7 @@ class _Fit:
         edges = photo_edges(photo, obj.mask)
         qf = unit_rows(q_fine[None])[0][0]
         q = unit_rows(np.asarray(query)[None])[0][0]
-        table = self._database()                   # mt.mesh indexes its meshes (= metas)
+        table = self.stored_rows.database()        # mt.mesh indexes its meshes (= metas)
         todo: dict[tuple[str, int], int] = {}      # (sha, view) to describe -> its materials
         rows = []
         kept = self._prefiltered(edges, metas, best)
@@ -717,64 +785,6 @@ class _Fit:
         if sha not in self.angles:
             self.angles[sha] = self.r.view_angles(sha)
         return self.angles[sha]
-
-    def _database(self) -> FeatureTable | SearchIndex:
-        """Where retrieval's stored rows come from: the catalogue's search index when it is
-        fresh (``CatalogReader.search_index``) and holds at least ``INDEX_FROM`` rows, else its
-        stacked features (``_table``: below that size reading them all costs less than the
-        index's row reads, 0.25 s over 123 meshes); the reader keeps both, so a batch of
-        photos reads them once."""
-        if self.db is None:
-            try:
-                index, why = self.r.search_index()
-            except CatalogError as exc:
-                raise ValueError(str(exc)) from None
-            if index is None or len(index.mesh) < INDEX_FROM:
-                self.db = self._table()
-                if index is None and len(self.db.mesh) >= INDEX_FROM:
-                    self.notes.append(f"{why}: every stored row read (`ucad-index build` on "
-                                      "the same library writes the index)")
-            else:
-                self.db = index
-                self._note_skipped(index.skipped)
-        return self.db
-
-    def _table(self) -> FeatureTable:
-        """The catalogue's stacked features (``CatalogReader.feature_table``)."""
-        try:
-            table = self.r.feature_table()
-        except CatalogError as exc:
-            raise ValueError(str(exc)) from None
-        if not len(table.feats):
-            raise ValueError("the catalogue has no accepted mesh with stored features")
-        self._note_skipped(table.skipped)
-        return table
-
-    def _note_skipped(self, skipped) -> None:
-        """A note naming the accepted meshes left out of retrieval (no or unreadable features)."""
-        if skipped:
-            sha, why = skipped[0]
-            self.notes.append(f"{len(skipped)} accepted mesh(es) left out of retrieval, "
-                              f"e.g. {sha[:12]}: {why}")
-
-    def _search_rows(self, query) -> tuple[list[MeshInfo], np.ndarray, np.ndarray, np.ndarray]:
-        """(meshes, rows (n, D) float32, each row's mesh index and view): the stored rows a
-        query is ranked against. With the search index, its ``INDEX_ROWS`` rows nearest to the
-        query in projection, read in full (an object that no longer reads as the index says:
-        a note, and every stored row from then on); else every stored row."""
-        src = self._database()
-        if isinstance(src, SearchIndex):
-            near = src.preselect(query, INDEX_ROWS)
-            try:
-                new = [int(i) for i in near if int(i) not in self.index_rows]
-                if new:                         # rows read once per photo (several queries)
-                    self.index_rows.update(zip(new, src.rows(np.asarray(new, np.int64))))
-                rows = np.stack([self.index_rows[int(i)] for i in near])
-                return src.meshes, rows, src.mesh[near], src.view[near]
-            except CatalogError as exc:
-                self.notes.append(f"search index not used ({exc}): every stored row read")
-                src = self.db = self._table()
-        return src.meshes, src.feats, src.mesh, src.view
 
     def _load(self, meta) -> tuple[Mesh | None, str]:
         """(the mesh in the catalogue's frame, ''), or (None, why) when its file is gone,
