@@ -136,6 +136,38 @@ def test_a_render_of_the_mesh_itself_is_found_within_one_degree(vehicle, coarse)
     assert not est.ambiguous
 
 
+@pytest.fixture(scope="module")
+def catalogue_rings(vehicle, runtime):
+    """The coarse ring a catalogue stores (rings at 5 and 15 deg, 5 deg azimuth steps)."""
+    return pose_ring(vehicle[0], HogExtractor(), azimuth_step=5.0, elevations=(5.0, 15.0))
+
+
+@pytest.mark.parametrize("az, el, mode", [(63.0, 38.0, "mask"), (212.0, 52.0, "box"),
+                                          (148.0, 9.0, "box")])
+def test_photos_from_above_the_stored_rings_are_posed_at_their_elevation(
+        vehicle, catalogue_rings, az, el, mode):
+    """A photo taken from higher than any coarse view (a catalogue stores 5 and 15 deg) is posed
+    at its own elevation: the search climbs beyond the ring (``PoseMethod.climb``); without the
+    climb it stops where the refinement grids reach (~19 deg). A photo inside the rings' reach
+    gets the same answer either way (the climb does not start)."""
+    import dataclasses
+
+    mesh, parts = vehicle
+    img, box, mask, _ = _reference(mesh, parts, az, el, seed=5)
+    where = dict(box=box) if mode == "box" else dict(mask=mask)
+    est = estimate_pose(img, mesh, coarse=catalogue_rings, top=1, **where)
+    flat = estimate_pose(img, mesh, coarse=catalogue_rings, top=1,
+                         method=dataclasses.replace(ROBUST, climb=False), **where)
+    assert abs(est.best.elevation - el) <= 3.0, est.best
+    assert az_diff(est.best.azimuth, az) <= 4.0, est.best
+    assert _iou(_silhouette(mesh, est.best, mask.shape), mask) > 0.85
+    if el > 25.0:
+        assert flat.best.elevation < 20.0 and est.best.score < flat.best.score
+    else:
+        assert (flat.best.azimuth, flat.best.elevation, flat.best.score) == \
+            (est.best.azimuth, est.best.elevation, est.best.score)
+
+
 def test_front_back_symmetric_body_reports_both_candidates(runtime):
     """A body symmetric front/back and left/right: the view from a + 180 is the same image, so
     the search must report both and call it a close call."""

@@ -74,6 +74,11 @@ RANK_ROWS = 128             # rank_features normalises this many rows at a time 
 PRESELECT = 64              # rows taken from the OpenCL search for the exact re-rank (k <= 64)
 RERANK_BATCH = 32           # queries re-ranked together (bounds the float64 scratch to ~30 MB)
 MIN_DISTANCE = 0.55         # renders keep the camera outside the bounding sphere (radius 0.5)
+#: elevation climb (``PoseMethod.climb``): a pose at the upper edge of what the coarse ring's first
+#: grid reaches steps up by CLIMB_STEP x the elevation spacing (at the first grid's azimuth
+#: offsets) while its score falls, never to CLIMB_LIMIT deg or above
+CLIMB_STEP = 0.5
+CLIMB_LIMIT = 85.0
 
 
 @dataclass(frozen=True)
@@ -95,6 +100,10 @@ class PoseMethod:
     crop, centre and size the photo by the box rather than by GrabCut's mask (GrabCut then only
     decides which pixels keep their colours) when a side of the mask's box is more than
     ``box_frame`` x the box's size away from the box's side (0: always; None: never).
+    climb: every hypothesis that the first grid leaves at the upper edge of its reach above the
+    ring's highest elevation walks on upwards while its score falls (``CLIMB_STEP``), then gets
+    the first grid again: a photo taken from higher than the ring (a catalogue stores rings at
+    5 and 15 deg) is posed at its own elevation, not at ~19 deg (docs/POSE.md).
     """
 
     weights: tuple = (("hog", 1.0), ("silhouette", 1.0), ("chamfer", 1.0), ("region", 1.0))
@@ -109,6 +118,7 @@ class PoseMethod:
     distance_factors: tuple = (0.8, 1.25)
     refine_mask: bool = False
     box_frame: float | None = 0.08
+    climb: bool = True
 
 
 ROBUST = PoseMethod()
@@ -118,7 +128,7 @@ ROBUST = PoseMethod()
 LEGACY = PoseMethod(weights=(("hog", 1.0),), box_weights=(("hog", 1.0),), isolate=False,
                     fov_prior=None, twins=False, seeds=1,
                     stages=((tuple(np.round(np.arange(-1.0, 1.0001, 0.2), 6)), (-0.5, 0.0, 0.5)),),
-                    distance_factors=())
+                    distance_factors=(), climb=False)
 
 
 @dataclass
@@ -486,7 +496,7 @@ class _Search:
                          if az_diff(p.azimuth, best.azimuth) >= FLIP_MIN_DEG), None)
             if flip is not None:
                 hyps.append(flip)
-        done = self._stage(_unique(hyps), 0)
+        done = self._climb(self._stage(_unique(hyps), 0))
         best = min(done, key=lambda p: p.score)                      # first minimum on ties
         if self.twins:
             more = []
@@ -495,7 +505,7 @@ class _Search:
                 if az_diff(az, best.azimuth) >= 2 * self.step and \
                         not any(az_diff(az, p.azimuth) < self.step for p in done + more):
                     more.append(self._coarse_near(az, best.elevation))
-            done += self._stage(_unique(more), 0) if more else []
+            done += self._climb(self._stage(_unique(more), 0)) if more else []
         runner = self._best_twin(best, done)
         finals = self._finals([best] + ([runner] if runner is not None else []))
         finals.sort(key=lambda p: p.score)
@@ -518,6 +528,40 @@ class _Search:
         for seed, cands in zip(seeds, self._grids(specs)):
             keep = [seed] if seed.distance == cands[0].distance else []
             out.append(min(keep + cands, key=lambda p: p.score))
+        return out
+
+    def _climb(self, poses: list[_Pose]) -> list[_Pose]:
+        """``method.climb``: each pose the first grid left at the upper edge of its reach from
+        the ring's highest elevation steps up by CLIMB_STEP x the elevation spacing (the best of
+        the first grid's azimuths kept) while its score falls (a tie stops it); the poses that
+        moved then get the first grid around them. The poses step together (one render per
+        step); the others are returned unchanged. Upwards only: a ring's lowest elevation is
+        near the ground, and a camera below the ground is not a photo of a vehicle on it."""
+        if not self.method.climb:
+            return poses
+        reach = max(abs(o) for o in self.method.stages[0][1]) * self.el_step
+        top = float(np.max(self.coarse.ring.elevation)) + reach - 1e-6
+        step = CLIMB_STEP * self.el_step
+        out = list(poses)
+        going = [i for i, p in enumerate(out) if p.elevation >= top]
+        moved: set[int] = set()
+        while going:
+            going = [i for i in going if out[i].elevation + step < CLIMB_LIMIT]
+            specs = [([out[i].azimuth + a * self.step for a in self.method.stages[0][0]],
+                      [out[i].elevation + step],
+                      out[i].distance if out[i].refined else self.distance, out[i].view)
+                     for i in going]
+            still = []
+            for i, cands in zip(going, self._grids(specs) if specs else []):
+                c = min(cands, key=lambda p: p.score)          # first minimum on ties
+                if c.score < out[i].score:
+                    out[i] = c
+                    moved.add(i)
+                    still.append(i)
+            going = still
+        order = sorted(moved)
+        for i, p in zip(order, self._stage([out[i] for i in order], 0) if order else []):
+            out[i] = p
         return out
 
     def _finals(self, poses: list[_Pose]) -> list[_Pose]:
