@@ -18,7 +18,9 @@ features are nearest to the photo's), made robust to what a real photo does to a
    view's twins are refined on a grid rendered on demand (+-0.6 coarse step in azimuth, +-1/4
    of the elevation spacing, at the camera distance estimated from the object's size); the best
    and its best twin then try the distance (which sets the perspective) x0.8 and x1.25 and two
-   finer grids (+-0.15 step and +-1/8 spacing, then +-0.075 and +-1/16).
+   finer grids (+-0.15 step and +-1/8 spacing, then +-0.075 and +-1/16). A hypothesis that the
+   first grid leaves at its upper reach above the highest ring climbs on (``PoseMethod.climb``):
+   a photo from higher up than the ring is posed at its own elevation.
 4. **Front/back and left/right as an explicit decision**: the best candidate is compared with its
    twins, refined alike: ``mirror`` (azimuth -a: the other side), ``opposite`` (a + 180) and
    ``front-back`` (180 - a: same side, the other end; the outline is the same, only the lamps,
