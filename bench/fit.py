@@ -359,7 +359,7 @@ def _prior_props(part: str) -> tuple[float, float, float]:
 # ----------------------------------------------------------------------------- the run
 
 def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
-            runs: int = 1, mesh_loader=None) -> dict[str, Score]:
+            runs: int = 1, mesh_loader=None, true_fov: bool = False) -> dict[str, Score]:
     from ucad_cl.fit import fit_photo
     from ucad_cl.pose import az_diff
 
@@ -367,6 +367,8 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
     out: dict[str, Score] = {}
     for row, key in (("end to end", None), ("true object mask", None), ("mesh given", mesh_id)):
         given = {"mask": ref.mask} if row == "true object mask" else {"box": box}
+        if true_fov:                                    # --true-fov: the lens told to the fit
+            given["fov"] = float(ref.fov)
         t = time.perf_counter()
         try:
             res = fit_photo(ref.image, catalog=reader, mesh=key, mesh_loader=mesh_loader, **given)
@@ -575,6 +577,9 @@ def main(argv=None) -> int:
                         f"{k}: elevation {v['elevation'][0]:g}-{v['elevation'][1]:g} deg, field of "
                         f"view {v['fov'][0]:g}-{v['fov'][1]:g} deg, fill {v['fill'][0]:g}-"
                         f"{v['fill'][1]:g}" for k, v in SCENES.items()).replace("%", "%%"))
+    ap.add_argument("--true-fov", action="store_true",
+                    help="tell the fit each photo's field of view (fit_photo(fov=...), the CLI's "
+                         "--fov) instead of letting it assume 45 deg")
     ap.add_argument("--runs", type=int, default=1,
                     help="fit each photo this many times; its seconds are their median")
     ap.add_argument("--save", type=Path, default=None, metavar="DIR",
@@ -620,14 +625,15 @@ def main(argv=None) -> int:
             t_ref += time.perf_counter() - t
             if args.save:
                 saved.append(save_reference(args.save, i, v, ref, box, key))
-            r = run_one(ref, box, v, reader, key, names, args.runs, mesh_loader)
+            r = run_one(ref, box, v, reader, key, names, args.runs, mesh_loader, args.true_fov)
             results.append((v, r))
             e = r["end to end"]
             print(f"  {i + 1:3d}/{len(vehicles)} {v.name[:32]:32s} body dE e2e {e.body:5.2f} "
                   f"oracle {r['oracle'].body:5.2f} baseline {r['baseline'].body:5.2f}  "
                   f"top-1 {e.top1:.0f}  {e.seconds:.2f} s"
                   + ("" if e.top1 != 0 else f"  (got {e.mesh})"), flush=True)
-    print(f"\n{len(results)} references (seed {args.ref_seed}, scene {args.scene}, boxes grown by "
+    print(f"\n{len(results)} references (seed {args.ref_seed}, scene {args.scene}"
+          f"{', the field of view given' if args.true_fov else ''}, boxes grown by "
           f"{args.box_grow:g}; "
           f"{t_ref:.0f} s to draw them), catalogue of {len(accepted)} meshes; total "
           f"{time.perf_counter() - t0:.0f} s\n")

@@ -97,7 +97,7 @@ from .cues import boundary_points, edge_distance, edge_recall, photo_edges, regi
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import (ObjectMask, PhotoWindow, box_stretch, check_image, mask_box,
-                         object_mask, refine_with_silhouette)
+                         object_mask, photo_intrinsics, refine_with_silhouette)
 from .ingest import IngestError, MeshLoader
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
@@ -129,6 +129,7 @@ NEUTRAL_PARTS = ("wheel",)  # white balance: tyres are taken as neutral grey ...
 TYRE_LUMA = 0.2             # ... when their fitted luminance is at most this (tyres are dark;
 #                             a light "tyre" means its mask landed on something else)
 RERANK_POSE = 1             # retrieval: the first meshes posed; the best pose score wins
+FOV_RANGE = (5.0, 120.0)    # fit_photo(fov=...): fields of view accepted, degrees
 POSE_PROXY_FROM = 150_000   # meshes over this many triangles are posed on a render proxy ...
 POSE_PROXY_CELLS = 256      # ... clustered on diagonal / 256 (decimate.render_proxy; docs/FIT.md)
 CANDIDATES = 5              # distinct meshes listed by retrieval
@@ -301,26 +302,31 @@ class FitResult:
 def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
               catalog: str | Path | CatalogReader, mesh: str | None = None,
               segmenter: PhotoSegmenter | None = None, runtime: Runtime | None = None,
-              mesh_loader: MeshLoader | None = None) -> FitResult:
+              mesh_loader: MeshLoader | None = None, fov: float | None = None) -> FitResult:
     """Fit the part materials of the catalogued vehicle in ``photo`` ((H, W, 3) uint8 RGB),
     given by ``box`` (x0, y0, x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W) bool), against
     ``catalog`` (a path or an open reader); ``mesh`` (id, id prefix, path or file name) skips
     retrieval; ``mesh_loader``: a ``MeshLoader`` to reuse over a batch of photos (default: one
-    started for this photo). ValueError with a one-line message for bad input (see the module
-    docstring), a damaged catalogue included (an object unreadable or gone: "the catalogue
-    ...")."""
+    started for this photo); ``fov``: the photo's field of view over its narrower side in
+    degrees, when known (a lens's focal length: ``FOV_RANGE``; default: the pose search
+    assumes ``pose.FOV_PRIOR``). ValueError with a one-line message for bad input (see the
+    module docstring), a damaged catalogue included (an object unreadable or gone: "the
+    catalogue ...")."""
+    if fov is not None and not FOV_RANGE[0] <= fov <= FOV_RANGE[1]:
+        raise ValueError(f"field of view {fov} deg outside {FOV_RANGE[0]:g}-{FOV_RANGE[1]:g} deg "
+                         "(over the photo's narrower side)")
     if isinstance(catalog, CatalogReader):
-        return _run(catalog, runtime, mesh_loader, photo, box, mask, mesh, segmenter)
+        return _run(catalog, runtime, mesh_loader, photo, box, mask, mesh, segmenter, fov)
     try:
         reader = CatalogReader(catalog)
     except CatalogError as exc:
         raise ValueError(str(exc)) from None
     with reader:
-        return _run(reader, runtime, mesh_loader, photo, box, mask, mesh, segmenter)
+        return _run(reader, runtime, mesh_loader, photo, box, mask, mesh, segmenter, fov)
 
 
 def _run(reader: CatalogReader, runtime, mesh_loader, photo, box, mask, mesh,
-         segmenter) -> FitResult:
+         segmenter, fov) -> FitResult:
     """``_Fit.run`` with the catalogue's read errors (and any file read error) met anywhere in
     the fit turned into the one-line ValueError (the CLI prints it, never a traceback); a
     ``MeshLoader`` started for the photo when none is given (with retrieval to run, its
@@ -331,9 +337,9 @@ def _run(reader: CatalogReader, runtime, mesh_loader, photo, box, mask, mesh,
         except OSError as exc:                  # no process to be had (limits, memory)
             raise ValueError(f"cannot start the mesh reader's process: {exc}") from None
         with own:
-            return _run(reader, runtime, own, photo, box, mask, mesh, segmenter)
+            return _run(reader, runtime, own, photo, box, mask, mesh, segmenter, fov)
     try:
-        return _Fit(reader, runtime, mesh_loader).run(photo, box, mask, mesh, segmenter)
+        return _Fit(reader, runtime, mesh_loader).run(photo, box, mask, mesh, segmenter, fov)
     except CatalogError as exc:
         raise ValueError(f"the catalogue is damaged: {exc}") from None
     except OSError as exc:                     # a file the fit reads that the reader did not wrap
@@ -504,13 +510,15 @@ class _Fit:
         self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self._t
         self._t = now
 
-    def run(self, photo, box, mask, mesh_key, segmenter) -> FitResult:
+    def run(self, photo, box, mask, mesh_key, segmenter, fov=None) -> FitResult:
         photo = check_image(photo)
         window = PhotoWindow.around(photo.shape[:2], box, mask)
         if window is not None:                  # a large photo: steps 1-6 run on a window of it
             full_shape = photo.shape[:2]
             photo, box, mask = window.cut(photo, box, mask)
-            self.intrinsics = window.intrinsics(full_shape, FOV_PRIOR)
+            self.intrinsics = window.intrinsics(full_shape, fov or FOV_PRIOR)
+        elif fov is not None:                   # the photo's own lens, when known
+            self.intrinsics = photo_intrinsics(photo.shape[:2], fov)
         obj = object_mask(photo, box=box, mask=mask, follow_edges=True)   # foreground.py
         if obj.source == "box":
             x0, y0, x1, y1 = obj.box

@@ -61,6 +61,10 @@ def register(sub) -> None:
                         "retrieval over the whole catalogue")
     p.add_argument("--segmenter", default=None, metavar="onnx:MODEL:CONFIG.json",
                    help="part masks from this ONNX image segmenter instead of the render")
+    p.add_argument("--fov", type=float, default=None, metavar="DEG",
+                   help="the photos' field of view over the narrower side, in degrees, when "
+                        "known (a long lens: small, a close-up with a wide lens: large); "
+                        "default: 45 assumed")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     p.set_defaults(func=run)
 
@@ -93,7 +97,7 @@ def run(args) -> int:
             loader = _loader_for(args.mesh)
             try:
                 res, out = fit_one(reader, args.photo, args.box, args.mask, args.mesh,
-                                   args.out, segmenter, loader)
+                                   args.out, segmenter, loader, args.fov)
             except ValueError as exc:
                 print(f"{args.photo}: {exc}", file=sys.stderr)
                 return 2
@@ -151,7 +155,7 @@ def run_list(reader, args, segmenter) -> int:
         for path, box, mask, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
             try:
                 res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out,
-                                   segmenter, mesh_loader)
+                                   segmenter, mesh_loader, args.fov)
                 tqdm.write(f"ok    {path} -> {out}.json ({res.mesh_path})")
             except ValueError as exc:
                 failed += 1
@@ -216,10 +220,12 @@ def read_list(path: Path) -> list:
     return rows
 
 
-def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter, mesh_loader=None):
+def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter, mesh_loader=None,
+            fov: float | None = None):
     """Fit one photo and write its three outputs; ValueError with one line on bad input.
     ``mesh_loader``: an ``ingest.MeshLoader`` kept over a list of photos, or started for this
-    photo's given mesh (else the fit starts one); a given mesh is read ahead in its child."""
+    photo's given mesh (else the fit starts one); a given mesh is read ahead in its child;
+    ``fov``: the photo's field of view (``fit_photo``)."""
     _read_ahead(reader, mesh, mesh_loader)
     from ..fit import fit_photo
     from .common import read_image, read_mask
@@ -227,7 +233,7 @@ def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter,
     image = read_image(photo)
     mask = read_mask(mask_path, image.shape[:2]) if mask_path is not None else None
     res = fit_photo(image, box=box, mask=mask, catalog=reader, mesh=mesh, segmenter=segmenter,
-                    mesh_loader=mesh_loader)
+                    mesh_loader=mesh_loader, fov=fov)
     try:
         out = write_outputs(res, out_dir, photo.stem)
     except OSError as exc:
