@@ -38,7 +38,8 @@
    ``ingest.MeshLoader``, so that the reader's import runs beside retrieval and a reader that
    crashes or hangs costs the pose, not the process; the CLI reads a given mesh there ahead),
    its coarse ring taken from the catalogue's stored features
-   (``catalog_ring``, refinement renders at most ``RING_SIDE`` pixels); when the file is gone
+   (``catalog_ring``, refinement renders at most ``RING_SIDE`` pixels), the photo's camera
+   assumed of ``pose.FOV_PRIOR`` unless ``fov`` is given; when the file is gone
    or unreadable, the nearest stored view of that mesh is used as is, scaled and shifted onto
    the object's box (``pose.source = "stored view"``, and a note says so). Then azimuth and elevation are touched up by ``ROT_STEPS``
    (at most ``ROT_RANGE``) for the best silhouette IoU, the render's silhouette is shifted by
