@@ -136,6 +136,21 @@ def test_a_render_of_the_mesh_itself_is_found_within_one_degree(vehicle, coarse)
     assert not est.ambiguous
 
 
+@pytest.mark.parametrize("fov", [15.0, 80.0])
+def test_a_known_field_of_view_gives_the_photos_focal_length(vehicle, coarse, fov):
+    """A long-lens and a wide-lens photo: told its field of view (``fov``), the search reports
+    the photo's focal length within 20 % and the pose within 3 deg; assuming 45 deg (the
+    default), the focal length is off by over 40 %."""
+    mesh, parts = vehicle
+    img, box, mask, ring = _reference(mesh, parts, 63.0, 12.0, fov=fov, seed=4)
+    f_true = float(ring.K[0, 0])
+    told = estimate_pose(img, mesh, box=box, coarse=coarse, top=1, fov=fov).best
+    guess = estimate_pose(img, mesh, box=box, coarse=coarse, top=1).best
+    assert abs(told.K[0, 0] / f_true - 1.0) < 0.2, (told.K, f_true)
+    assert abs(guess.K[0, 0] / f_true - 1.0) > 0.4, (guess.K, f_true)
+    assert az_diff(told.azimuth, 63.0) <= 3.0 and abs(told.elevation - 12.0) <= 3.0, told
+
+
 @pytest.fixture(scope="module")
 def catalogue_rings(vehicle, runtime):
     """The coarse ring a catalogue stores (rings at 5 and 15 deg, 5 deg azimuth steps)."""
@@ -388,6 +403,15 @@ def test_cli_table_json_and_errors(tmp_path, capsys, runtime):
         rc = main(["pose", str(tmp_path / name), str(paths[0]), "--box", "0", "0", "5", "5"])
         err = capsys.readouterr().err.strip()
         assert rc == 2 and f"{name}: " in err and what in err and len(err.splitlines()) == 1
+    # a field of view: out of range, or with --catalog (stored cameras), one line
+    rc = main(["pose", str(tmp_path / "ref.png"), str(paths[0]), "--box", *map(str, box),
+               "--fov", "0"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "field of view" in err and len(err.splitlines()) == 1
+    rc = main(["pose", str(tmp_path / "ref.png"), "--catalog", str(tmp_path), "--box",
+               *map(str, box), "--fov", "30"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--fov" in err and len(err.splitlines()) == 1
     # a 16-bit grayscale photo is converted: the same pose as the 8-bit colour one
     gray16 = cv2.cvtColor(img[:, :, ::-1], cv2.COLOR_BGR2GRAY).astype(np.uint16) * 257
     cv2.imwrite(str(tmp_path / "gray16.png"), gray16)

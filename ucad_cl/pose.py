@@ -194,7 +194,8 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
                   fov_deg: float = 40.0, size: int = 128, top: int = 5, refine: bool = True,
                   coarse: PoseRing | None = None, method: PoseMethod = ROBUST,
                   runtime: Runtime | None = None,
-                  intrinsics: np.ndarray | None = None) -> PoseEstimate:
+                  intrinsics: np.ndarray | None = None,
+                  fov: float | None = None) -> PoseEstimate:
     """Best ``top`` poses of ``mesh`` for the object in ``image`` ((H, W, 3) uint8 RGB), rendered
     on ``runtime`` (default ``get_runtime()``).
 
@@ -206,15 +207,22 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     does so); default: the principal point at the image centre and the focal length of
     ``method.fov_prior`` over the narrower side. Without it a large photo is searched in a
     window around its object (``foreground.PhotoWindow``), and the candidates' ``K`` and the
-    object come back in the photo's pixels. ValueError naming the problem for a bad image, an
-    empty or tiny mask or box.
+    object come back in the photo's pixels. ``fov``: the photo's field of view over its
+    narrower side in degrees, when known (instead of ``method.fov_prior``; ignored with
+    ``intrinsics``). ValueError naming the problem for a bad image, an empty or tiny mask or
+    box.
     """
+    if fov is not None and not 0.0 < fov < 180.0:
+        raise ValueError(f"field of view {fov} deg must be between 0 and 180")
+    prior = fov or method.fov_prior or FOV_PRIOR
     window = (PhotoWindow.around(np.shape(image)[:2], box, mask) if intrinsics is None
               else None)
     if window is not None:
         full_shape = np.shape(image)[:2]
         image, box, mask = window.cut(check_image(image), box, mask)
-        intrinsics = window.intrinsics(full_shape, method.fov_prior or FOV_PRIOR)
+        intrinsics = window.intrinsics(full_shape, prior)
+    elif intrinsics is None and fov is not None:
+        intrinsics = photo_intrinsics(np.shape(image)[:2], fov)
     obj = object_mask(image, box=box, mask=mask, grabcut=method.isolate)
     if top < 1:
         raise ValueError(f"top={top} must be >= 1")

@@ -59,6 +59,9 @@ def register(sub) -> None:
     p.add_argument("--onnx", type=Path, default=None,
                    help="use this ONNX image encoder (e.g. DINOv2, see docs/POSE.md) for the "
                         "feature cue instead of the built-in HOG")
+    p.add_argument("--fov", type=float, default=None, metavar="DEG",
+                   help="the photo's field of view over the narrower side, in degrees, when "
+                        "known (default: 45 assumed; with MESH only)")
     p.add_argument("--json", action="store_true",
                    help="print JSON: object, decision and every candidate with K and w2c")
     p.add_argument("--out", type=Path, default=None,
@@ -88,6 +91,10 @@ def run(args) -> int:
         print("--onnx cannot be used with --catalog: the catalogue stores the built-in HOG "
               "features", file=sys.stderr)
         return 2
+    if args.catalog is not None and args.fov is not None:
+        print("--fov cannot be used with --catalog: it lists the stored views' own cameras",
+              file=sys.stderr)
+        return 2
     image, mask = _read_inputs(args)
     if image is None:
         return 2
@@ -113,7 +120,8 @@ def run(args) -> int:
     try:
         est = estimate_pose(image, mesh, box=args.box, mask=mask, extractor=extractor,
                             azimuth_step=args.step, elevations=args.elevations,
-                            top=args.top, refine=not args.no_refine, method=method)
+                            top=args.top, refine=not args.no_refine, method=method,
+                            fov=args.fov)
     except ValueError as exc:
         print(f"{args.image}: {exc}", file=sys.stderr)
         return 2
