@@ -104,8 +104,8 @@ from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
                     plausible_cast, predict, shading)
 from .orient import in_frame
-from .pose import (FOV_PRIOR, CatalogMatch, PoseRing, estimate_pose, query_features,
-                   search_catalog)
+from .pose import (FOV_PRIOR, CatalogMatch, PoseRing, check_fov, estimate_pose,
+                   query_features, search_catalog)
 from .render import render_views
 from .runtime import Runtime
 from .segment import OnnxSegmenter
@@ -130,7 +130,6 @@ NEUTRAL_PARTS = ("wheel",)  # white balance: tyres are taken as neutral grey ...
 TYRE_LUMA = 0.2             # ... when their fitted luminance is at most this (tyres are dark;
 #                             a light "tyre" means its mask landed on something else)
 RERANK_POSE = 1             # retrieval: the first meshes posed; the best pose score wins
-FOV_RANGE = (5.0, 120.0)    # fit_photo(fov=...): fields of view accepted, degrees
 POSE_PROXY_FROM = 150_000   # meshes over this many triangles are posed on a render proxy ...
 POSE_PROXY_CELLS = 256      # ... clustered on diagonal / 256 (decimate.render_proxy; docs/FIT.md)
 CANDIDATES = 5              # distinct meshes listed by retrieval
@@ -309,13 +308,11 @@ def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
     ``catalog`` (a path or an open reader); ``mesh`` (id, id prefix, path or file name) skips
     retrieval; ``mesh_loader``: a ``MeshLoader`` to reuse over a batch of photos (default: one
     started for this photo); ``fov``: the photo's field of view over its narrower side in
-    degrees, when known (a lens's focal length: ``FOV_RANGE``; default: the pose search
+    degrees, when known (a lens's focal length: ``pose.FOV_RANGE``; default: the pose search
     assumes ``pose.FOV_PRIOR``). ValueError with a one-line message for bad input (see the
     module docstring), a damaged catalogue included (an object unreadable or gone: "the
     catalogue ...")."""
-    if fov is not None and not FOV_RANGE[0] <= fov <= FOV_RANGE[1]:
-        raise ValueError(f"field of view {fov} deg outside {FOV_RANGE[0]:g}-{FOV_RANGE[1]:g} deg "
-                         "(over the photo's narrower side)")
+    check_fov(fov)
     if isinstance(catalog, CatalogReader):
         return _run(catalog, runtime, mesh_loader, photo, box, mask, mesh, segmenter, fov)
     try:

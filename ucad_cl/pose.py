@@ -64,6 +64,7 @@ from .search import search as knn_search
 from .shade import face_normals, shade_views
 
 FOV_PRIOR = 45.0            # assumed field of view of a photo over its narrower side, degrees
+FOV_RANGE = (5.0, 120.0)    # a field of view given instead (estimate_pose / fit_photo fov=)
 #: score gap below which the best twin is called a close call; tuning split, 360 references per
 #: mode: with a box it flags 10 % of the answers, half of the wrong ones (47 % of the flagged are
 #: wrong, 10 % of all); with a mask 1.4 % of the answers, none wrong
@@ -208,12 +209,11 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     ``method.fov_prior`` over the narrower side. Without it a large photo is searched in a
     window around its object (``foreground.PhotoWindow``), and the candidates' ``K`` and the
     object come back in the photo's pixels. ``fov``: the photo's field of view over its
-    narrower side in degrees, when known (instead of ``method.fov_prior``; ignored with
+    narrower side in degrees (``FOV_RANGE``), when known (instead of ``method.fov_prior``; ignored with
     ``intrinsics``). ValueError naming the problem for a bad image, an empty or tiny mask or
     box.
     """
-    if fov is not None and not 0.0 < fov < 180.0:
-        raise ValueError(f"field of view {fov} deg must be between 0 and 180")
+    check_fov(fov)
     prior = fov or method.fov_prior or FOV_PRIOR
     window = (PhotoWindow.around(np.shape(image)[:2], box, mask) if intrinsics is None
               else None)
@@ -260,6 +260,13 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     runner = next((c for c in cands if c.flipped), None)
     ambiguous = bool(method.twins) and runner is not None and runner.gap < AMBIGUOUS_GAP
     return PoseEstimate(candidates=cands, object=obj, ambiguous=ambiguous)
+
+
+def check_fov(fov: float | None) -> None:
+    """ValueError unless ``fov`` is None or inside ``FOV_RANGE`` (NaN is not)."""
+    if fov is not None and not FOV_RANGE[0] <= fov <= FOV_RANGE[1]:
+        raise ValueError(f"field of view {fov} deg outside {FOV_RANGE[0]:g}-{FOV_RANGE[1]:g} deg "
+                         "(over the photo's narrower side)")
 
 
 def pose_ring(mesh: Mesh, extractor: FeatureExtractor, *, azimuth_step: float = 10.0,
