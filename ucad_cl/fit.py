@@ -98,7 +98,7 @@ from .cues import boundary_points, edge_distance, edge_recall, photo_edges, regi
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import (ObjectMask, PhotoWindow, box_stretch, check_image, mask_box,
-                         object_mask, photo_intrinsics, refine_with_silhouette)
+                         object_mask, refine_with_silhouette)
 from .ingest import IngestError, MeshLoader
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
@@ -501,6 +501,7 @@ class _Fit:
         self.angles: dict[str, list[ViewAngles]] = {}             # sha -> its views' angles
         self.stored_rows = _StoredRows(reader, self.notes)          # retrieval's rows
         self.intrinsics: np.ndarray | None = None   # the photo's assumed K in a window's pixels
+        self.fov: float | None = None               # the photo's field of view, when given
         self._t = time.perf_counter()
 
     def _lap(self, stage: str) -> None:
@@ -515,8 +516,7 @@ class _Fit:
             full_shape = photo.shape[:2]
             photo, box, mask = window.cut(photo, box, mask)
             self.intrinsics = window.intrinsics(full_shape, fov or FOV_PRIOR)
-        elif fov is not None:                   # the photo's own lens, when known
-            self.intrinsics = photo_intrinsics(photo.shape[:2], fov)
+        self.fov = fov                          # else the pose search makes K of it
         obj = object_mask(photo, box=box, mask=mask, follow_edges=True)   # foreground.py
         if obj.source == "box":
             x0, y0, x1, y1 = obj.box
@@ -864,7 +864,7 @@ class _Fit:
         if mesh.n_faces > POSE_PROXY_FROM:        # silhouettes at RING_SIDE px: a proxy will do
             mesh = render_proxy(mesh, POSE_PROXY_CELLS)
         est = estimate_pose(photo, mesh, coarse=ring, top=1, runtime=self.runtime,
-                            intrinsics=self.intrinsics, **given)
+                            intrinsics=self.intrinsics, fov=self.fov, **given)
         c = est.best
         assert c.K is not None and c.w2c is not None
         return FitPose(c.azimuth, c.elevation, np.asarray(c.K, np.float64),
