@@ -69,6 +69,13 @@ def camera_position(azimuth: float, elevation: float, distance: float) -> np.nda
     return distance * np.array([np.cos(e) * np.cos(a), np.sin(e), -np.cos(e) * np.sin(a)])
 
 
+def camera_distance(w2c) -> float:
+    """Distance of a camera's centre (-R^T t of a 4x4 world-to-camera matrix) from the
+    canonical origin, the vehicle's centre."""
+    w2c = np.asarray(w2c, np.float64)
+    return float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3]))
+
+
 def look_at_w2c(azimuth: float, elevation: float, distance: float,
                 target: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     """4x4 world-to-camera matrix of a camera looking at ``target`` (OpenCV axes, +Y world up)."""

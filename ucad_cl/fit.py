@@ -92,7 +92,7 @@ from ucad_catalog.reader import CatalogReader, FeatureTable, MeshInfo, ViewAngle
 from ucad_catalog.searchindex import SearchIndex
 
 from .artifacts import CameraRing, Mesh
-from .cameras import pixel_rays
+from .cameras import camera_distance, pixel_rays
 from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
 from .cues import boundary_points, edge_distance, edge_recall, photo_edges, region_residual
 from .decimate import render_proxy
@@ -959,7 +959,7 @@ def _facing(normal: np.ndarray, view: np.ndarray) -> np.ndarray:
 
 
 def _render_frame(mesh: Mesh, K, w2c, w: int, h: int, lut, runtime) -> _Frame:
-    dist = float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3]))
+    dist = camera_distance(w2c)
     ring = CameraRing(K=np.asarray(K, np.float64), w2c=np.asarray(w2c, np.float64)[None],
                       width=w, height=h, azimuth=np.zeros(1), elevation=np.zeros(1),
                       distance=dist, near=0.01 * dist)
@@ -994,7 +994,7 @@ def _rotated(w2c: np.ndarray, d_az: float, d_el: float) -> np.ndarray:
 def _silhouette_iou(mesh, K, w2c, obj: np.ndarray, runtime) -> float:
     """IoU of the render's silhouette and ``obj`` after the best whole-pixel shift."""
     h, w = obj.shape
-    dist = float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3]))
+    dist = camera_distance(w2c)
     ring = CameraRing(K=np.asarray(K, np.float64), w2c=np.asarray(w2c, np.float64)[None],
                       width=w, height=h, azimuth=np.zeros(1), elevation=np.zeros(1),
                       distance=dist, near=0.01 * dist)

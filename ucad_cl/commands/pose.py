@@ -189,6 +189,7 @@ def run_catalog(args, image, mask) -> int:
     import cv2
     import numpy as np
 
+    from ..cameras import camera_distance
     from ..features import HogExtractor
     from ..fit import catalog_rows
     from ..ingest import IngestError, load_mesh
@@ -232,9 +233,8 @@ def run_catalog(args, image, mask) -> int:
     rows = []                # (match, its camera, the camera's distance, the photo's estimate)
     for mt in matches:
         v = cameras[mt.mesh][mt.view]
-        w2c = np.asarray(v.w2c, np.float64)
         K = np.asarray(v.K, np.float64)
-        dist = float(np.linalg.norm(w2c[:3, :3].T @ w2c[:3, 3]))
+        dist = camera_distance(v.w2c)
         side = float(v.stats.get("box_side", np.nan)) / min(K[:2, 2] * 2)
         rows.append((mt, v, dist, dist * side / q_side if q_side > 0 else float("nan")))
     best, best_cam, best_dist, _ = rows[0]
