@@ -67,3 +67,22 @@ def test_viewset_select_keeps_maps_and_cameras_together():
     assert np.array_equal(sub.tri_id, vs.tri_id[[1, 6]])
     assert np.array_equal(sub.cameras.w2c, ring.w2c[[1, 6]])
     assert list(sub.cameras.azimuth) == [90.0, 180.0] and list(sub.cameras.elevation) == [0.0, 30.0]
+
+
+def test_single_camera_is_the_rings_view_and_its_distance_the_centres():
+    """A one-view ring of a ring's camera equals that view (K, w2c, distance, near) and a
+    moved camera's distance is its centre's, found by solving w2c [c; 1] = [0; 0; 0; 1]."""
+    from ucad_cl.cameras import NEAR_FRACTION, camera_distance, single_camera
+
+    ring = make_ring(azimuths=[35.0], elevations=[12.0], size=(48, 32), distance=2.5)
+    one = single_camera(ring.K, ring.w2c[0], 48, 32, azimuth=35.0, elevation=12.0)
+    assert np.array_equal(one.K, ring.K) and np.array_equal(one.w2c, ring.w2c)
+    assert (one.width, one.height) == (48, 32)
+    assert one.distance == pytest.approx(2.5, abs=1e-12)
+    assert one.near == pytest.approx(ring.near, abs=1e-12) == NEAR_FRACTION * 2.5
+    w2c = ring.w2c[0].copy()
+    w2c[:3, 3] += [0.3, -0.2, 0.9]                         # the camera moved off the ring
+    centre = np.linalg.solve(w2c, [0.0, 0.0, 0.0, 1.0])
+    assert camera_distance(w2c) == pytest.approx(np.linalg.norm(centre[:3] / centre[3]), rel=1e-12)
+    assert single_camera(ring.K, w2c, 48, 32).near == pytest.approx(
+        NEAR_FRACTION * camera_distance(w2c), rel=1e-12)

@@ -19,6 +19,7 @@ from .artifacts import CameraRing
 BOUND_RADIUS = 0.5      # canonical bounding sphere radius (bbox diagonal 1)
 BUILD_ELEVATIONS = (15.0, 5.0)   # the build's stored rings, the label ring first (label_ring)
 MAX_SIZE = 8192         # the rasterizer's fixed-point range is proven for images up to this size
+NEAR_FRACTION = 0.01    # default near plane: this fraction of the camera's distance
 
 
 def make_ring(azimuth_step: float = 5.0, elevations: Sequence[float] = (15.0,),
@@ -29,7 +30,7 @@ def make_ring(azimuth_step: float = 5.0, elevations: Sequence[float] = (15.0,),
 
     size: int (square) or (width, height) in pixels. fov_deg: field of view of the narrower side.
     distance: camera distance from the origin (canonical units); fitted when None.
-    near: near-plane depth; default 1 % of the distance.
+    near: near-plane depth; default ``NEAR_FRACTION`` of the distance.
     """
     width, height = (size, size) if np.isscalar(size) else (int(size[0]), int(size[1]))
     if not (1 <= width <= MAX_SIZE and 1 <= height <= MAX_SIZE):
@@ -55,7 +56,7 @@ def make_ring(azimuth_step: float = 5.0, elevations: Sequence[float] = (15.0,),
     if distance is None:
         distance = margin * BOUND_RADIUS / np.sin(half)
     if near is None:
-        near = 0.01 * distance
+        near = NEAR_FRACTION * distance
     all_el = np.repeat(el, az.size)
     all_az = np.tile(az, el.size)
     w2c = np.stack([look_at_w2c(a, e, distance) for a, e in zip(all_az, all_el)])
@@ -67,6 +68,20 @@ def camera_position(azimuth: float, elevation: float, distance: float) -> np.nda
     """Camera centre in the canonical frame for the given azimuth/elevation (degrees)."""
     a, e = np.radians(azimuth), np.radians(elevation)
     return distance * np.array([np.cos(e) * np.cos(a), np.sin(e), -np.cos(e) * np.sin(a)])
+
+
+def single_camera(K, w2c, width: int, height: int, *, azimuth: float = 0.0,
+                  elevation: float = 0.0, distance: float | None = None) -> CameraRing:
+    """A one-view ring of the camera ``K`` (3x3), ``w2c`` (4x4) over a ``width`` x ``height``
+    image (a photo's camera, to render a mesh as the photo sees it). distance: the camera's
+    distance from the vehicle's centre, default ``camera_distance(w2c)``; near plane
+    ``NEAR_FRACTION`` of it, as on every ring."""
+    if distance is None:
+        distance = camera_distance(w2c)
+    return CameraRing(K=np.asarray(K, np.float64), w2c=np.asarray(w2c, np.float64)[None],
+                      width=int(width), height=int(height), azimuth=np.array([float(azimuth)]),
+                      elevation=np.array([float(elevation)]), distance=float(distance),
+                      near=NEAR_FRACTION * float(distance))
 
 
 def camera_distance(w2c) -> float:

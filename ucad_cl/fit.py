@@ -92,7 +92,7 @@ from ucad_catalog.reader import CatalogReader, FeatureTable, MeshInfo, ViewAngle
 from ucad_catalog.searchindex import SearchIndex
 
 from .artifacts import CameraRing, Mesh
-from .cameras import camera_distance, pixel_rays
+from .cameras import NEAR_FRACTION, camera_distance, pixel_rays, single_camera
 from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_linear, srgb_hex
 from .cues import boundary_points, edge_distance, edge_recall, photo_edges, region_residual
 from .decimate import render_proxy
@@ -360,13 +360,13 @@ def catalog_ring(reader: CatalogReader, key: str) -> PoseRing:
     w2c = np.stack([np.asarray(v["w2c"], np.float64) for v in views])
     az = np.array([v["azimuth"] for v in views], np.float64)
     el = np.array([v["elevation"] for v in views], np.float64)
-    dist = float(np.linalg.norm(w2c[0, :3, :3].T @ w2c[0, :3, 3]))
+    dist = camera_distance(w2c[0])
     W, H = int(round(2 * K[0, 2])), int(round(2 * K[1, 2]))
     f = min(1.0, RING_SIDE / max(W, H))            # pose refinement renders at this size
     K = np.diag([f, f, 1.0]) @ K
     W, H = max(1, int(round(W * f))), max(1, int(round(H * f)))
     ring = CameraRing(K=K, w2c=w2c, width=W, height=H, azimuth=az, elevation=el,
-                      distance=dist, near=0.01 * dist)
+                      distance=dist, near=NEAR_FRACTION * dist)
     sides = f * np.array([float(v["stats"].get("box_side", 0.0)) for v in views])
     return PoseRing(ring=ring, feats=np.asarray(feats, np.float32), sides=sides,
                     extractor=HogExtractor(), azimuth_step=azimuth_step(el))
@@ -959,11 +959,7 @@ def _facing(normal: np.ndarray, view: np.ndarray) -> np.ndarray:
 
 
 def _render_frame(mesh: Mesh, K, w2c, w: int, h: int, lut, runtime) -> _Frame:
-    dist = camera_distance(w2c)
-    ring = CameraRing(K=np.asarray(K, np.float64), w2c=np.asarray(w2c, np.float64)[None],
-                      width=w, height=h, azimuth=np.zeros(1), elevation=np.zeros(1),
-                      distance=dist, near=0.01 * dist)
-    views = render_views(mesh, ring, runtime=runtime)
+    views = render_views(mesh, single_camera(K, w2c, w, h), runtime=runtime)
     tri = views.tri_id[0].astype(np.int64)
     fg = tri != 0xFFFFFFFF
     normals = face_normals(mesh)
@@ -994,11 +990,7 @@ def _rotated(w2c: np.ndarray, d_az: float, d_el: float) -> np.ndarray:
 def _silhouette_iou(mesh, K, w2c, obj: np.ndarray, runtime) -> float:
     """IoU of the render's silhouette and ``obj`` after the best whole-pixel shift."""
     h, w = obj.shape
-    dist = camera_distance(w2c)
-    ring = CameraRing(K=np.asarray(K, np.float64), w2c=np.asarray(w2c, np.float64)[None],
-                      width=w, height=h, azimuth=np.zeros(1), elevation=np.zeros(1),
-                      distance=dist, near=0.01 * dist)
-    sil = np.isfinite(render_views(mesh, ring, runtime=runtime).depth[0])
+    sil = np.isfinite(render_views(mesh, single_camera(K, w2c, w, h), runtime=runtime).depth[0])
     return _best_shift(sil, obj, max(1, int(round(SHIFT * max(h, w)))))[0]
 
 

@@ -52,7 +52,7 @@ from typing import Sequence
 import numpy as np
 
 from .artifacts import CameraRing, Mesh
-from .cameras import look_at_w2c, make_ring
+from .cameras import look_at_w2c, make_ring, single_camera
 from .cues import Cues, combine, cue_distances, hog_distance, query_cues, view_cues
 from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
 from .foreground import (RENDER_BACKGROUND, ObjectMask, PhotoWindow, axis_turn, centre_on_axis,
@@ -695,9 +695,8 @@ class _Search:
         """(H, W) bool silhouette of pose ``p`` rendered with its photo camera."""
         K, w2c = self.camera(p)
         H, W = self.image_shape
-        ring = CameraRing(K=K, w2c=w2c[None], width=W, height=H,
-                          azimuth=np.array([p.azimuth]), elevation=np.array([p.elevation]),
-                          distance=p.distance, near=0.01 * p.distance)
+        ring = single_camera(K, w2c, W, H, azimuth=p.azimuth, elevation=p.elevation,
+                             distance=p.distance)
         return np.isfinite(render_views(self.mesh, ring, runtime=self.runtime).depth[0])
 
 

@@ -302,8 +302,7 @@ def side_by_side(image, mask, mesh, cand, size: int = 256):
     import cv2
     import numpy as np
 
-    from ..cameras import make_ring
-    from ..artifacts import CameraRing
+    from ..cameras import make_ring, single_camera
     from ..features import crop_square, crop_window, square_windows
     from ..foreground import RENDER_BACKGROUND
     from ..render import render_views
@@ -314,10 +313,9 @@ def side_by_side(image, mask, mesh, cand, size: int = 256):
     if cand.K is not None and cand.w2c is not None:
         s = size / side            # photo pixel coordinates -> the tile's: (x - left) * s
         to_tile = np.array([[s, 0.0, -left * s], [0.0, s, -top * s], [0.0, 0.0, 1.0]])
-        ring = CameraRing(K=to_tile @ np.asarray(cand.K, np.float64), w2c=cand.w2c[None],
-                          width=size, height=size, azimuth=np.array([cand.azimuth]),
-                          elevation=np.array([cand.elevation]), distance=cand.distance,
-                          near=0.01 * cand.distance)
+        ring = single_camera(to_tile @ np.asarray(cand.K, np.float64), cand.w2c, size, size,
+                             azimuth=cand.azimuth, elevation=cand.elevation,
+                             distance=cand.distance)
         sil = np.isfinite(render_views(mesh, ring).depth[0]).astype(np.uint8)
         contours, _ = cv2.findContours(sil, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         ref = ref.copy()
