@@ -97,8 +97,8 @@ from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_l
 from .cues import boundary_points, edge_distance, edge_recall, photo_edges, region_residual
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
-from .foreground import (ObjectMask, PhotoWindow, box_stretch, check_image, mask_box,
-                         object_mask, refine_with_silhouette)
+from .foreground import (RENDER_BACKGROUND, ObjectMask, PhotoWindow, box_stretch, check_image,
+                         mask_box, object_mask, refine_with_silhouette)
 from .ingest import IngestError, MeshLoader
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
@@ -151,6 +151,10 @@ MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of
 SEED_MASK_STEP = 10.0       # ... and each seed alone too, over stored rings of at most this
 #                             azimuth step (degrees; docs/FIT.md)
 SHADE_THREADS = 2           # threads shading the re-rank's stored views (_describe_fine)
+PAST_EDGE = (0.1, 0.25, 0.5)   # retrieval of an object touching the photo's edge also assumes
+#                             it goes on past it by these shares of its visible extent
+#                             (``past_the_edge``; docs/FIT.md)
+EDGE_PIXELS = 1             # ... when its box reaches within this many pixels of that edge
 
 
 class PhotoSegmenter(Protocol):
@@ -627,6 +631,15 @@ class _Fit:
             m2, c2, v2 = self._pick_mesh(photo, alt, None)
             if c2[0].score < candidates[0].score:
                 meta, candidates, best_view = m2, c2, v2
+        cut = past_the_edge(photo, obj) if mesh_key is None else []
+        for wider, past in cut:                 # a vehicle cut by the photo's edge (ties: as
+            m2, c2, v2 = self._pick_mesh(wider, past, None)       # seen, then PAST_EDGE order)
+            if c2[0].score < candidates[0].score:
+                meta, candidates, best_view = m2, c2, v2
+        if cut:
+            self.notes.append("the vehicle touches the photo's edge: retrieval also tried it "
+                              "going on past the edge; the pose and the colours use what the "
+                              "photo shows")
         return obj, meta, candidates, best_view
 
     # -- which mesh
@@ -956,6 +969,42 @@ def _facing(normal: np.ndarray, view: np.ndarray) -> np.ndarray:
     flip = np.einsum("...i,...i->...", n, view) < 0
     n[flip] *= -1.0
     return n
+
+
+def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[tuple[np.ndarray, ObjectMask]]:
+    """Retrieval's hypotheses for an object cut by the photo's edge (its box, given or the
+    mask's, within ``EDGE_PIXELS`` of it): for each share e of ``PAST_EDGE``, the photo grown by
+    e x the mask's visible width (height) past every side the box touches, the new pixels the
+    renders' background, and one mask pixel at the new edge (in the mask's outermost row or
+    column there) so that the descriptor's crop frames the whole assumed vehicle; what the
+    photo does not show stays background. [] when the box touches no edge."""
+    H, W = obj.mask.shape
+    bx0, by0, bx1, by1 = obj.box
+    sides = (bx0 <= EDGE_PIXELS, by0 <= EDGE_PIXELS, bx1 >= W - EDGE_PIXELS,
+             by1 >= H - EDGE_PIXELS)                          # left, top, right, bottom
+    if not any(sides):
+        return []
+    mask = obj.mask
+    x0, y0, x1, y1 = mask_box(mask)
+    out = []
+    for e in PAST_EDGE:
+        gx, gy = int(round(e * (x1 - x0))), int(round(e * (y1 - y0)))
+        left, top, right, bottom = (g * s for g, s in zip((gx, gy, gx, gy), sides))
+        wider = np.empty((H + top + bottom, W + left + right, 3), np.uint8)
+        wider[...] = RENDER_BACKGROUND
+        wider[top:top + H, left:left + W] = photo
+        past = np.zeros(wider.shape[:2], bool)
+        past[top:top + H, left:left + W] = mask
+        if left:
+            past[top + int(np.flatnonzero(mask[:, x0])[0]), 0] = True
+        if right:
+            past[top + int(np.flatnonzero(mask[:, x1 - 1])[0]), -1] = True
+        if top:
+            past[0, left + int(np.flatnonzero(mask[y0])[0])] = True
+        if bottom:
+            past[-1, left + int(np.flatnonzero(mask[y1 - 1])[0])] = True
+        out.append((wider, ObjectMask(mask=past, source="mask", box=mask_box(past))))
+    return out
 
 
 def _render_frame(mesh: Mesh, K, w2c, w: int, h: int, lut, runtime) -> _Frame:
