@@ -21,8 +21,8 @@ centre), clutter, noise and JPEG quality 70-95; the box given to the fit is the 
 with each side moved by up to 3 % of its size (then moved out by ``--box-grow`` of its size: a
 user's or a detector's box is rarely pixel-tight; the same draws otherwise). ``--scene`` moves
 one of the camera's ranges outside the bench's (``SCENES``: photos from higher up, long or wide
-lenses, far-away vehicles), the rest of each draw unchanged: how the fit holds on photos unlike
-those it was tuned on.
+lenses, far-away vehicles, vehicles cut by the photo's edge), the rest of each draw unchanged:
+how the fit holds on photos unlike those it was tuned on.
 
 The catalogue (``ucad_cl.build`` with default options, the shipped labeller) holds the real
 library (every file, the excluded ones too, as distractors) and the generated library: >= 100
@@ -113,6 +113,9 @@ SCENES = {
     "tele": dict(elevation=(2.0, 25.0), fov=(10.0, 25.0), fill=(0.7, 0.95)),    # long lens
     "wide": dict(elevation=(2.0, 25.0), fov=(70.0, 90.0), fill=(0.7, 0.95)),    # phone, close
     "small": dict(elevation=(2.0, 25.0), fov=(35.0, 60.0), fill=(0.3, 0.5)),    # far away
+    # the default's photo, then cut by the image's left or right edge through 10-35 % of the
+    # vehicle's width (a parked car at the frame's edge; ``cut_reference``)
+    "cut": dict(elevation=(2.0, 25.0), fov=(35.0, 60.0), fill=(0.7, 0.95), cut=(0.1, 0.35)),
 }
 ROWS = ("end to end", "true object mask", "mesh given", "oracle", "baseline",
         "baseline (true masks)")
@@ -232,10 +235,34 @@ def draw_reference(v: Vehicle, index: int, size, ref_seed: int = REF_SEED, grow:
     x0, y0, x1, y1 = ref.box
     j = rng.uniform(-0.03, 0.03, 4) * np.array([x1 - x0, y1 - y0, x1 - x0, y1 - y0])
     H, W = size
+    if "cut" in cam:                                # drawn after the default's numbers
+        ref = cut_reference(ref, float(rng.uniform(*cam["cut"])), bool(rng.uniform() < 0.5))
+        H, W = ref.mask.shape
+        j[0 if ref.box[0] == 0 else 2] = 0.0        # the box reaches the edge that cuts it
+        x0, y0, x1, y1 = ref.box
     g = grow * np.array([x1 - x0, y1 - y0])       # --box-grow: a looser box, as users draw them
     box = (float(np.clip(x0 + j[0] - g[0], 0, W - 1)), float(np.clip(y0 + j[1] - g[1], 0, H - 1)),
            float(np.clip(x1 + j[2] + g[0], 1, W)), float(np.clip(y1 + j[3] + g[1], 1, H)))
     return ref, box
+
+
+def cut_reference(ref, share: float, left: bool):
+    """The reference cut by the image's left (else right) edge through ``share`` of the
+    vehicle's box width: image, mask and part map cropped, the principal point moved with the
+    crop, the box the cropped mask's."""
+    from dataclasses import replace
+
+    x0, _, x1, _ = ref.box
+    c = int(round(share * (x1 - x0)))
+    a, b = (x0 + c, ref.image.shape[1]) if left else (0, x1 - c)
+    K = np.asarray(ref.K, np.float64).copy()
+    K[0, 2] -= a
+    mask = np.ascontiguousarray(ref.mask[:, a:b])
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    return replace(ref, image=np.ascontiguousarray(ref.image[:, a:b]), mask=mask,
+                   part_map=np.ascontiguousarray(ref.part_map[:, a:b]), K=K,
+                   box=(int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1),
+                   meta={**ref.meta, "cut": (share, "left" if left else "right")})
 
 
 # ----------------------------------------------------------------------------- scoring
@@ -576,7 +603,10 @@ def main(argv=None) -> int:
                     help="the cameras' ranges: " + "; ".join(
                         f"{k}: elevation {v['elevation'][0]:g}-{v['elevation'][1]:g} deg, field of "
                         f"view {v['fov'][0]:g}-{v['fov'][1]:g} deg, fill {v['fill'][0]:g}-"
-                        f"{v['fill'][1]:g}" for k, v in SCENES.items()).replace("%", "%%"))
+                        f"{v['fill'][1]:g}" + (f", cut by the image's edge through "
+                                               f"{v['cut'][0]:g}-{v['cut'][1]:g} of its width"
+                                               if "cut" in v else "")
+                        for k, v in SCENES.items()).replace("%", "%%"))
     ap.add_argument("--true-fov", action="store_true",
                     help="tell the fit each photo's field of view (fit_photo(fov=...), the CLI's "
                          "--fov) instead of letting it assume 45 deg")
