@@ -598,6 +598,9 @@ def test_past_the_edge_grows_the_photo_on_the_sides_the_box_touches():
     both = past_the_edge(photo, ObjectMask(mask=mask, source="mask", box=(0, 0, 80, 60)))
     g, h = int(round(PAST_EDGE[0] * 30)), int(round(PAST_EDGE[0] * 21))
     assert both[0][0].shape == (60 + 2 * h, 80 + 2 * g, 3)
+    dot = np.zeros((60, 80), bool)
+    dot[30, 0] = True                                   # one pixel: nothing to grow by
+    assert past_the_edge(photo, ObjectMask(mask=dot, source="mask", box=(0, 30, 1, 31))) == []
 
 
 def test_a_vehicle_cut_by_the_photos_edge_is_retrieved(catalogue, monkeypatch):

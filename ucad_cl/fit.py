@@ -990,6 +990,8 @@ def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[tuple[np.ndarray, 
     for e in PAST_EDGE:
         gx, gy = int(round(e * (x1 - x0))), int(round(e * (y1 - y0)))
         left, top, right, bottom = (g * s for g, s in zip((gx, gy, gx, gy), sides))
+        if not left + top + right + bottom:         # an object too small to grow: no change
+            continue
         wider = np.empty((H + top + bottom, W + left + right, 3), np.uint8)
         wider[...] = RENDER_BACKGROUND
         wider[top:top + H, left:left + W] = photo
