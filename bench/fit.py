@@ -79,7 +79,7 @@ import os
 import platform
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -91,6 +91,7 @@ from pose_refs import EXCLUDED_REAL, canonical_from_manifest  # noqa: E402
 
 from ucad_catalog.parts import PART_MATERIALS, PART_NAMES  # noqa: E402
 from ucad_cl.colorimetry import delta_e2000, linear_to_lab, srgb8_to_linear  # noqa: E402
+from ucad_cl.foreground import mask_box  # noqa: E402
 from ucad_cl.refphoto import draw_car_colors, draw_light, render_reference  # noqa: E402
 
 VEHICLES = ROOT.parent / "shared" / "data" / "vehicles"
@@ -250,18 +251,14 @@ def cut_reference(ref, share: float, left: bool):
     """The reference cut by the image's left (else right) edge through ``share`` of the
     vehicle's box width: image, mask and part map cropped, the principal point moved with the
     crop, the box the cropped mask's."""
-    from dataclasses import replace
-
     x0, _, x1, _ = ref.box
     c = int(round(share * (x1 - x0)))
     a, b = (x0 + c, ref.image.shape[1]) if left else (0, x1 - c)
     K = np.asarray(ref.K, np.float64).copy()
     K[0, 2] -= a
     mask = np.ascontiguousarray(ref.mask[:, a:b])
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     return replace(ref, image=np.ascontiguousarray(ref.image[:, a:b]), mask=mask,
-                   part_map=np.ascontiguousarray(ref.part_map[:, a:b]), K=K,
-                   box=(int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1),
+                   part_map=np.ascontiguousarray(ref.part_map[:, a:b]), K=K, box=mask_box(mask),
                    meta={**ref.meta, "cut": (share, "left" if left else "right")})
 
 
