@@ -1,7 +1,8 @@
 """Outputs are the same bytes on every usable OpenCL device (ucad_cl/runtime.py): a render
-through both raster paths, material edges (Canny) and the per-part histograms of a generated
-vehicle, compared across every device that passes the self-test. Skipped where fewer than two
-usable devices exist (this project's machines have two PoCL builds; a GPU machine adds one)."""
+through both raster paths, material edges (Canny), the per-part histograms of a generated
+vehicle and HOG descriptors (features.cl), compared across every device that passes the
+self-test. Skipped where fewer than two usable devices exist (this project's machines have two
+PoCL builds; a GPU machine adds one)."""
 from __future__ import annotations
 
 import hashlib
@@ -12,6 +13,7 @@ import pytest
 from ucad_cl.cameras import make_ring
 from ucad_cl.classify import part_histogram
 from ucad_cl.edges import material_edges
+from ucad_cl.features import HogExtractor
 from ucad_cl.render import render_views
 from ucad_cl.runtime import create_runtime, usable_device_specs
 
@@ -30,6 +32,9 @@ def _outputs(spec: str) -> dict[str, str]:
     out["edges"] = _digest(edges.edges)
     masks = np.stack([v.mat_id == m for m in (1, 2, 3)], axis=1)
     out["histogram"] = _digest(part_histogram(v.mat_id, masks, runtime=rt))
+    crops = np.random.default_rng(0).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
+    crops[1] = np.where(v.mat_id[0, :64, :64, None] > 0, 200, 30)    # a silhouette's edges
+    out["features"] = _digest(HogExtractor(runtime=rt).describe(crops))
     return out
 
 

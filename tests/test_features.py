@@ -95,6 +95,59 @@ def test_hog_kernel_matches_numpy_reference(runtime, cfg):
     np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-5)
 
 
+ATAN2_PROBE = """
+kernel void atan2_probe(global const float *y, global const float *x, global float *out) {
+    const int i = get_global_id(0);
+    out[i] = same_bits_atan2(y[i], x[i]);
+}
+"""
+ATAN2_COEFFS = ("0.0028662257", "-0.0161657367", "0.0429096138", "-0.0752896400",
+                "0.1065626393", "-0.1420889944", "0.1999355085", "-0.3333314528")
+
+
+def atan2_float32(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """features.cl's same_bits_atan2 replayed in NumPy float32 (each +, *, / rounded once, as
+    IEEE and the kernel's FP_CONTRACT OFF with correctly rounded division require)."""
+    f = np.float32
+    pi = f("3.14159265358979")
+    ax, ay = np.abs(x), np.abs(y)
+    hi, lo = np.maximum(ax, ay), np.minimum(ax, ay)
+    a = np.divide(lo, hi, out=np.zeros_like(lo), where=hi > 0)
+    s = a * a
+    q = np.full_like(a, f(ATAN2_COEFFS[0]))
+    for c in ATAN2_COEFFS[1:]:
+        q = q * s + f(c)
+    r = a * (f(1.0) + q * s)
+    r = np.where(ay > ax, f(0.5) * pi - r, r)
+    r = np.where(x < 0, pi - r, r)
+    return np.where(hi > 0, np.where(y < 0, -r, r), f(0.0)).astype(np.float32)
+
+
+def test_orientation_is_the_same_bits_as_ieee_float_arithmetic(runtime):
+    """The descriptor's orientation (``same_bits_atan2``) for every gradient the kernel can see
+    (integer gx, gy in [-255, 255]): the same bits as the NumPy float32 replay, so any device with
+    correctly rounded division gives these bits; within 4e-7 rad of float64 atan2."""
+    import pyopencl as cl
+
+    from ucad_cl.runtime import kernel_source
+
+    g = np.arange(-255, 256, dtype=np.float32)
+    y, x = (a.ravel().copy() for a in np.meshgrid(g, g, indexing="ij"))
+    prg = runtime.build_source(kernel_source("features") + ATAN2_PROBE)
+    mf = cl.mem_flags
+    dy = cl.Buffer(runtime.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=y)
+    dx = cl.Buffer(runtime.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=x)
+    dout = cl.Buffer(runtime.ctx, mf.WRITE_ONLY, y.nbytes)
+    prg.atan2_probe(runtime.queue, (y.size,), None, dy, dx, dout)
+    got = np.empty_like(y)
+    cl.enqueue_copy(runtime.queue, got, dout)
+    ref = atan2_float32(y, x)
+    assert np.array_equal(got.view(np.uint32), ref.view(np.uint32)), \
+        f"{np.count_nonzero(got != ref)} of {y.size} orientations differ from the float32 replay"
+    err = np.abs(got.astype(np.float64) - np.arctan2(y.astype(np.float64), x))
+    assert err.max() <= 4e-7                # under 2 ulp of float at pi
+
+
 def test_hog_is_deterministic_and_independent_of_work_group_size(runtime):
     crops = _random_crops(np.random.default_rng(2), 7, 64)
     a = HogExtractor(runtime=runtime).describe(crops)

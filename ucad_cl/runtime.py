@@ -241,11 +241,16 @@ class Runtime:
 
     def build_source(self, source: str, options: tuple[str, ...] = ()):
         """A program built from OpenCL C ``source`` with the options every program of this
-        project gets (OpenCL C 1.2, the kernel ABI's constants) and ``options``; not cached."""
+        project gets (OpenCL C 1.2, the kernel ABI's constants, float division and sqrt
+        correctly rounded where the device offers it: OpenCL otherwise allows 2.5 / 3 ulp, and
+        NVIDIA's defaults differ from PoCL's) and ``options``; not cached."""
         import pyopencl as cl
 
+        exact = (["-cl-fp32-correctly-rounded-divide-sqrt"]
+                 if self.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT
+                 else [])
         return cl.Program(self.ctx, source).build(
-            options=["-cl-std=CL1.2", *abi.defines(), *options])
+            options=["-cl-std=CL1.2", *abi.defines(), *exact, *options])
 
 
 _RUNTIME: Runtime | None = None

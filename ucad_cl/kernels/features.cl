@@ -11,7 +11,7 @@
  *    gx^2 + gy^2 wins (ties: lowest channel), which makes the gradient insensitive to which
  *    colour the paint is. Magnitude m = sqrt(gx^2 + gy^2) / 255 - min_grad (soft threshold:
  *    pixels with m <= 0 do not vote; it removes sensor noise and smooth shading/backgrounds);
- *    orientation t = atan2(gy, gx), folded
+ *    orientation t = atan2(gy, gx) (same_bits_atan2: the same bits on every device), folded
  *    into [0, pi) (unsigned) or [0, 2 pi) (signed). Votes are split linearly between the two
  *    nearest bin centres (centre of bin k at (k + 0.5) * range / bins, cyclic); space is hard
  *    binned (pixel (y, x) goes to cell (y / CELL, x / CELL)). Pixels are visited in row-major
@@ -44,6 +44,30 @@ typedef struct {
 
 #define PI_F 3.14159265358979f
 
+/* atan2(y, x) in [-pi, pi] from +, *, / and exact operations alone: atan on [0, 1] by Abramowitz
+ * & Stegun 4.4.49 (|error| <= 2e-8 exactly; in float within 4e-7 rad, 2 ulp at pi: tests/test_features.py),
+ * then the octant. The library atan2 may round differently on each device (OpenCL allows 6 ulp;
+ * NVIDIA's and PoCL's differ), so the descriptor would too; this one gives the same bits on every
+ * device with correctly rounded division (Runtime.build_source asks for it where supported). */
+static inline float same_bits_atan2(float y, float x) {
+    const float ax = fabs(x), ay = fabs(y);
+    const float hi = fmax(ax, ay), lo = fmin(ax, ay);
+    if (hi == 0.0f) return 0.0f;
+    const float a = lo / hi, s = a * a;
+    float q = 0.0028662257f;
+    q = q * s - 0.0161657367f;
+    q = q * s + 0.0429096138f;
+    q = q * s - 0.0752896400f;
+    q = q * s + 0.1065626393f;
+    q = q * s - 0.1420889944f;
+    q = q * s + 0.1999355085f;
+    q = q * s - 0.3333314528f;
+    float r = a * (1.0f + q * s);           /* atan(lo / hi) in [0, pi / 4] */
+    if (ay > ax) r = 0.5f * PI_F - r;
+    if (x < 0.0f) r = PI_F - r;
+    return y < 0.0f ? -r : r;
+}
+
 static inline int px(global const uchar *im, int S, int y, int x, int c) {
     y = clamp(y, 0, S - 1);
     x = clamp(x, 0, S - 1);
@@ -66,7 +90,7 @@ kernel void hog_pixel_gradients(global const uchar *images, global float2 *grad,
     }
     float mag = sqrt((float)best) / 255.0f - p.min_grad;
     const float range = p.is_signed ? 2.0f * PI_F : PI_F;
-    float t = atan2((float)gy, (float)gx);
+    float t = same_bits_atan2((float)gy, (float)gx);
     if (t < 0.0f) t += 2.0f * PI_F;
     if (!p.is_signed && t >= PI_F) t -= PI_F;
     if (t >= range) t -= range;
