@@ -338,6 +338,28 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path, capsys)
         damaged.write_bytes(back)
 
 
+def test_search_index_is_the_same_bytes_whatever_the_blas_thread_count(built, tmp_path):
+    """The index written with NumPy's BLAS allowed 1 and 4 threads (``OPENBLAS_NUM_THREADS``,
+    each in a fresh process): the same mean, axes and projections, bit for bit (OpenBLAS sums
+    a product differently per thread count; the writer runs it on one: ``one_blas_thread``)."""
+    import shutil
+
+    _, cat, _ = built
+    got = []
+    for threads in ("1", "4"):
+        copy = tmp_path / f"cat{threads}"
+        shutil.copytree(cat, copy)
+        (copy / "search_index.npz").unlink()
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": threads, "OMP_NUM_THREADS": threads}
+        run = subprocess.run([sys.executable, "-c", "import sys; from ucad_catalog.searchindex "
+                              "import main; sys.exit(main(sys.argv[1:]))", str(copy)],
+                             env=env, capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stdout + run.stderr
+        with np.load(copy / "search_index.npz") as z:
+            got.append({k: z[k].tobytes() for k in ("mean", "axes", "proj")})
+    assert got[0] == got[1]
+
+
 def test_search_index_reads_rows_whatever_wrote_the_object(built, tmp_path):
     """``SearchIndex.rows`` takes an object that starts with ``np.save``'s own header for the
     shape (``npy_header_bytes``: what the build writes) without parsing it, and reads any other

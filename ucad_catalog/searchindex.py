@@ -78,6 +78,16 @@ def fit_pca(x: np.ndarray, dims: int, chunk: int) -> tuple[np.ndarray, np.ndarra
     return mean, np.ascontiguousarray(axes)
 
 
+def one_blas_thread():
+    """A context in which NumPy's BLAS and LAPACK run on one thread (``threadpoolctl``): with
+    more, OpenBLAS splits a product's sums differently (``c.T @ c`` of 1,024 rows gave other bits
+    on 1 and 2 threads), and the index must be the same bytes whatever the thread count. Another
+    CPU's BLAS kernels may still round differently (a Zen 4 and a Xeon did: docs/OPENCL.md)."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(1, user_api="blas")
+
+
 def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) -> str:
     """Write ``root/SEARCH_INDEX`` for the feature key ``key`` (``_db.feature_key`` of the
     catalogue now: the writer's, under its lock) unless the one there is fresh for it; a line
@@ -109,17 +119,18 @@ def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) 
         path.unlink(missing_ok=True)
         return "search index: no features to index"
     stride = max(FIT_STRIDE, -(-sum(shape[0] for _, _, shape in items) // FIT_ROWS))
-    fit = np.concatenate([np.load(p, allow_pickle=False)[::stride].astype(np.float32)
-                          for _, p, _ in items])
-    dims = min(dims, fit.shape[1], len(fit))
-    mean, axes = fit_pca(fit, dims, INDEX_CHUNK)
-    del fit
-    counts = np.array([shape[0] for _, _, shape in items], np.int64)
-    proj = np.empty((int(counts.sum()), dims), np.float32)
-    at = 0
-    for (_, p, _), n in zip(items, counts):
-        proj[at:at + n] = (np.load(p, allow_pickle=False).astype(np.float64) - mean) @ axes
-        at += n
+    with one_blas_thread():
+        fit = np.concatenate([np.load(p, allow_pickle=False)[::stride].astype(np.float32)
+                              for _, p, _ in items])
+        dims = min(dims, fit.shape[1], len(fit))
+        mean, axes = fit_pca(fit, dims, INDEX_CHUNK)
+        del fit
+        counts = np.array([shape[0] for _, _, shape in items], np.int64)
+        proj = np.empty((int(counts.sum()), dims), np.float32)
+        at = 0
+        for (_, p, _), n in zip(items, counts):
+            proj[at:at + n] = (np.load(p, allow_pickle=False).astype(np.float64) - mean) @ axes
+            at += n
     tmp = path.with_name(f"{TMP_PREFIX}{SEARCH_INDEX}.{os.getpid()}.{uuid.uuid4().hex[:8]}")
     try:
         with open(tmp, "wb") as f:
@@ -342,5 +353,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["DIMS", "SearchIndex", "fit_pca", "load_search_index", "main", "write_search_index"]
+__all__ = ["DIMS", "SearchIndex", "fit_pca", "load_search_index", "main", "one_blas_thread",
+           "write_search_index"]
 
