@@ -98,7 +98,7 @@ from .cues import boundary_points, edge_distance, edge_recall, photo_edges, regi
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import (RENDER_BACKGROUND, ObjectMask, PhotoWindow, box_stretch, check_image,
-                         mask_box, object_mask, refine_with_silhouette)
+                         mask_box, object_mask, photo_intrinsics, refine_with_silhouette)
 from .ingest import IngestError, MeshLoader
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
@@ -530,7 +530,7 @@ class _Fit:
                 raise ValueError(f"no vehicle found inside the box {shown}: it is uniform "
                                  f"(standard deviation {spread:.1f} levels; all background?)")
         self._lap("object")
-        obj, meta, candidates, best_view = self._object_and_mesh(photo, obj, mesh_key)
+        obj, meta, candidates, best_view, canvas = self._object_and_mesh(photo, obj, mesh_key)
         self._lap("retrieval")
         if obj.source == "box":
             self.notes.append(f"GrabCut kept {obj.kept:.0%} of the box: the vehicle's outline "
@@ -541,13 +541,13 @@ class _Fit:
         crop, scale = _work_crop(photo.shape[:2], obj)
         pose = None
         if mesh is not None:
-            pose, score = self._refined_pose(photo, mesh, meta.sha256, given)
+            pose, score = self._refined_pose(photo, mesh, meta.sha256, given, canvas)
             for c in candidates[1:RERANK_POSE]:     # the next meshes, posed alike
                 other = self.r.mesh(c.mesh_id)
                 m2, _ = self._load(other)
                 if m2 is None:
                     continue
-                p2, s2 = self._refined_pose(photo, m2, other.sha256, given)
+                p2, s2 = self._refined_pose(photo, m2, other.sha256, given, canvas)
                 if s2 < score:
                     meta, mesh, pose, score = other, m2, p2, s2
             if candidates and candidates[0].mesh_id != meta.sha256:
@@ -592,7 +592,11 @@ class _Fit:
 
     # -- the object and the mesh
     def _object_and_mesh(self, photo, obj: ObjectMask, mesh_key):
-        """(object, mesh record, candidates, best stored view): steps 1-2 of docs/FIT.md. With
+        """(object, mesh record, candidates, best stored view, canvas): steps 1-2 of
+        docs/FIT.md. ``canvas``: the ``past_the_edge`` hypothesis whose retrieval won (with
+        ``mesh_key``: whose HOG is nearest to one of the mesh's stored views, when nearer than
+        the photo as it is; ties: the photo, then ``PAST_EDGE`` order), else None; the pose
+        search runs there (``_refined_pose``). With
         a box, GrabCut's object is refined by the stored silhouettes of the first meshes
         (``_refined_object``: a pixel at least half of them cover), and, without ``--mesh``,
         once by each of those silhouettes alone: retrieval runs on every such mask and keeps
@@ -631,16 +635,26 @@ class _Fit:
             m2, c2, v2 = self._pick_mesh(photo, alt, None)
             if c2[0].score < candidates[0].score:
                 meta, candidates, best_view = m2, c2, v2
-        cut = past_the_edge(photo, obj) if mesh_key is None else []
-        for wider, past in cut:                 # a vehicle cut by the photo's edge (ties: as
-            m2, c2, v2 = self._pick_mesh(wider, past, None)       # seen, then PAST_EDGE order)
-            if c2[0].score < candidates[0].score:
-                meta, candidates, best_view = m2, c2, v2
+        cut = past_the_edge(photo, obj)
+        canvas = None
+        if mesh_key is None:
+            for hyp in cut:                     # a vehicle cut by the photo's edge (ties: as
+                m2, c2, v2 = self._pick_mesh(hyp[0], hyp[1], None)   # seen, then PAST_EDGE
+                if c2[0].score < candidates[0].score:                # order)
+                    meta, candidates, best_view, canvas = m2, c2, v2, hyp
+        elif cut:                               # the given mesh's own stored views decide
+            best = self._nearest_view_score(meta.sha256, photo, obj)
+            for hyp in cut:
+                d = self._nearest_view_score(meta.sha256, hyp[0], hyp[1])
+                if d < best:
+                    best, canvas = d, hyp
         if cut:
             self.notes.append("the vehicle touches the photo's edge: retrieval also tried it "
-                              "going on past the edge; the pose and the colours use what the "
-                              "photo shows")
-        return obj, meta, candidates, best_view
+                              "going on past the edge" + (
+                                  "; the pose was searched there too" if canvas is not None
+                                  and obj.source != "mask" else "")
+                              + "; the colours use what the photo shows")
+        return obj, meta, candidates, best_view, canvas
 
     # -- which mesh
     def _given(self, key):
@@ -868,19 +882,41 @@ class _Fit:
         return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
                               ring.ring.azimuth, ring.ring.elevation, top=1)[0].view
 
+    def _nearest_view_score(self, sha: str, photo, obj: ObjectMask) -> float:
+        """The HOG distance of the object in ``photo`` to the nearest stored view of ``sha``."""
+        ring = catalog_ring(self.r, sha)
+        q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
+                              runtime=self.runtime)
+        n = len(ring.feats)
+        return float(search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
+                                    ring.ring.azimuth, ring.ring.elevation, top=1)[0].score)
+
     # -- pose
-    def _refined_pose(self, photo, mesh, sha, given: dict) -> tuple[FitPose, float]:
+    def _refined_pose(self, photo, mesh, sha, given: dict, canvas=None) -> tuple[FitPose, float]:
         """The pose search's best pose and its score (lower is better); ``given``: the box
         or the object's mask. A mesh over ``POSE_PROXY_FROM`` triangles is searched on its
-        ``render_proxy`` (the caller renders the fit with the mesh itself)."""
+        ``render_proxy`` (the caller renders the fit with the mesh itself). ``canvas``: (the
+        photo grown past its edge, the object there, the photo's place) from ``past_the_edge``: with a box, the
+        search runs there, framed by the grown box, the photo's camera moved with it."""
         ring = catalog_ring(self.r, sha)
         if mesh.n_faces > POSE_PROXY_FROM:        # silhouettes at RING_SIDE px: a proxy will do
             mesh = render_proxy(mesh, POSE_PROXY_CELLS)
+        K, shift = self.intrinsics, np.zeros(2)
+        if canvas is not None and "box" in given:
+            wider, past, at = canvas
+            shift = np.array(at, np.float64)
+            base = (K if K is not None else
+                    photo_intrinsics(photo.shape[:2], self.fov or FOV_PRIOR))
+            K = base.copy()
+            K[:2, 2] += shift
+            photo, given = wider, {"box": past.box}
         est = estimate_pose(photo, mesh, coarse=ring, top=1, runtime=self.runtime,
-                            intrinsics=self.intrinsics, fov=self.fov, **given)
+                            intrinsics=K, fov=self.fov, **given)
         c = est.best
         assert c.K is not None and c.w2c is not None
-        return FitPose(c.azimuth, c.elevation, np.asarray(c.K, np.float64),
+        K_out = np.asarray(c.K, np.float64).copy()
+        K_out[:2, 2] -= shift
+        return FitPose(c.azimuth, c.elevation, K_out,
                        np.asarray(c.w2c, np.float64), "refined"), float(c.score)
 
     def _stored_pose(self, sha, view, obj, photo) -> FitPose:
@@ -971,13 +1007,15 @@ def _facing(normal: np.ndarray, view: np.ndarray) -> np.ndarray:
     return n
 
 
-def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[tuple[np.ndarray, ObjectMask]]:
+def past_the_edge(photo: np.ndarray, obj: ObjectMask
+                  ) -> list[tuple[np.ndarray, ObjectMask, tuple[int, int]]]:
     """Retrieval's hypotheses for an object cut by the photo's edge (its box, given or the
     mask's, within ``EDGE_PIXELS`` of it): for each share e of ``PAST_EDGE``, the photo grown by
     e x the mask's visible width (height) past every side the box touches, the new pixels the
     renders' background, and one mask pixel at the new edge (in the mask's outermost row or
     column there) so that the descriptor's crop frames the whole assumed vehicle; what the
-    photo does not show stays background. [] when the box touches no edge."""
+    photo does not show stays background. Each: (the grown photo, the object there, (x, y)
+    where the photo's pixel (0, 0) lies in it). [] when the box touches no edge."""
     H, W = obj.mask.shape
     bx0, by0, bx1, by1 = obj.box
     sides = (bx0 <= EDGE_PIXELS, by0 <= EDGE_PIXELS, bx1 >= W - EDGE_PIXELS,
@@ -1005,7 +1043,8 @@ def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[tuple[np.ndarray, 
             past[0, left + int(np.flatnonzero(mask[y0])[0])] = True
         if bottom:
             past[-1, left + int(np.flatnonzero(mask[y1 - 1])[0])] = True
-        out.append((wider, ObjectMask(mask=past, source="mask", box=mask_box(past))))
+        out.append((wider, ObjectMask(mask=past, source="mask", box=mask_box(past)),
+                    (left, top)))
     return out
 
 
