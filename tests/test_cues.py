@@ -9,7 +9,7 @@ from scipy import ndimage
 
 from ucad_cl import cues
 from ucad_cl.cameras import make_ring
-from ucad_cl.features import HogExtractor, square_windows
+from ucad_cl.features import HogExtractor, crop_window, square_windows
 from ucad_cl.foreground import RENDER_BACKGROUND
 from ucad_cl.render import render_views
 from ucad_cl.shade import face_normals, shade_views
@@ -151,6 +151,77 @@ def test_a_render_is_nearest_to_itself(rendered):
     assert set(some) == {"hog", "chamfer"}
     for name in some:
         np.testing.assert_array_equal(some[name], d[name])
+
+
+def test_what_the_photo_does_not_show_changes_no_distance(rendered):
+    """A photo of render 1 with its left 40 % not shown (``valid``; e.g. grown past its edge):
+    whatever fills the part not shown (the renders' grey, noise, the render itself), every cue
+    distance to every view is the same (HOG to rounding, chamfer within 0.02); the photo's edges and the HOG dimensions kept lie
+    where it shows; with everything shown the cues are exactly those of a call without
+    ``valid``; and the render stays nearest to itself."""
+    mesh, views, images, c = rendered
+    m = np.isfinite(views.depth[1])
+    H, W = m.shape
+    cols = np.flatnonzero(m.any(0))
+    cut = int(cols[0] + 0.4 * (cols[-1] - cols[0]))
+    valid = np.zeros((H, W), bool)
+    valid[:, cut:] = True
+    rng = np.random.default_rng(0)
+    fills = [np.full_like(images[1], RENDER_BACKGROUND),
+             rng.integers(0, 256, images[1].shape, dtype=np.uint8), images[1]]
+    got = []
+    for fill in fills:
+        photo = np.where(valid[..., None], images[1], fill)
+        q = cues.query_cues(photo, m, HogExtractor(), valid=valid)
+        got.append(cues.cue_distances(q, c))
+    for other in got[1:]:                   # Canny's reach past SHOWN_MARGIN: chamfer near
+        for name in cues.CUES:              # the border may move a little
+            if name == "chamfer":
+                np.testing.assert_allclose(other[name], got[0][name], atol=0.02)
+            elif name == "hog":                 # the kept rows renormalised: float rounding
+                np.testing.assert_allclose(other[name], got[0][name], atol=1e-7)
+            else:
+                np.testing.assert_array_equal(other[name], got[0][name], err_msg=name)
+    for name in cues.CUES:
+        assert int(np.argmin(got[0][name])) == 1, name
+    assert got[0]["hog"][1] == pytest.approx(0.0, abs=1e-6)
+    win = square_windows(m[None], cues.PAD)[0]
+    shown = crop_window(valid.astype(np.float32), win, cues.SIZE) >= 1.0 - 1e-6
+    assert q.shown is not None and not (q.shown[0] & ~shown).any() and q.shown[0].any()
+    assert not (q.edges[0] & ~q.shown[0]).any()
+    ex = HogExtractor()
+    dims = ex.seen_dims(valid, m)
+    assert q.hog_dims is not None and np.array_equal(q.hog_dims, dims)
+    assert 0 < dims.sum() < dims.size
+    whole = cues.query_cues(images[1], m, ex, valid=np.ones((H, W), bool))
+    plain = cues.query_cues(images[1], m, ex)
+    assert whole.shown is None and whole.hog_dims is None
+    for name in ("hog", "edges", "dist", "sil"):
+        np.testing.assert_array_equal(getattr(whole, name), getattr(plain, name))
+
+
+def test_seen_dims_keep_the_blocks_wholly_shown():
+    """``HogExtractor.seen_dims`` against a per-block loop over the crop: a block (2 x 2
+    cells) is kept when its pixels and one pixel around (the gradients' reach, clamped at the
+    crop's edge) are all shown; every dimension of a kept block and none of another."""
+    ex = HogExtractor()
+    mask = np.zeros((100, 140), bool)
+    mask[20:80, 10:130] = True
+    for x_cut in (0, 45, 70, 139):
+        valid = np.zeros_like(mask)
+        valid[:, x_cut:] = True
+        dims = ex.seen_dims(valid, mask)
+        win = square_windows(mask[None], ex.pad)[0]
+        shown = crop_window(valid.astype(np.float32), win, ex.size) >= 1.0 - 1e-6
+        nb, cell = ex.n_cells - 1, ex.cell
+        want = []
+        for by in range(nb):
+            for bx in range(nb):
+                r = np.clip(np.arange(by * cell - 1, by * cell + 2 * cell + 1), 0, ex.size - 1)
+                k = np.clip(np.arange(bx * cell - 1, bx * cell + 2 * cell + 1), 0, ex.size - 1)
+                want += [bool(shown[np.ix_(r, k)].all())] * (4 * ex.bins)
+        assert dims.tolist() == want, x_cut
+    assert ex.seen_dims(np.ones_like(mask), mask).all()
 
 
 def test_combine_and_offsets(rendered):

@@ -235,6 +235,9 @@ def test_empty_tiny_and_border_objects(vehicle, coarse):
         estimate_pose(img, mesh, mask=tiny, coarse=coarse)
     with pytest.raises(ValueError, match="top=0"):
         estimate_pose(img, mesh, box=(0, 0, 30, 30), coarse=coarse, top=0)
+    with pytest.raises(ValueError, match=r"valid has shape \(40, 59\), the image \(40, 60\)"):
+        estimate_pose(img, mesh, box=(0, 0, 30, 30), coarse=coarse,
+                      valid=np.ones((40, 59), bool))
     # a vehicle cut by the image border: the mask touches it, the search still works
     full, _, mask, _ = _reference(mesh, parts, 250.0, 10.0, dist_factor=1.0)
     cols = np.flatnonzero(mask.any(0))

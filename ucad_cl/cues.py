@@ -58,6 +58,7 @@ CANNY = (60, 120)       # photo edge thresholds (cv2.Canny, L2 gradient)
 CREASE_DEG = 35.0       # face normals further apart than this make a render edge
 DEPTH_JUMP = 0.03       # depth step (canonical units, bbox diagonal 1) that makes a render edge
 PAD = 0.1               # crop padding (the features' crop rule)
+SHOWN_MARGIN = 1        # a photo's edges count this many crop pixels in from what it does not show
 
 
 @dataclass
@@ -70,6 +71,13 @@ class Cues:
     (B, S, S, 3) float32 RGB (photos only, else None). sides: (B,) longer side of the object box
     in pixels, over the narrower image side. offsets: (B, 2) where the centre of the object's
     box lies, (x, y) from the principal point over the focal length (renders only, else None).
+    shown: (1, S, S) bool, the crop pixels the photo shows, ``SHOWN_MARGIN`` pixel(s) in from
+    what it does not (Canny's Sobel and non-maximum suppression reach 2 pixels and its
+    hysteresis further, so edges near that border still depend a little on what fills the
+    rest; 1 measured better than 3 on the tuning draws: docs/FIT.md)
+    (photos grown past their edge only, else None: all); hog_dims: (D,) bool, the HOG
+    dimensions that describe only shown pixels (``HogExtractor.seen_dims``; else None). The
+    distances to a photo with ``shown`` ignore the rest (``cue_distances``).
     """
 
     hog: np.ndarray
@@ -80,6 +88,8 @@ class Cues:
     labels: np.ndarray | None = None
     colours: np.ndarray | None = None
     offsets: np.ndarray | None = None
+    shown: np.ndarray | None = None
+    hog_dims: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.sil.shape[0])
@@ -121,19 +131,32 @@ def view_cues(mesh: Mesh, views: ViewSet, images: np.ndarray, extractor: Feature
 
 
 def query_cues(image: np.ndarray, mask: np.ndarray, extractor: FeatureExtractor,
-               size: int = SIZE, frame: np.ndarray | None = None) -> Cues:
+               size: int = SIZE, frame: np.ndarray | None = None,
+               valid: np.ndarray | None = None) -> Cues:
     """Cues of one photo ``image`` (H, W, 3) uint8 (background already replaced) with its
     object ``mask`` (H, W) bool; the crop window is the mask's (``frame``'s, another (H, W)
-    bool mask, when given: e.g. a detector's box when the mask is only an estimate)."""
+    bool mask, when given: e.g. a detector's box when the mask is only an estimate).
+    ``valid``: (H, W) bool, the pixels the photo shows (a photo grown past its edge; None:
+    all): the edges at and beyond its border are dropped, and ``shown`` / ``hog_dims`` say
+    what the distances may compare."""
     frame = mask if frame is None else frame
     window = square_windows(frame[None], PAD)[0]
     crop = crop_window(image, window, size)
     sil = crop_window(mask.astype(np.float32), window, size)
     edges = cv2.Canny(crop, CANNY[0], CANNY[1], L2gradient=True) > 0
     hog = extractor.extract(image[None], frame[None]).feats
+    shown = dims = None
+    if valid is not None and not np.all(valid):
+        whole = crop_window(np.asarray(valid, np.float32), window, size) >= 1.0 - 1e-6
+        shown = cv2.erode(whole.astype(np.uint8), np.ones((3, 3), np.uint8),   # Canny's
+                          iterations=SHOWN_MARGIN, borderType=cv2.BORDER_REPLICATE) > 0
+        edges &= shown
+        seen_dims = getattr(extractor, "seen_dims", None)     # (HOG: its blocks)
+        dims = seen_dims(valid, frame) if seen_dims is not None else None
     return Cues(hog=hog, sil=sil[None], edges=edges[None], dist=_distances(edges[None]),
                 sides=np.array([_side(frame) / min(frame.shape)]),
-                colours=crop.astype(np.float32)[None])
+                colours=crop.astype(np.float32)[None],
+                shown=None if shown is None else shown[None], hog_dims=dims)
 
 
 def cue_distances(query: Cues, views: Cues, names=CUES) -> dict[str, np.ndarray]:
@@ -141,10 +164,13 @@ def cue_distances(query: Cues, views: Cues, names=CUES) -> dict[str, np.ndarray]
     the cues in ``names`` (default all; pose search asks only for the cues it weighs)."""
     out = {}
     if "hog" in names:
-        out["hog"] = 0.5 * hog_distance(query.hog[0], views.hog)
+        out["hog"] = query_hog_distance(query, views.hog)
     if "silhouette" in names:
         q = query.sil[0].astype(np.float64).ravel()
         s = views.sil.reshape(len(views), -1).astype(np.float64)
+        if query.shown is not None:
+            keep = query.shown[0].ravel()
+            q, s = q[keep], s[:, keep]
         inter = np.minimum(s, q).sum(1)
         union = np.maximum(s, q).sum(1)
         out["silhouette"] = 1.0 - np.divide(inter, union, out=np.zeros_like(inter),
@@ -416,6 +442,16 @@ def _distances(edges: np.ndarray) -> np.ndarray:
     return out
 
 
+def query_hog_distance(query: Cues, db: np.ndarray) -> np.ndarray:
+    """(N,) float64: half the squared distance of the photo's unit HOG row to each unit row of
+    ``db`` (N, D), over ``query.hog_dims`` alone when the photo does not show everything (each
+    side renormalised there)."""
+    q, rows = query.hog[0], np.asarray(db)
+    if query.hog_dims is not None:
+        q, rows = q[query.hog_dims], rows[:, query.hog_dims]
+    return 0.5 * hog_distance(q, rows)
+
+
 def hog_distance(q: np.ndarray, db: np.ndarray) -> np.ndarray:
     """(N,) float64 squared L2 distance of the unit row of ``q`` (D,) to each unit row of ``db``
     (zero rows stay zero: distance 1 to any unit row)."""
@@ -427,6 +463,8 @@ def hog_distance(q: np.ndarray, db: np.ndarray) -> np.ndarray:
 def _chamfer(query: Cues, views: Cues) -> np.ndarray:
     qe = query.edges[0].ravel()
     ve = views.edges.reshape(len(views), -1)
+    if query.shown is not None:                      # render edges where the photo shows
+        ve = ve & query.shown[0].ravel()
     n_q = int(qe.sum())
     n_v = ve.sum(1)
     # photo edges -> nearest render edge; render edges -> nearest photo edge
@@ -439,10 +477,14 @@ def _chamfer(query: Cues, views: Cues) -> np.ndarray:
 
 def _region(query: Cues, views: Cues) -> np.ndarray:
     c = query.colours[0].reshape(-1, 3).astype(np.float64)
+    labels = views.labels.reshape(len(views), -1)
+    if query.shown is not None:
+        keep = query.shown[0].ravel()
+        c, labels = c[keep], labels[:, keep]
     total = float(((c - c.mean(0)) ** 2).sum())
     if total <= 0:
         return np.zeros(len(views))
-    explained = _explained(c, views.labels.reshape(len(views), -1).astype(np.int64))
+    explained = _explained(c, labels.astype(np.int64))
     sq = float((c * c).sum())
     return np.clip((sq - explained) / total, 0.0, None)
 

@@ -200,6 +200,24 @@ class HogExtractor:
                                     with_masks=self.silhouette > 0)
         return Features(feats=self.describe(crops, mcrops), kind=self.kind)
 
+    def seen_dims(self, valid: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """(D,) bool: the descriptor's dimensions that describe only pixels the photo shows,
+        for the object ``mask`` (H, W) bool (the crop is its, as ``extract``'s) in a photo
+        whose shown pixels are ``valid`` (H, W) bool (e.g. a photo grown past its edge): a
+        block is kept when every crop pixel it and its gradients read (its cells and one pixel
+        around) is wholly shown; a silhouette dimension when its area is."""
+        window = square_windows(np.asarray(mask, bool)[None], self.pad)[0]
+        shown = crop_window(np.asarray(valid, np.float32), window, self.size) >= 1.0 - 1e-6
+        nb, c = self.n_cells - 1, self.cell
+        pad = np.pad(shown, 1, mode="edge")[None]      # the kernel clamps at the crop edge
+        blocks = np.array([[pad[0, by * c:by * c + 2 * c + 2, bx * c:bx * c + 2 * c + 2].all()
+                            for bx in range(nb)] for by in range(nb)])
+        dims = [np.repeat(blocks.ravel(), 4 * self.bins)]
+        if self.silhouette:
+            dims.append(cv2.resize(shown.astype(np.float32), (self.silhouette,) * 2,
+                                   interpolation=cv2.INTER_AREA).ravel() >= 1.0 - 1e-6)
+        return np.concatenate(dims)
+
     def describe(self, crops: np.ndarray, mask_crops: np.ndarray | None = None) -> np.ndarray:
         """(B, D) float32 descriptors of already-cropped (B, S, S, 3) uint8 images."""
         crops = np.ascontiguousarray(crops, np.uint8)

@@ -909,7 +909,9 @@ class _Fit:
                     photo_intrinsics(photo.shape[:2], self.fov or FOV_PRIOR))
             K = base.copy()
             K[:2, 2] += shift
-            photo, given = wider, {"box": past.box}
+            shown = np.zeros(wider.shape[:2], bool)
+            shown[at[1]:at[1] + photo.shape[0], at[0]:at[0] + photo.shape[1]] = True
+            photo, given = wider, {"box": past.box, "valid": shown}
         est = estimate_pose(photo, mesh, coarse=ring, top=1, runtime=self.runtime,
                             intrinsics=K, fov=self.fov, **given)
         c = est.best

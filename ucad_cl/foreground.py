@@ -373,7 +373,8 @@ class CentredPhoto:
 
     image: (h, w, 3) uint8, mask: (h, w) bool: what a camera with the photo's centre and focal
     length ``f`` (pixels), turned by ``R`` (3x3, photo camera -> centred camera frame), sees
-    around the object. ``K``: the photo's assumed intrinsics (3x3).
+    around the object. ``K``: the photo's assumed intrinsics (3x3). ``frame``, ``valid``:
+    ``centre_on_axis``'s, warped alike.
     """
 
     image: np.ndarray
@@ -382,10 +383,12 @@ class CentredPhoto:
     K: np.ndarray
     f: float
     frame: np.ndarray | None = None
+    valid: np.ndarray | None = None
 
 
 def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
-                   frame: np.ndarray | None = None, K: np.ndarray | None = None) -> CentredPhoto:
+                   frame: np.ndarray | None = None, K: np.ndarray | None = None,
+                   valid: np.ndarray | None = None) -> CentredPhoto:
     """Warp ``image``/``mask`` so that the centre of the mask's box (of ``frame``'s box when
     given: another (H, W) bool mask, e.g. the detector's box, warped alike into
     ``CentredPhoto.frame``) is on the optical axis.
@@ -399,7 +402,9 @@ def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
     then a pitch about the new x axis (an upright camera stays upright). The output is the
     warped box grown by 25 % on each side (bilinear image, nearest-neighbour masks, edge pixels
     repeated). ``K``: the photo's intrinsics when they are known (``image`` a ``PhotoWindow``
-    of a larger photo); ``fov_deg`` is then not used."""
+    of a larger photo); ``fov_deg`` is then not used. ``valid``: (H, W) bool, the pixels the
+    photo shows (None: all), warped alike into ``CentredPhoto.valid`` (False outside the
+    photo)."""
     K = photo_intrinsics(mask.shape, fov_deg) if K is None else np.asarray(K, np.float64)
     f = float(K[0, 0])
     x0, y0, x1, y1 = mask_box(mask if frame is None else frame)
@@ -422,8 +427,10 @@ def centre_on_axis(image: np.ndarray, mask: np.ndarray, fov_deg: float,
     m = warp(mask)
     fr = warp(frame) if frame is not None else None
     if not m.any() or (fr is not None and not fr.any()):   # degenerate: keep the photo
-        return CentredPhoto(image=image, mask=mask, R=np.eye(3), K=K, f=float(f), frame=frame)
-    return CentredPhoto(image=out, mask=m, R=R, K=K, f=float(f), frame=fr)
+        return CentredPhoto(image=image, mask=mask, R=np.eye(3), K=K, f=float(f), frame=frame,
+                            valid=valid)
+    return CentredPhoto(image=out, mask=m, R=R, K=K, f=float(f), frame=fr,
+                        valid=None if valid is None else warp(np.asarray(valid, bool)))
 
 
 def photo_intrinsics(shape: tuple[int, int], fov_deg: float) -> np.ndarray:

@@ -53,7 +53,7 @@ import numpy as np
 
 from .artifacts import CameraRing, Mesh
 from .cameras import look_at_w2c, make_ring, single_camera
-from .cues import Cues, combine, cue_distances, hog_distance, query_cues, view_cues
+from .cues import Cues, combine, cue_distances, query_cues, query_hog_distance, view_cues
 from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
 from .foreground import (RENDER_BACKGROUND, ObjectMask, PhotoWindow, axis_turn, centre_on_axis,
                          check_image, composite, mask_box, object_mask, photo_intrinsics,
@@ -196,7 +196,7 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
                   coarse: PoseRing | None = None, method: PoseMethod = ROBUST,
                   runtime: Runtime | None = None,
                   intrinsics: np.ndarray | None = None,
-                  fov: float | None = None) -> PoseEstimate:
+                  fov: float | None = None, valid: np.ndarray | None = None) -> PoseEstimate:
     """Best ``top`` poses of ``mesh`` for the object in ``image`` ((H, W, 3) uint8 RGB), rendered
     on ``runtime`` (default ``get_runtime()``).
 
@@ -210,15 +210,21 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     window around its object (``foreground.PhotoWindow``), and the candidates' ``K`` and the
     object come back in the photo's pixels. ``fov``: the photo's field of view over its
     narrower side in degrees (``FOV_RANGE``), when known (instead of ``method.fov_prior``; ignored with
-    ``intrinsics``). ValueError naming the problem for a bad image, an empty or tiny mask or
-    box.
+    ``intrinsics``). ``valid``: (H, W) bool, the pixels the photo shows (None: all; e.g. a
+    photo grown past its edge, ``fit.past_the_edge``): the cues compare nothing else
+    (``cues.query_cues``). ValueError naming the problem for a bad image, an empty or tiny mask
+    or box, a ``valid`` of another shape.
     """
     check_fov(fov)
+    if valid is not None and np.shape(valid) != np.shape(image)[:2]:
+        raise ValueError(f"valid has shape {np.shape(valid)}, the image {np.shape(image)[:2]}")
     prior = fov or method.fov_prior or FOV_PRIOR
     window = (PhotoWindow.around(np.shape(image)[:2], box, mask) if intrinsics is None
               else None)
     if window is not None:
         full_shape = np.shape(image)[:2]
+        if valid is not None:
+            valid = window.cut(check_image(image), None, valid)[2]
         image, box, mask = window.cut(check_image(image), box, mask)
         intrinsics = window.intrinsics(full_shape, prior)
     elif intrinsics is None and fov is not None:
@@ -242,7 +248,7 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
         size = np.array([b[2] - b[0], b[3] - b[1]] * 2)
         if np.any(np.abs(m - b) > method.box_frame * size):
             frame = box_mask(obj.mask.shape, obj.box)
-    search.set_photo(image, obj.mask, frame)
+    search.set_photo(image, obj.mask, frame, valid)
     found = search.run()
     if method.refine_mask and refine and obj.source == "grabcut":
         fg = refine_with_silhouette(image, search.silhouette_in_photo(found[0]))
@@ -250,7 +256,7 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
             x0, y0, x1, y1 = obj.box
             obj = ObjectMask(mask=fg, source="grabcut+render", box=obj.box,
                              kept=float(fg[y0:y1, x0:x1].mean()))
-            search.set_photo(image, obj.mask, frame)
+            search.set_photo(image, obj.mask, frame, valid)
             found = search.run()
     cands = search.report(found, top)
     if window is not None:                  # back in the photo's pixels
@@ -461,10 +467,11 @@ class _Search:
         self.normals = face_normals(mesh)
 
     # -- the photo
-    def set_photo(self, image, mask, frame=None):
+    def set_photo(self, image, mask, frame=None, valid=None):
         """Prepare the photo: background replaced (method.isolate), object centred on the
         optical axis (method.fov_prior), its cues; ``frame`` (a bool mask, e.g. the box) sets
-        the crop, the centre and the size instead of ``mask``."""
+        the crop, the centre and the size instead of ``mask``; ``valid`` (a bool mask): the
+        pixels the photo shows (``estimate_pose``)."""
         m = self.method
         self.image_shape = mask.shape
         self.camera0 = (self.intrinsics if self.intrinsics is not None else  # the photo's
@@ -472,9 +479,9 @@ class _Search:
         self.box_photo = mask_box(mask if frame is None else frame)
         img = composite(image, mask) if m.isolate else image
         if m.fov_prior is not None:
-            c = centre_on_axis(img, mask, m.fov_prior, frame, K=self.camera0)
-            img, mask, frame = c.image, c.mask, c.frame
-        self.query = query_cues(img, mask, self.coarse.extractor, frame=frame)
+            c = centre_on_axis(img, mask, m.fov_prior, frame, K=self.camera0, valid=valid)
+            img, mask, frame, valid = c.image, c.mask, c.frame, c.valid
+        self.query = query_cues(img, mask, self.coarse.extractor, frame=frame, valid=valid)
         x0, y0, x1, y1 = mask_box(mask if frame is None else frame)
         self.photo_side = float(max(x1 - x0, y1 - y0))
 
@@ -489,7 +496,7 @@ class _Search:
         if c.cues is not None:
             s, d = self.scores(c.cues)
         else:
-            s = 0.5 * hog_distance(self.query.hog[0], c.feats)
+            s = query_hog_distance(self.query, c.feats)
             d = {"hog": s}
         ring = c.ring
         sides = np.asarray(c.sides, np.float64) / self.f_render
