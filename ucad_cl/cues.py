@@ -148,7 +148,7 @@ def query_cues(image: np.ndarray, mask: np.ndarray, extractor: FeatureExtractor,
     shown = dims = None
     if valid is not None and not np.all(valid):
         whole = crop_window(np.asarray(valid, np.float32), window, size) >= 1.0 - 1e-6
-        shown = cv2.erode(whole.astype(np.uint8), np.ones((3, 3), np.uint8),   # Canny's
+        shown = cv2.erode(whole.astype(np.uint8), np.ones((3, 3), np.uint8),
                           iterations=SHOWN_MARGIN, borderType=cv2.BORDER_REPLICATE) > 0
         edges &= shown
         seen_dims = getattr(extractor, "seen_dims", None)     # (HOG: its blocks)

@@ -202,10 +202,10 @@ class HogExtractor:
 
     def seen_dims(self, valid: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """(D,) bool: the descriptor's dimensions that describe only pixels the photo shows,
-        for the object ``mask`` (H, W) bool (the crop is its, as ``extract``'s) in a photo
-        whose shown pixels are ``valid`` (H, W) bool (e.g. a photo grown past its edge): a
-        block is kept when every crop pixel it and its gradients read (its cells and one pixel
-        around) is wholly shown; a silhouette dimension when its area is."""
+        for the object ``mask`` (H, W) bool (cropped around it, as ``extract`` crops) in a
+        photo whose shown pixels are ``valid`` (H, W) bool (e.g. a photo grown past its edge):
+        a block is kept when every crop pixel it and its gradients read (its cells and one
+        pixel around) is wholly shown; a silhouette dimension when its area is."""
         window = square_windows(np.asarray(mask, bool)[None], self.pad)[0]
         shown = crop_window(np.asarray(valid, np.float32), window, self.size) >= 1.0 - 1e-6
         nb, c = self.n_cells - 1, self.cell

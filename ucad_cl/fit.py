@@ -542,6 +542,10 @@ class _Fit:
         pose = None
         if mesh is not None:
             pose, score = self._refined_pose(photo, mesh, meta.sha256, given, canvas)
+            if canvas is not None and "box" in given:
+                self.notes.append("the pose was searched on the photo grown past its edge, "
+                                  "ignoring what the photo does not show; the colours use "
+                                  "what it shows")
             for c in candidates[1:RERANK_POSE]:     # the next meshes, posed alike
                 other = self.r.mesh(c.mesh_id)
                 m2, _ = self._load(other)
@@ -643,17 +647,16 @@ class _Fit:
                 if c2[0].score < candidates[0].score:                # order)
                     meta, candidates, best_view, canvas = m2, c2, v2, hyp
         elif cut:                               # the given mesh's own stored views decide
-            best = self._nearest_view_score(meta.sha256, photo, obj)
+            best = self._nearest(meta.sha256, photo, obj).score
             for hyp in cut:
-                d = self._nearest_view_score(meta.sha256, hyp[0], hyp[1])
+                d = self._nearest(meta.sha256, hyp[0], hyp[1]).score
                 if d < best:
                     best, canvas = d, hyp
-        if cut:
+        if cut and mesh_key is None:
             self.notes.append("the vehicle touches the photo's edge: retrieval also tried it "
-                              "going on past the edge" + (
-                                  "; the pose was searched there too" if canvas is not None
-                                  and obj.source != "mask" else "")
-                              + "; the colours use what the photo shows")
+                              "going on past the edge")
+        elif cut:
+            self.notes.append("the vehicle touches the photo's edge")
         return obj, meta, candidates, best_view, canvas
 
     # -- which mesh
@@ -875,29 +878,27 @@ class _Fit:
 
     def _nearest_view(self, sha: str, photo, obj: ObjectMask) -> int:
         """The stored view of mesh ``sha`` nearest to the photo's object by HOG."""
+        return self._nearest(sha, photo, obj).view
+
+    def _nearest(self, sha: str, photo, obj: ObjectMask) -> CatalogMatch:
+        """The match (view, HOG distance) of the photo's object to the nearest stored view of
+        mesh ``sha``."""
         ring = catalog_ring(self.r, sha)
         q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                               runtime=self.runtime)
         n = len(ring.feats)
         return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
-                              ring.ring.azimuth, ring.ring.elevation, top=1)[0].view
-
-    def _nearest_view_score(self, sha: str, photo, obj: ObjectMask) -> float:
-        """The HOG distance of the object in ``photo`` to the nearest stored view of ``sha``."""
-        ring = catalog_ring(self.r, sha)
-        q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
-                              runtime=self.runtime)
-        n = len(ring.feats)
-        return float(search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
-                                    ring.ring.azimuth, ring.ring.elevation, top=1)[0].score)
+                              ring.ring.azimuth, ring.ring.elevation, top=1)[0]
 
     # -- pose
     def _refined_pose(self, photo, mesh, sha, given: dict, canvas=None) -> tuple[FitPose, float]:
         """The pose search's best pose and its score (lower is better); ``given``: the box
         or the object's mask. A mesh over ``POSE_PROXY_FROM`` triangles is searched on its
         ``render_proxy`` (the caller renders the fit with the mesh itself). ``canvas``: (the
-        photo grown past its edge, the object there, the photo's place) from ``past_the_edge``: with a box, the
-        search runs there, framed by the grown box, the photo's camera moved with it."""
+        photo grown past its edge, the object there, the photo's place) from
+        ``past_the_edge``: with a box, the search runs there, framed by the grown box, the
+        photo's camera moved with it, its cues told which pixels the photo shows (``valid``);
+        the pose's K comes back in the photo's pixels."""
         ring = catalog_ring(self.r, sha)
         if mesh.n_faces > POSE_PROXY_FROM:        # silhouettes at RING_SIDE px: a proxy will do
             mesh = render_proxy(mesh, POSE_PROXY_CELLS)
