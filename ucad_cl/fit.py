@@ -542,7 +542,7 @@ class _Fit:
         pose = None
         if mesh is not None:
             pose, score = self._refined_pose(photo, mesh, meta.sha256, given, canvas)
-            if canvas is not None and "box" in given:
+            if canvas is not None:
                 self.notes.append("the pose was searched on the photo grown past its edge, "
                                   "ignoring what the photo does not show; the colours use "
                                   "what it shows")
@@ -896,14 +896,15 @@ class _Fit:
         or the object's mask. A mesh over ``POSE_PROXY_FROM`` triangles is searched on its
         ``render_proxy`` (the caller renders the fit with the mesh itself). ``canvas``: (the
         photo grown past its edge, the object there, the photo's place) from
-        ``past_the_edge``: with a box, the search runs there, framed by the grown box, the
-        photo's camera moved with it, its cues told which pixels the photo shows (``valid``);
-        the pose's K comes back in the photo's pixels."""
+        ``past_the_edge``: the search runs there, framed by the grown box (or the grown mask,
+        whose pixel at the new edge lies where the photo shows nothing), the photo's camera
+        moved with it, its cues told which pixels the photo shows (``valid``); the pose's K
+        comes back in the photo's pixels."""
         ring = catalog_ring(self.r, sha)
         if mesh.n_faces > POSE_PROXY_FROM:        # silhouettes at RING_SIDE px: a proxy will do
             mesh = render_proxy(mesh, POSE_PROXY_CELLS)
         K, shift = self.intrinsics, np.zeros(2)
-        if canvas is not None and "box" in given:
+        if canvas is not None:
             wider, past, at = canvas
             shift = np.array(at, np.float64)
             base = (K if K is not None else
@@ -912,7 +913,8 @@ class _Fit:
             K[:2, 2] += shift
             shown = np.zeros(wider.shape[:2], bool)
             shown[at[1]:at[1] + photo.shape[0], at[0]:at[0] + photo.shape[1]] = True
-            photo, given = wider, {"box": past.box, "valid": shown}
+            photo, given = wider, ({"box": past.box} if "box" in given      # a given mask:
+                                   else {"mask": past.mask}) | {"valid": shown}  # its grown one
         est = estimate_pose(photo, mesh, coarse=ring, top=1, runtime=self.runtime,
                             intrinsics=K, fov=self.fov, **given)
         c = est.best
