@@ -263,6 +263,12 @@ def test_photo_window_only_for_large_photos_and_its_maps():
     wm = fg.PhotoWindow.around((H, W), None, mask)
     _, b2, m2 = wm.cut(img, None, mask)
     assert b2 is None and m2.sum() == pytest.approx(mask.sum() * wm.scale ** 2, rel=0.01)
+    shown = np.zeros((H, W), bool)                            # another mask, cut alone
+    shown[:, 1700:] = True
+    cut_alone = wm.cut_mask(shown, m2.shape)
+    assert np.array_equal(cut_alone, wm.cut(img, None, shown)[2])
+    assert cut_alone.sum() == pytest.approx(
+        shown[wm.y0:wm.y1, wm.x0:wm.x1].sum() * wm.scale ** 2, rel=0.01)
     obj = fg.ObjectMask(mask=m2, source="mask", box=fg.mask_box(m2))
     back = wm.photo_object(obj, (H, W))
     assert back.mask.shape == (H, W) and (back.mask ^ mask).sum() < 0.01 * mask.sum()

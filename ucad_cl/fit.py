@@ -82,7 +82,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
@@ -503,6 +503,7 @@ class _Fit:
         self.notes: list[str] = []
         self.described: dict[tuple[str, int], _Described] = {}   # (sha, view) -> re-rank's
         self.angles: dict[str, list[ViewAngles]] = {}             # sha -> its views' angles
+        self.rings: dict[str, PoseRing] = {}                       # sha -> its catalog_ring
         self.stored_rows = _StoredRows(reader, self.notes)          # retrieval's rows
         self.intrinsics: np.ndarray | None = None   # the photo's assumed K in a window's pixels
         self.fov: float | None = None               # the photo's field of view, when given
@@ -643,13 +644,13 @@ class _Fit:
         canvas = None
         if mesh_key is None:
             for hyp in cut:                     # a vehicle cut by the photo's edge (ties: as
-                m2, c2, v2 = self._pick_mesh(hyp[0], hyp[1], None)   # seen, then PAST_EDGE
-                if c2[0].score < candidates[0].score:                # order)
+                m2, c2, v2 = self._pick_mesh(hyp.image, hyp.obj, None)   # seen, then in
+                if c2[0].score < candidates[0].score:                    # PAST_EDGE order)
                     meta, candidates, best_view, canvas = m2, c2, v2, hyp
         elif cut:                               # the given mesh's own stored views decide
             best = self._nearest(meta.sha256, photo, obj).score
             for hyp in cut:
-                d = self._nearest(meta.sha256, hyp[0], hyp[1]).score
+                d = self._nearest(meta.sha256, hyp.image, hyp.obj).score
                 if d < best:
                     best, canvas = d, hyp
         if cut and mesh_key is None:
@@ -880,10 +881,16 @@ class _Fit:
         """The stored view of mesh ``sha`` nearest to the photo's object by HOG."""
         return self._nearest(sha, photo, obj).view
 
+    def _ring(self, sha: str) -> PoseRing:
+        """``catalog_ring`` of mesh ``sha``, read once per photo."""
+        if sha not in self.rings:
+            self.rings[sha] = catalog_ring(self.r, sha)
+        return self.rings[sha]
+
     def _nearest(self, sha: str, photo, obj: ObjectMask) -> CatalogMatch:
         """The match (view, HOG distance) of the photo's object to the nearest stored view of
         mesh ``sha``."""
-        ring = catalog_ring(self.r, sha)
+        ring = self._ring(sha)
         q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                               runtime=self.runtime)
         n = len(ring.feats)
@@ -891,30 +898,28 @@ class _Fit:
                               ring.ring.azimuth, ring.ring.elevation, top=1)[0]
 
     # -- pose
-    def _refined_pose(self, photo, mesh, sha, given: dict, canvas=None) -> tuple[FitPose, float]:
+    def _refined_pose(self, photo, mesh, sha, given: dict,
+                      canvas: GrownPhoto | None = None) -> tuple[FitPose, float]:
         """The pose search's best pose and its score (lower is better); ``given``: the box
         or the object's mask. A mesh over ``POSE_PROXY_FROM`` triangles is searched on its
-        ``render_proxy`` (the caller renders the fit with the mesh itself). ``canvas``: (the
-        photo grown past its edge, the object there, the photo's place) from
-        ``past_the_edge``: the search runs there, framed by the grown box (or the grown mask,
-        whose pixel at the new edge lies where the photo shows nothing), the photo's camera
-        moved with it, its cues told which pixels the photo shows (``valid``); the pose's K
-        comes back in the photo's pixels."""
-        ring = catalog_ring(self.r, sha)
+        ``render_proxy`` (the caller renders the fit with the mesh itself). ``canvas``: the
+        photo grown past its edge (``past_the_edge``): the search runs there, framed by the
+        grown box (or the grown mask, whose pixel at the new edge lies where the photo shows
+        nothing), the photo's camera moved with it, its cues told which pixels the photo
+        shows (``valid``); the pose's K comes back in the photo's pixels."""
+        ring = self._ring(sha)
         if mesh.n_faces > POSE_PROXY_FROM:        # silhouettes at RING_SIDE px: a proxy will do
             mesh = render_proxy(mesh, POSE_PROXY_CELLS)
         K, shift = self.intrinsics, np.zeros(2)
         if canvas is not None:
-            wider, past, at = canvas
-            shift = np.array(at, np.float64)
+            shift = np.array(canvas.at, np.float64)
             base = (K if K is not None else
                     photo_intrinsics(photo.shape[:2], self.fov or FOV_PRIOR))
             K = base.copy()
             K[:2, 2] += shift
-            shown = np.zeros(wider.shape[:2], bool)
-            shown[at[1]:at[1] + photo.shape[0], at[0]:at[0] + photo.shape[1]] = True
-            photo, given = wider, ({"box": past.box} if "box" in given      # a given mask:
-                                   else {"mask": past.mask}) | {"valid": shown}  # its grown one
+            given = ({"box": canvas.obj.box} if "box" in given      # a given mask: its grown one
+                     else {"mask": canvas.obj.mask}) | {"valid": canvas.shown(photo.shape[:2])}
+            photo = canvas.image
         est = estimate_pose(photo, mesh, coarse=ring, top=1, runtime=self.runtime,
                             intrinsics=K, fov=self.fov, **given)
         c = est.best
@@ -1012,15 +1017,29 @@ def _facing(normal: np.ndarray, view: np.ndarray) -> np.ndarray:
     return n
 
 
-def past_the_edge(photo: np.ndarray, obj: ObjectMask
-                  ) -> list[tuple[np.ndarray, ObjectMask, tuple[int, int]]]:
+class GrownPhoto(NamedTuple):
+    """A photo grown past its edge (``past_the_edge``): the grown image, the object there, and
+    (x, y) where the photo's pixel (0, 0) lies in it."""
+
+    image: np.ndarray
+    obj: ObjectMask
+    at: tuple[int, int]
+
+    def shown(self, shape: tuple[int, int]) -> np.ndarray:
+        """(h, w) bool over the grown image: the pixels of the photo (of ``shape`` (H, W))."""
+        out = np.zeros(self.image.shape[:2], bool)
+        x, y = self.at
+        out[y:y + shape[0], x:x + shape[1]] = True
+        return out
+
+
+def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[GrownPhoto]:
     """Retrieval's hypotheses for an object cut by the photo's edge (its box, given or the
     mask's, within ``EDGE_PIXELS`` of it): for each share e of ``PAST_EDGE``, the photo grown by
     e x the mask's visible width (height) past every side the box touches, the new pixels the
     renders' background, and one mask pixel at the new edge (in the mask's outermost row or
     column there) so that the descriptor's crop frames the whole assumed vehicle; what the
-    photo does not show stays background. Each: (the grown photo, the object there, (x, y)
-    where the photo's pixel (0, 0) lies in it). [] when the box touches no edge."""
+    photo does not show stays background. [] when the box touches no edge."""
     H, W = obj.mask.shape
     bx0, by0, bx1, by1 = obj.box
     sides = (bx0 <= EDGE_PIXELS, by0 <= EDGE_PIXELS, bx1 >= W - EDGE_PIXELS,
@@ -1048,8 +1067,8 @@ def past_the_edge(photo: np.ndarray, obj: ObjectMask
             past[0, left + int(np.flatnonzero(mask[y0])[0])] = True
         if bottom:
             past[-1, left + int(np.flatnonzero(mask[y1 - 1])[0])] = True
-        out.append((wider, ObjectMask(mask=past, source="mask", box=mask_box(past)),
-                    (left, top)))
+        out.append(GrownPhoto(wider, ObjectMask(mask=past, source="mask", box=mask_box(past)),
+                              (left, top)))
     return out
 
 

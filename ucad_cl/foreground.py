@@ -210,6 +210,14 @@ class PhotoWindow:
         return PhotoWindow(max(0, int(np.floor(x0 - g))), max(0, int(np.floor(y0 - g))),
                            min(W, int(np.ceil(x1 + g))), min(H, int(np.ceil(y1 + g))), scale)
 
+    def cut_mask(self, mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """A (H, W) bool mask of the photo in the window's pixels (``shape``, the window image's
+        (h, w)): by area, kept where at least half covered."""
+        m = (np.asarray(mask)[self.y0:self.y1, self.x0:self.x1] != 0).astype(np.uint8) * 255
+        if self.scale != 1.0:
+            m = cv2.resize(m, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
+        return m >= 128
+
     def cut(self, photo: np.ndarray, box, mask):
         """(window image, box, mask) in the window's pixels (the box as ``pixel_box`` rounds
         it, then scaled; the mask by area, kept where at least half covered)."""
@@ -217,10 +225,7 @@ class PhotoWindow:
         img = sub if self.scale == 1.0 else cv2.resize(
             sub, (0, 0), fx=self.scale, fy=self.scale, interpolation=cv2.INTER_AREA)
         if mask is not None:
-            m = (np.asarray(mask)[self.y0:self.y1, self.x0:self.x1] != 0).astype(np.uint8) * 255
-            if self.scale != 1.0:
-                m = cv2.resize(m, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_AREA)
-            return img, None, m >= 128
+            return img, None, self.cut_mask(mask, img.shape[:2])
         b = pixel_box(photo.shape[:2], box)
         s = self.scale
         return img, (s * (b[0] - self.x0), s * (b[1] - self.y0), s * (b[2] - self.x0),

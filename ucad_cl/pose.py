@@ -223,9 +223,9 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
               else None)
     if window is not None:
         full_shape = np.shape(image)[:2]
-        if valid is not None:
-            valid = window.cut(check_image(image), None, valid)[2]
         image, box, mask = window.cut(check_image(image), box, mask)
+        if valid is not None:
+            valid = window.cut_mask(valid, image.shape[:2])
         intrinsics = window.intrinsics(full_shape, prior)
     elif intrinsics is None and fov is not None:
         intrinsics = photo_intrinsics(np.shape(image)[:2], fov)
