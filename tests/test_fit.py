@@ -310,6 +310,39 @@ def test_retrieval_preselection_keeps_the_answer(catalogue, monkeypatch):
     assert [c.mesh_id for c in pre.candidates][:2] == [c.mesh_id for c in exact.candidates][:2]
 
 
+def test_a_photos_queries_read_each_index_row_once(catalogue, monkeypatch):
+    """Retrieval's rows through the search index (``_StoredRows``): for each of several queries
+    the rows, their dot products and their meshes and views are those a fresh read of the
+    index gives (``SearchIndex.preselect`` then ``rows``; NumPy's float32 dot products), and a
+    row asked for by several queries is read once, the store growing past its first size."""
+    import ucad_cl.fit as fit
+    from ucad_catalog.reader import CatalogReader
+
+    monkeypatch.setattr(fit, "INDEX_FROM", 0)
+    monkeypatch.setattr(fit, "INDEX_ROWS", 6)        # a store of 24 rows first, of 60
+    rng = np.random.default_rng(5)
+    with CatalogReader(catalogue) as r:
+        idx = r.search_index()[0]
+        assert idx is not None and len(idx.mesh) == 60
+        stored = fit._StoredRows(r, [])
+        union: set[int] = set()
+        for k in range(12):
+            q = idx.rows(np.array([5 * k]))[0] + rng.normal(0, 0.05, idx.mean.shape[0])
+            got = stored.rows(q)
+            near = idx.preselect(q, 6)
+            union |= set(near.tolist())
+            want = idx.rows(near)
+            assert np.array_equal(got.take(), want)
+            assert np.array_equal(got.take(np.array([4, 1])), want[[4, 1]])
+            assert np.array_equal(got.mesh_of, idx.mesh[near])
+            assert np.array_equal(got.view_of, idx.view[near])
+            unit = (q / np.linalg.norm(q)).astype(np.float32)
+            assert np.allclose(got.scores(q), want @ unit, rtol=0, atol=1e-6)
+        assert stored.n_read == len(union) > 24 and stored.read is not None
+        assert sorted(np.flatnonzero(stored.at >= 0).tolist()) == sorted(union)
+    assert not stored.notes
+
+
 def test_retrieval_leaves_out_a_mesh_without_features_with_a_note(catalogue, tmp_path):
     """A catalogue whose features object of one mesh is gone (a damaged copy): retrieval
     searches the others, finds the right mesh, and the result says which mesh was left out;

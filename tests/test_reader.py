@@ -285,6 +285,13 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path, capsys)
     assert np.array_equal(idx.rows(rows), t.feats[rows])
     assert np.array_equal(idx.rows(np.arange(32, 48)), t.rows_of(2))
     assert np.array_equal(t.rows(rows), t.feats[rows])
+    out = np.full((6, X.shape[1]), np.nan, np.float32)          # into a caller's array
+    assert idx.rows(rows, out=out[1:5]) is not None and np.array_equal(out[1:5], t.feats[rows])
+    assert np.isnan(out[[0, 5]]).all()
+    for bad in (np.empty((3, X.shape[1]), np.float32), np.empty((4, X.shape[1])),
+                np.empty((X.shape[1], 4), np.float32).T):
+        with pytest.raises(ValueError, match="C-contiguous float32"):
+            idx.rows(rows, out=bad)
 
     copy = tmp_path / "cat"                  # a mesh gone: stale until the writer refreshes
     shutil.copytree(cat, copy)

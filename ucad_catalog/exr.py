@@ -392,7 +392,8 @@ def _unzip(raw: bytes, size: int, inflate: Callable[[bytes, int], bytes | bytear
         raise ValueError(f"chunk inflates to {t.size} bytes, expected {size}")
     d = t - np.uint8(128)                              # wraps mod 256, as the encoder's + 128
     d[0] = t[0]
-    d = np.cumsum(d, dtype=np.uint8)
+    d = np.cumsum(d, dtype=np.uint32).astype(np.uint8)  # mod 256 either way; NumPy's uint32
+    #                                                     running sum is ~2.7x its uint8 one
     out = np.empty(size, np.uint8)
     half = (size + 1) // 2
     out[0::2], out[1::2] = d[:half], d[half:]

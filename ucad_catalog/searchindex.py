@@ -53,6 +53,7 @@ DIMS = 64          # principal axes kept (the fit's top 20 meshes were identical
 FIT_STRIDE = 4     # every 4th row (or sparser) of each mesh fits the axes ...
 FIT_ROWS = 16384   # ... at most about this many in all (memory: FIT_ROWS x D x 4 bytes)
 INDEX_CHUNK = 1024  # rows per float64 block of the index's covariance (~15 MB a block)
+IOV_RUN = 1024          # rows one preadv reads at most (Linux's IOV_MAX)
 PREFETCH_MESHES = 256   # objects whose rows are asked for together (_advise) before reading
 
 
@@ -185,14 +186,19 @@ class SearchIndex:
         below, at = np.flatnonzero(d < cut), np.flatnonzero(d == cut)
         return np.sort(np.concatenate([below, at[:n - len(below)]]))
 
-    def rows(self, rows: np.ndarray) -> np.ndarray:
+    def rows(self, rows: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """(len(rows), D) float32 full rows, read from the meshes' ``features.npy`` objects
-        (CatalogError when one is gone or no longer what the index says). The objects are
+        into ``out`` (C-contiguous; None: a new array) and returned (CatalogError when one is
+        gone or no longer what the index says). The objects are
         taken ``PREFETCH_MESHES`` at a time: every row of a batch is asked of the kernel
         first (``_open_advised``), then read, so that on a cold page cache the batch's disk
         reads are waited for together rather than one after another."""
         rows = np.asarray(rows, np.int64)
-        out = np.empty((len(rows), self.mean.shape[0]), np.float32)
+        shape = (len(rows), self.mean.shape[0])
+        if out is None:
+            out = np.empty(shape, np.float32)
+        elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError(f"out must be a C-contiguous float32 array of shape {shape}")
         if not len(rows):
             return out
         order = np.argsort(self.mesh[rows], kind="stable")
@@ -243,8 +249,9 @@ class SearchIndex:
     def _read(self, k: int, n: int, views: list[int], out: np.ndarray, at: np.ndarray,
               fd: int) -> None:
         """Rows ``views`` of mesh ``k`` (``n`` rows, its object open as ``fd``) into
-        ``out[at]``: each row read in place (one pread) when the object holds raw float32
-        rows (its data offset found once per index), else through np.load."""
+        ``out[at]``: read in place when the object holds raw float32 rows (its data offset
+        found once per index; one preadv per run of consecutive views, at most ``IOV_RUN``),
+        else through np.load."""
         path = self.paths[k]
         D = self.mean.shape[0]
         try:
@@ -254,9 +261,15 @@ class SearchIndex:
             if start < 0:
                 out[at] = np.load(path, allow_pickle=False)[views]
                 return
-            for i, v in zip(at.tolist(), views):
-                if os.preadv(fd, [out[i].data.cast("B")], start + v * D * 4) != D * 4:
+            at_list, r = at.tolist(), 0
+            while r < len(views):                     # a run of consecutive views: one preadv
+                e = r + 1
+                while e < len(views) and views[e] == views[e - 1] + 1 and e - r < IOV_RUN:
+                    e += 1
+                bufs = [out[i].data.cast("B") for i in at_list[r:e]]
+                if os.preadv(fd, bufs, start + views[r] * D * 4) != (e - r) * D * 4:
                     raise EOFError("short read")
+                r = e
         except (OSError, ValueError, EOFError) as exc:
             raise CatalogError(f"mesh {self.meshes[k].sha256[:12]}: features.npy cannot be "
                                f"read as the search index says ({exc})") from None

@@ -385,8 +385,8 @@ def catalog_rows(reader: CatalogReader, query: np.ndarray
     (``CatalogReader.feature_table``). ValueError naming the problem when the catalogue has no
     usable features."""
     notes: list[str] = []
-    metas, rows, mesh_of, view_of = _StoredRows(reader, notes).rows(query)
-    return metas, rows, mesh_of, view_of, notes
+    rows = _StoredRows(reader, notes).rows(query)
+    return rows.meshes, rows.take(), rows.mesh_of, rows.view_of, notes
 
 
 def azimuth_step(elevations) -> float:
@@ -432,7 +432,9 @@ class _StoredRows:
     def __init__(self, reader: CatalogReader, notes: list[str]):
         self.r, self.notes = reader, notes
         self.db: FeatureTable | SearchIndex | None = None
-        self.index_rows: dict[int, np.ndarray] = {}                # search index row -> row
+        self.read: np.ndarray | None = None    # (>= n_read, D) float32: the index rows read ...
+        self.n_read = 0
+        self.at: np.ndarray | None = None      # ... and where each index row is in it (-1: not)
 
     def database(self) -> FeatureTable | SearchIndex:
         """Where retrieval's stored rows come from: the catalogue's search index when it is
@@ -473,24 +475,74 @@ class _StoredRows:
             self.notes.append(f"{len(skipped)} accepted mesh(es) left out of retrieval, "
                               f"e.g. {sha[:12]}: {why}")
 
-    def rows(self, query) -> tuple[list[MeshInfo], np.ndarray, np.ndarray, np.ndarray]:
-        """(meshes, rows (n, D) float32, each row's mesh index and view): the stored rows a
-        query is ranked against. With the search index, its ``INDEX_ROWS`` rows nearest to the
-        query in projection, read in full (an object that no longer reads as the index says:
-        a note, and every stored row from then on); else every stored row."""
+    def rows(self, query) -> "_RowSet":
+        """The stored rows a query is ranked against. With the search index, its
+        ``INDEX_ROWS`` rows nearest to the query in projection, read in full (an object that
+        no longer reads as the index says: a note, and every stored row from then on); else
+        every stored row."""
         src = self.database()
         if isinstance(src, SearchIndex):
             near = src.preselect(query, INDEX_ROWS)
             try:
-                new = [int(i) for i in near if int(i) not in self.index_rows]
-                if new:                         # rows read once per photo (several queries)
-                    self.index_rows.update(zip(new, src.rows(np.asarray(new, np.int64))))
-                rows = np.stack([self.index_rows[int(i)] for i in near])
-                return src.meshes, rows, src.mesh[near], src.view[near]
+                where = self._read_rows(src, near)
+                assert self.read is not None
+                return _RowSet(src.meshes, src.mesh[near], src.view[near],
+                               self.read[:self.n_read], where)
             except CatalogError as exc:
                 self.notes.append(f"search index not used ({exc}): every stored row read")
                 src = self.db = self._table()
-        return src.meshes, src.feats, src.mesh, src.view
+        return _RowSet(src.meshes, src.mesh, src.view, src.feats, None)
+
+    def _read_rows(self, index: SearchIndex, near: np.ndarray) -> np.ndarray:
+        """Where the index's rows ``near`` are in ``read``, each read once per photo (the
+        queries of one photo ask for mostly the same rows) straight into ``read``, which holds
+        ``4 x INDEX_ROWS`` rows before it first grows (its pages taken as they are written)."""
+        if self.at is None:
+            self.at = np.full(len(index.mesh), -1, np.int64)
+            self.read = np.empty((min(4 * INDEX_ROWS, len(index.mesh)), index.mean.shape[0]),
+                                 np.float32)
+        assert self.read is not None
+        new = near[self.at[near] < 0]
+        if len(new):
+            n = self.n_read
+            if n + len(new) > len(self.read):
+                grown = np.empty((max(2 * len(self.read), n + len(new)), self.read.shape[1]),
+                                 np.float32)
+                grown[:n] = self.read[:n]
+                self.read = grown
+            index.rows(new, out=self.read[n:n + len(new)])
+            self.at[new] = np.arange(n, n + len(new))
+            self.n_read = n + len(new)
+        return self.at[near]
+
+
+@dataclass
+class _RowSet:
+    """The stored rows one query is ranked against (``_StoredRows.rows``): ``meshes``, and per
+    row its mesh (index into ``meshes``) and view; ``store[where]`` (``where`` None: all of
+    ``store``) are its (n, D) float32 rows, gathered only as ``take`` asks (a photo's queries
+    share the rows they read)."""
+
+    meshes: list[MeshInfo]
+    mesh_of: np.ndarray
+    view_of: np.ndarray
+    store: np.ndarray
+    where: np.ndarray | None
+
+    def __len__(self) -> int:
+        return len(self.mesh_of)
+
+    def scores(self, query: np.ndarray) -> np.ndarray:
+        """(n,) float32 dot products of the rows with ``query`` made unit: the order in which
+        retrieval preselects rows and picks the refinement's seeds."""
+        q = (query / max(float(np.linalg.norm(query)), 1e-30)).astype(np.float32)
+        return self.store @ q if self.where is None else (self.store @ q)[self.where]
+
+    def take(self, sel: np.ndarray | None = None) -> np.ndarray:
+        """(len(sel), D) float32: the rows ``sel`` (None: every row)."""
+        if self.where is None:
+            return self.store if sel is None else self.store[sel]
+        return self.store[self.where if sel is None else self.where[sel]]
 
 
 class _Fit:
@@ -679,24 +731,27 @@ class _Fit:
         of ``_refined_object``."""
         q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                               runtime=self.runtime)
-        metas, db, mesh_of, view_of = self.stored_rows.rows(q)
+        rows = self.stored_rows.rows(q)
         out: dict[int, int] = {}
-        for row in np.argsort(-_dot_scores(db, q), kind="stable"):
-            out.setdefault(int(mesh_of[row]), int(view_of[row]))
+        for row in np.argsort(-rows.scores(q), kind="stable"):
+            out.setdefault(int(rows.mesh_of[row]), int(rows.view_of[row]))
             if len(out) >= REFINE_MESHES:
                 break
-        return [(metas[k].sha256, v) for k, v in out.items()]
+        return [(rows.meshes[k].sha256, v) for k, v in out.items()]
 
     def _pick_mesh(self, photo, obj: ObjectMask, key):
         if key is not None:
             return self._given(key), [], None
         query, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
                                   runtime=self.runtime)
-        metas, db, mesh_of, view_of = self.stored_rows.rows(query)
-        if len(db) > PRESELECT_ROWS:               # float32 dot products pick the rows that
-            near = np.sort(np.argpartition(-_dot_scores(db, query), PRESELECT_ROWS)  # the
-                           [:PRESELECT_ROWS])                        # exact search ranks
-            db, mesh_of, view_of = db[near], mesh_of[near], view_of[near]
+        rows = self.stored_rows.rows(query)
+        metas, mesh_of, view_of = rows.meshes, rows.mesh_of, rows.view_of
+        near = None
+        if len(rows) > PRESELECT_ROWS:             # float32 dot products pick the rows that
+            near = np.sort(np.argpartition(-rows.scores(query), PRESELECT_ROWS)  # the exact
+                           [:PRESELECT_ROWS])                        # search ranks
+            mesh_of, view_of = mesh_of[near], view_of[near]
+        db = rows.take(near)
         zeros = np.zeros(len(db))                  # angles are read for the matches only
         matches = search_catalog(query, db, mesh_of, view_of, zeros, zeros,
                                  top=len(db))
@@ -1297,13 +1352,6 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
                  for r in sorted(rows, key=lambda r: r.index)]
     images = FitImages(photo=work, render=render, part_map=part_map, object=obj)
     return parts, lf.lighting, lf.loss, images, materials
-
-
-def _dot_scores(db: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """(N,) float32 dot products of the stored unit rows ``db`` with ``query`` made unit: the
-    order in which retrieval preselects rows (and the refinement picks its seeds)."""
-    q = query / max(float(np.linalg.norm(query)), 1e-30)
-    return db @ q.astype(np.float32)
 
 
 def _check_tyre(fitted: np.ndarray, prior: np.ndarray, gains: np.ndarray):
