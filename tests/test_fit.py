@@ -606,38 +606,6 @@ def test_retrieval_finds_the_mesh_and_cli_writes_outputs(catalogue, tmp_path, ca
     assert "KHR_materials_clearcoat" in paint[0]["extensions"]
 
 
-def test_past_the_edge_grows_the_photo_on_the_sides_the_box_touches():
-    """The hypotheses of a vehicle cut by the photo's edge: the photo grown past each side its
-    box touches by the share x the mask's visible extent, the renders' background there, the
-    photo unchanged inside, one mask pixel at the new edge; none for a box inside the photo."""
-    from ucad_cl.fit import PAST_EDGE, past_the_edge
-    from ucad_cl.foreground import RENDER_BACKGROUND, ObjectMask
-
-    rng = np.random.default_rng(0)
-    photo = rng.integers(0, 255, (60, 80, 3), np.uint8)
-    mask = np.zeros((60, 80), bool)
-    mask[20:41, 0:30] = True                            # 30 wide, 21 high, at the left edge
-    hyps = past_the_edge(photo, ObjectMask(mask=mask, source="grabcut", box=(0, 18, 32, 44)))
-    assert len(hyps) == len(PAST_EDGE)
-    for e, (wider, past, at) in zip(PAST_EDGE, hyps):
-        g = int(round(e * 30))
-        assert at == (g, 0)
-        assert wider.shape == (60, 80 + g, 3)
-        assert np.array_equal(wider[:, g:], photo)
-        assert (wider[:, :g] == np.array(RENDER_BACKGROUND, np.uint8)).all()
-        assert np.array_equal(past.mask[:, g:], mask) and past.source == "mask"
-        assert np.argwhere(past.mask[:, :g]).tolist() == [[20, 0]]
-        assert past.box == (0, 20, g + 30, 41)
-    inside = ObjectMask(mask=mask, source="grabcut", box=(3, 18, 32, 44))
-    assert past_the_edge(photo, inside) == []
-    both = past_the_edge(photo, ObjectMask(mask=mask, source="mask", box=(0, 0, 80, 60)))
-    g, h = int(round(PAST_EDGE[0] * 30)), int(round(PAST_EDGE[0] * 21))
-    assert both[0][0].shape == (60 + 2 * h, 80 + 2 * g, 3) and both[0][2] == (g, h)
-    dot = np.zeros((60, 80), bool)
-    dot[30, 0] = True                                   # one pixel: nothing to grow by
-    assert past_the_edge(photo, ObjectMask(mask=dot, source="mask", box=(0, 30, 1, 31))) == []
-
-
 @dataclass
 class _CutPhoto:
     sha: str
@@ -671,11 +639,12 @@ def test_a_vehicle_cut_by_the_photos_edge_is_retrieved(catalogue, monkeypatch):
     that also assumes the vehicle going on past the edge finds more of the five meshes than
     retrieval of the visible part alone (15 against 12 of 20 when written), and says so."""
     import ucad_cl.fit as fit_mod
+    import ucad_cl.foreground as fg
 
     photos = _cut_photos(catalogue)
-    found, shipped = {}, fit_mod.PAST_EDGE
+    found, shipped = {}, fg.PAST_EDGE
     for past in (shipped, ()):
-        monkeypatch.setattr(fit_mod, "PAST_EDGE", past)
+        monkeypatch.setattr(fg, "PAST_EDGE", past)
         res = [fit_mod.fit_photo(p.image, box=p.box, catalog=catalogue) for p in photos]
         found[past] = sum(r.mesh_id == p.sha for p, r in zip(photos, res))
         if past:
@@ -691,14 +660,15 @@ def test_a_vehicle_cut_by_the_photos_edge_is_posed_past_the_edge(catalogue, monk
     render at the pose covers the visible vehicle); with the visible pixels given as the mask
     (half of the photos), nearer in azimuth too."""
     import ucad_cl.fit as fit_mod
+    import ucad_cl.foreground as fg
     from ucad_cl.cameras import single_camera
     from ucad_cl.pose import az_diff
     from ucad_cl.render import render_views
 
     photos = _cut_photos(catalogue)
-    err, shipped = {}, fit_mod.PAST_EDGE
+    err, shipped = {}, fg.PAST_EDGE
     for past in (shipped, ()):
-        monkeypatch.setattr(fit_mod, "PAST_EDGE", past)
+        monkeypatch.setattr(fg, "PAST_EDGE", past)
         res = [fit_mod.fit_photo(p.image, box=p.box, catalog=catalogue, mesh=p.sha)
                for p in photos]
         err[past] = (np.median([az_diff(r.pose.azimuth, p.azimuth) for p, r in zip(photos, res)]),
@@ -718,7 +688,7 @@ def test_a_vehicle_cut_by_the_photos_edge_is_posed_past_the_edge(catalogue, monk
     assert err[shipped][0] < err[()][0] - 2.0 and err[shipped][1] <= err[()][1] + 2.0, err
     by_mask = {}                            # the vehicle's visible pixels given as the mask
     for past in (shipped, ()):
-        monkeypatch.setattr(fit_mod, "PAST_EDGE", past)
+        monkeypatch.setattr(fg, "PAST_EDGE", past)
         res = [fit_mod.fit_photo(p.image, mask=p.mask, catalog=catalogue, mesh=p.sha)
                for p in photos[::2]]
         by_mask[past] = np.median([az_diff(r.pose.azimuth, p.azimuth)

@@ -82,7 +82,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import NamedTuple, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -97,15 +97,16 @@ from .colorimetry import delta_e2000, linear_to_lab, linear_to_srgb8, srgb8_to_l
 from .cues import boundary_points, edge_distance, edge_recall, photo_edges, region_residual
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
-from .foreground import (RENDER_BACKGROUND, ObjectMask, PhotoWindow, box_stretch, check_image,
-                         mask_box, object_mask, photo_intrinsics, refine_with_silhouette)
+from .foreground import (GrownPhoto, ObjectMask, PhotoWindow, box_stretch, check_image,
+                         mask_box, object_mask, past_the_edge, photo_intrinsics,
+                         refine_with_silhouette)
 from .ingest import IngestError, MeshLoader
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
                     plausible_cast, predict, shading)
 from .orient import in_frame
 from .pose import (FOV_PRIOR, CatalogMatch, PoseRing, check_fov, estimate_pose,
-                   query_features, search_catalog)
+                   past_edge_choice, query_features, search_catalog)
 from .render import render_views
 from .runtime import Runtime
 from .segment import OnnxSegmenter
@@ -151,10 +152,6 @@ MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of
 SEED_MASK_STEP = 10.0       # ... and each seed alone too, over stored rings of at most this
 #                             azimuth step (degrees; docs/FIT.md)
 SHADE_THREADS = 2           # threads shading the re-rank's stored views (_describe_fine)
-PAST_EDGE = (0.1, 0.25, 0.5)   # retrieval of an object touching the photo's edge also assumes
-#                             it goes on past it by these shares of its visible extent
-#                             (``past_the_edge``; docs/FIT.md)
-EDGE_PIXELS = 1             # ... when its box reaches within this many pixels of that edge
 
 
 class PhotoSegmenter(Protocol):
@@ -700,11 +697,8 @@ class _Fit:
                 if c2[0].score < candidates[0].score:                    # PAST_EDGE order)
                     meta, candidates, best_view, canvas = m2, c2, v2, hyp
         elif cut:                               # the given mesh's own stored views decide
-            best = self._nearest(meta.sha256, photo, obj).score
-            for hyp in cut:
-                d = self._nearest(meta.sha256, hyp.image, hyp.obj).score
-                if d < best:
-                    best, canvas = d, hyp
+            canvas = past_edge_choice(photo, obj, self._ring(meta.sha256),
+                                      HogExtractor(runtime=self.runtime))
         if cut and mesh_key is None:
             self.notes.append("the vehicle touches the photo's edge: retrieval also tried it "
                               "going on past the edge")
@@ -934,23 +928,18 @@ class _Fit:
 
     def _nearest_view(self, sha: str, photo, obj: ObjectMask) -> int:
         """The stored view of mesh ``sha`` nearest to the photo's object by HOG."""
-        return self._nearest(sha, photo, obj).view
+        ring = self._ring(sha)
+        q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
+                              runtime=self.runtime)
+        n = len(ring.feats)
+        return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
+                              ring.ring.azimuth, ring.ring.elevation, top=1)[0].view
 
     def _ring(self, sha: str) -> PoseRing:
         """``catalog_ring`` of mesh ``sha``, read once per photo."""
         if sha not in self.rings:
             self.rings[sha] = catalog_ring(self.r, sha)
         return self.rings[sha]
-
-    def _nearest(self, sha: str, photo, obj: ObjectMask) -> CatalogMatch:
-        """The match (view, HOG distance) of the photo's object to the nearest stored view of
-        mesh ``sha``."""
-        ring = self._ring(sha)
-        q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
-                              runtime=self.runtime)
-        n = len(ring.feats)
-        return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
-                              ring.ring.azimuth, ring.ring.elevation, top=1)[0]
 
     # -- pose
     def _refined_pose(self, photo, mesh, sha, given: dict,
@@ -1070,61 +1059,6 @@ def _facing(normal: np.ndarray, view: np.ndarray) -> np.ndarray:
     flip = np.einsum("...i,...i->...", n, view) < 0
     n[flip] *= -1.0
     return n
-
-
-class GrownPhoto(NamedTuple):
-    """A photo grown past its edge (``past_the_edge``): the grown image, the object there, and
-    (x, y) where the photo's pixel (0, 0) lies in it."""
-
-    image: np.ndarray
-    obj: ObjectMask
-    at: tuple[int, int]
-
-    def shown(self, shape: tuple[int, int]) -> np.ndarray:
-        """(h, w) bool over the grown image: the pixels of the photo (of ``shape`` (H, W))."""
-        out = np.zeros(self.image.shape[:2], bool)
-        x, y = self.at
-        out[y:y + shape[0], x:x + shape[1]] = True
-        return out
-
-
-def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[GrownPhoto]:
-    """Retrieval's hypotheses for an object cut by the photo's edge (its box, given or the
-    mask's, within ``EDGE_PIXELS`` of it): for each share e of ``PAST_EDGE``, the photo grown by
-    e x the mask's visible width (height) past every side the box touches, the new pixels the
-    renders' background, and one mask pixel at the new edge (in the mask's outermost row or
-    column there) so that the descriptor's crop frames the whole assumed vehicle; what the
-    photo does not show stays background. [] when the box touches no edge."""
-    H, W = obj.mask.shape
-    bx0, by0, bx1, by1 = obj.box
-    sides = (bx0 <= EDGE_PIXELS, by0 <= EDGE_PIXELS, bx1 >= W - EDGE_PIXELS,
-             by1 >= H - EDGE_PIXELS)                          # left, top, right, bottom
-    if not any(sides):
-        return []
-    mask = obj.mask
-    x0, y0, x1, y1 = mask_box(mask)
-    out = []
-    for e in PAST_EDGE:
-        gx, gy = int(round(e * (x1 - x0))), int(round(e * (y1 - y0)))
-        left, top, right, bottom = (g * s for g, s in zip((gx, gy, gx, gy), sides))
-        if not left + top + right + bottom:         # an object too small to grow: no change
-            continue
-        wider = np.empty((H + top + bottom, W + left + right, 3), np.uint8)
-        wider[...] = RENDER_BACKGROUND
-        wider[top:top + H, left:left + W] = photo
-        past = np.zeros(wider.shape[:2], bool)
-        past[top:top + H, left:left + W] = mask
-        if left:
-            past[top + int(np.flatnonzero(mask[:, x0])[0]), 0] = True
-        if right:
-            past[top + int(np.flatnonzero(mask[:, x1 - 1])[0]), -1] = True
-        if top:
-            past[0, left + int(np.flatnonzero(mask[y0])[0])] = True
-        if bottom:
-            past[-1, left + int(np.flatnonzero(mask[y1 - 1])[0])] = True
-        out.append(GrownPhoto(wider, ObjectMask(mask=past, source="mask", box=mask_box(past)),
-                              (left, top)))
-    return out
 
 
 def _render_frame(mesh: Mesh, K, w2c, w: int, h: int, lut, runtime) -> _Frame:

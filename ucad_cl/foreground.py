@@ -27,6 +27,10 @@ pixels over the renders' background, exactly as the renders have it.
   the silhouette's eroded core is "foreground": the fit seeds it with the first retrieved
   meshes' stored silhouettes, ``ucad_cl.fit``).
 
+* ``past_the_edge`` grows a photo whose object touches its edge past that edge (the renders'
+  background there), for the fit's retrieval and the pose search to assume the vehicle goes on
+  where the photo stops (``GrownPhoto.shown``: the pixels the photo shows).
+
 Determinism: GrabCut initialises its colour models with k-means seeded from OpenCV's global
 random generator; it is reseeded (``cv2.setRNGSeed(0)``) before every call, so the same input
 gives the same mask.
@@ -34,6 +38,7 @@ gives the same mask.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import cv2  # noqa: TID253  # OpenCV throughout (GrabCut, warps)
 import numpy as np
@@ -52,6 +57,9 @@ ANALYSIS_SIDE = 512     # a large photo is analysed in a window (PhotoWindow) sc
 ANALYSIS_PIXELS = 1 << 20   # ... when the box is longer or the photo has more pixels than this
 ANALYSIS_GROW = 0.3     # the window: the box grown by this share of its longer side on every side
 #                         (GrabCut's context is 0.2, the fit's re-rank frame 0.15)
+PAST_EDGE = (0.1, 0.25, 0.5)   # an object touching the photo's edge may go on past it by these
+#                             shares of its visible extent (``past_the_edge``; docs/FIT.md) ...
+EDGE_PIXELS = 1             # ... when its box reaches within this many pixels of that edge
 
 
 @dataclass
@@ -260,6 +268,62 @@ class PhotoWindow:
 
 
 # ----------------------------------------------------------------------------- GrabCut
+
+class GrownPhoto(NamedTuple):
+    """A photo grown past its edge (``past_the_edge``): the grown image, the object there, and
+    (x, y) where the photo's pixel (0, 0) lies in it."""
+
+    image: np.ndarray
+    obj: ObjectMask
+    at: tuple[int, int]
+
+    def shown(self, shape: tuple[int, int]) -> np.ndarray:
+        """(h, w) bool over the grown image: the pixels of the photo (of ``shape`` (H, W))."""
+        out = np.zeros(self.image.shape[:2], bool)
+        x, y = self.at
+        out[y:y + shape[0], x:x + shape[1]] = True
+        return out
+
+
+def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[GrownPhoto]:
+    """The hypotheses for an object cut by the photo's edge (its box, given or the mask's,
+    within ``EDGE_PIXELS`` of it; the fit's retrieval tries each, ``pose.past_edge_choice``
+    picks one for a known mesh): for each share e of ``PAST_EDGE``, the photo grown by
+    e x the mask's visible width (height) past every side the box touches, the new pixels the
+    renders' background, and one mask pixel at the new edge (in the mask's outermost row or
+    column there) so that the descriptor's crop frames the whole assumed vehicle; what the
+    photo does not show stays background. [] when the box touches no edge."""
+    H, W = obj.mask.shape
+    bx0, by0, bx1, by1 = obj.box
+    sides = (bx0 <= EDGE_PIXELS, by0 <= EDGE_PIXELS, bx1 >= W - EDGE_PIXELS,
+             by1 >= H - EDGE_PIXELS)                          # left, top, right, bottom
+    if not any(sides):
+        return []
+    mask = obj.mask
+    x0, y0, x1, y1 = mask_box(mask)
+    out = []
+    for e in PAST_EDGE:
+        gx, gy = int(round(e * (x1 - x0))), int(round(e * (y1 - y0)))
+        left, top, right, bottom = (g * s for g, s in zip((gx, gy, gx, gy), sides))
+        if not left + top + right + bottom:         # an object too small to grow: no change
+            continue
+        wider = np.empty((H + top + bottom, W + left + right, 3), np.uint8)
+        wider[...] = RENDER_BACKGROUND
+        wider[top:top + H, left:left + W] = photo
+        past = np.zeros(wider.shape[:2], bool)
+        past[top:top + H, left:left + W] = mask
+        if left:
+            past[top + int(np.flatnonzero(mask[:, x0])[0]), 0] = True
+        if right:
+            past[top + int(np.flatnonzero(mask[:, x1 - 1])[0]), -1] = True
+        if top:
+            past[0, left + int(np.flatnonzero(mask[y0])[0])] = True
+        if bottom:
+            past[-1, left + int(np.flatnonzero(mask[y1 - 1])[0])] = True
+        out.append(GrownPhoto(wider, ObjectMask(mask=past, source="mask", box=mask_box(past)),
+                              (left, top)))
+    return out
+
 
 def grabcut_box(image: np.ndarray, box: tuple[int, int, int, int], *,
                 follow_edges: bool = False) -> np.ndarray:

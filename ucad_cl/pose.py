@@ -55,9 +55,9 @@ from .artifacts import CameraRing, Mesh
 from .cameras import look_at_w2c, make_ring, single_camera
 from .cues import Cues, combine, cue_distances, query_cues, query_hog_distance, view_cues
 from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
-from .foreground import (RENDER_BACKGROUND, ObjectMask, PhotoWindow, axis_turn, centre_on_axis,
-                         check_image, composite, mask_box, object_mask, photo_intrinsics,
-                         refine_with_silhouette)
+from .foreground import (RENDER_BACKGROUND, GrownPhoto, ObjectMask, PhotoWindow, axis_turn,
+                         centre_on_axis, check_image, composite, mask_box, object_mask,
+                         past_the_edge, photo_intrinsics, refine_with_silhouette)
 from .render import render_views
 from .runtime import Runtime
 from .search import search as knn_search
@@ -156,11 +156,14 @@ class PoseCandidate:
 class PoseEstimate:
     """What ``estimate_pose`` found: ``candidates`` best first (the best twin second), the
     object it matched (``object``: mask source and the share of the box kept), ``ambiguous``
-    when the best twin is within AMBIGUOUS_GAP of the best."""
+    when the best twin is within AMBIGUOUS_GAP of the best; ``past_edge``: how far (pixels:
+    left, top, right, bottom) the vehicle was assumed to go on past the photo's edges
+    (``estimate_pose(past_edge=True)``; zeros: as the photo shows it)."""
 
     candidates: list[PoseCandidate]
     object: ObjectMask
     ambiguous: bool = False
+    past_edge: tuple[int, int, int, int] = (0, 0, 0, 0)   # pixels assumed past each edge
 
     @property
     def best(self) -> PoseCandidate:
@@ -196,7 +199,8 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
                   coarse: PoseRing | None = None, method: PoseMethod = ROBUST,
                   runtime: Runtime | None = None,
                   intrinsics: np.ndarray | None = None,
-                  fov: float | None = None, valid: np.ndarray | None = None) -> PoseEstimate:
+                  fov: float | None = None, valid: np.ndarray | None = None,
+                  past_edge: bool = False) -> PoseEstimate:
     """Best ``top`` poses of ``mesh`` for the object in ``image`` ((H, W, 3) uint8 RGB), rendered
     on ``runtime`` (default ``get_runtime()``).
 
@@ -212,8 +216,12 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     narrower side in degrees (``FOV_RANGE``), when known (instead of ``method.fov_prior``; ignored with
     ``intrinsics``). ``valid``: (H, W) bool, the pixels the photo shows (None: all; e.g. a
     photo grown past its edge, ``fit.past_the_edge``): the cues compare nothing else
-    (``cues.query_cues``). ValueError naming the problem for a bad image, an empty or tiny mask
-    or box, a ``valid`` of another shape.
+    (``cues.query_cues``). ``past_edge``: an object that touches the photo's edge is posed on
+    the photo grown past that edge when ``past_edge_choice`` finds it nearer to the coarse ring
+    so (the search framed by the grown object, its cues told which pixels the photo shows, the
+    photo's camera moved with it; ``PoseEstimate.past_edge`` says by how much); not with
+    ``valid``. ValueError naming the problem for a bad image, an empty or tiny mask or box, a
+    ``valid`` of another shape.
     """
     check_fov(fov)
     if valid is not None and np.shape(valid) != np.shape(image)[:2]:
@@ -233,10 +241,22 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     if top < 1:
         raise ValueError(f"top={top} must be >= 1")
     image = np.asarray(image)
+    extractor = extractor or HogExtractor(runtime=runtime)
     if coarse is None:
-        coarse = pose_ring(mesh, extractor or HogExtractor(runtime=runtime),
-                           azimuth_step=azimuth_step, runtime=runtime,
+        coarse = pose_ring(mesh, extractor, azimuth_step=azimuth_step, runtime=runtime,
                            elevations=elevations, fov_deg=fov_deg, size=size)
+    first = obj
+    grown = (past_edge_choice(image, obj, coarse, extractor)
+             if past_edge and valid is None and method.isolate else None)
+    if grown is not None:                   # the search runs on the grown photo
+        shape = image.shape[:2]
+        base = (intrinsics if intrinsics is not None
+                else photo_intrinsics(shape, method.fov_prior or FOV_PRIOR))
+        intrinsics = np.array(base, np.float64)
+        intrinsics[:2, 2] += grown.at
+        valid, image = grown.shown(shape), grown.image
+        obj = (grown.obj if obj.source == "mask"
+               else object_mask(image, box=grown.obj.box, grabcut=method.isolate))
     if not method.isolate:                  # the box, background included (before issue 12)
         obj = ObjectMask(mask=box_mask(obj.mask.shape, obj.box), source="box", box=obj.box,
                          kept=1.0)
@@ -259,13 +279,51 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
             search.set_photo(image, obj.mask, frame, valid)
             found = search.run()
     cands = search.report(found, top)
+    moved = (0, 0, 0, 0)
+    if grown is not None:                   # back in the photo's (window's) pixels
+        x, y = grown.at
+        h, w = shape
+        for c in cands:
+            if c.K is not None:
+                c.K = np.array(c.K, np.float64)
+                c.K[:2, 2] -= (x, y)
+        inside = obj.mask[y:y + h, x:x + w]
+        obj = (ObjectMask(mask=inside, source=obj.source, box=first.box, kept=obj.kept)
+               if inside.any() else first)
+        moved = (x, y, image.shape[1] - w - x, image.shape[0] - h - y)
     if window is not None:                  # back in the photo's pixels
         for c in cands:
             c.K = window.photo_K(c.K) if c.K is not None else None
         obj = window.photo_object(obj, full_shape)
     runner = next((c for c in cands if c.flipped), None)
     ambiguous = bool(method.twins) and runner is not None and runner.gap < AMBIGUOUS_GAP
-    return PoseEstimate(candidates=cands, object=obj, ambiguous=ambiguous)
+    return PoseEstimate(candidates=cands, object=obj, ambiguous=ambiguous, past_edge=moved)
+
+
+def past_edge_choice(image: np.ndarray, obj: ObjectMask, ring: PoseRing,
+                     extractor: FeatureExtractor) -> GrownPhoto | None:
+    """For an object that touches the photo's edge: the photo grown past that edge
+    (``foreground.past_the_edge``) whose object's descriptor (``extractor``, as ``ring``'s) is
+    nearest to one of ``ring``'s views, when nearer than the photo's own object (ties: the
+    photo, then ``PAST_EDGE`` order); None when the object touches no edge or the photo as it
+    is is nearest. A vehicle cut by the photo's edge described as it shows compares with views
+    of a shorter vehicle; grown, with views of the whole one (docs/FIT.md)."""
+    cut = past_the_edge(image, obj)
+    if not cut:
+        return None
+    n = len(ring.feats)
+
+    def nearest(img: np.ndarray, o: ObjectMask) -> float:
+        q, _ = query_features(img, extractor, mask=o.mask)
+        return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
+                              ring.ring.azimuth, ring.ring.elevation, top=1)[0].score
+
+    best, choice = nearest(image, obj), None
+    for hyp in cut:
+        d = nearest(hyp.image, hyp.obj)
+        if d < best:
+            best, choice = d, hyp
+    return choice
 
 
 def check_fov(fov: float | None) -> None:

@@ -31,6 +31,10 @@ examples:
   ucad-index pose street.jpg car.glb --box 120 80 460 300
   ucad-index pose street.jpg car.glb --mask street_mask.png --json > pose.json
   ucad-index pose street.jpg --box 120 80 460 300 --catalog cat/
+
+A vehicle cut by the photo's edge (its box touches the edge) is also tried as going on past
+the edge (by 10, 25 and 50 % of what shows), and posed so when that matches the mesh's views
+better; the line "the vehicle touches the photo's edge" says by how much (--as-shown: never).
 """
 
 
@@ -62,6 +66,10 @@ def register(sub) -> None:
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="the photo's field of view over the narrower side, in degrees, when "
                         "known (default: 45 assumed; with MESH only)")
+    p.add_argument("--as-shown", action="store_true",
+                   help="a vehicle cut by the photo's edge: pose it as the photo shows it only "
+                        "(default: also as going on past the edge, whichever matches the "
+                        "mesh's views better; with MESH only)")
     p.add_argument("--json", action="store_true",
                    help="print JSON: object, decision and every candidate with K and w2c")
     p.add_argument("--out", type=Path, default=None,
@@ -121,7 +129,7 @@ def run(args) -> int:
         est = estimate_pose(image, mesh, box=args.box, mask=mask, extractor=extractor,
                             azimuth_step=args.step, elevations=args.elevations,
                             top=args.top, refine=not args.no_refine, method=method,
-                            fov=args.fov)
+                            fov=args.fov, past_edge=not args.as_shown)
     except ValueError as exc:
         print(f"{args.image}: {exc}", file=sys.stderr)
         return 2
@@ -136,6 +144,9 @@ def run(args) -> int:
         print(f"{i + 1:4d} {c.azimuth:8.1f} {c.elevation:6.1f} {c.distance:6.3f} "
               f"{c.score:7.4f} {c.gap:7.4f}  {note}")
     print(object_line(est.object))
+    if any(est.past_edge):
+        print("the vehicle touches the photo's edge: posed as going on past it by "
+              "{} / {} / {} / {} px (left / top / right / bottom)".format(*est.past_edge))
     runner = est.runner_up
     if runner is not None:
         verdict = "close call" if est.ambiguous else "clear"
@@ -168,6 +179,7 @@ def estimate_json(est, image_path, mesh_path, png) -> dict:
         "object": {"source": o.source, "box": list(o.box), "kept": round(o.kept, 4),
                    "pixels": int(o.mask.sum())},
         "ambiguous": bool(est.ambiguous),
+        "past_edge": [int(v) for v in est.past_edge],
         "candidates": [candidate_json(c, i + 1) for i, c in enumerate(est.candidates)],
     }
 
