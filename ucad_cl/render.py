@@ -28,7 +28,6 @@ from .abi import RASTER_PARAMS
 from .runtime import Runtime, aligned_empty, get_runtime
 from .artifacts import CameraRing, Mesh, ViewSet
 
-BUILD_OPTIONS = ("-cl-fp32-correctly-rounded-divide-sqrt",)
 LOCAL_SMALL = (64, 1)   # work-group (faces, views); see bench/render.py and docs/OPENCL.md
 LOCAL_PROJECT = (64, 1)  # work-group (vertices, views)
 LANES = 16              # work-items sharing one large triangle (rows interleaved)
@@ -89,7 +88,7 @@ def _render(mesh: Mesh, ring: CameraRing, rt: Runtime, *, max_key_bytes: int = 2
     serial = raster_path(path, rt) == "serial" and 2 * verts.shape[0] < 2**31
     import pyopencl as cl
 
-    opts = BUILD_OPTIONS + (("-DUCAD_COUNT_COVERAGE",) if count else ())
+    opts = ("-DUCAD_COUNT_COVERAGE",) if count else ()
     program = "raster_serial" if serial else "raster_parallel"
     V, H, W = ring.n_views, ring.height, ring.width
     npix = H * W

@@ -135,9 +135,8 @@ def _shade_device(rt: Runtime, views, normals, v0, face_material, albedo, light,
     # written in place (page-aligned: no copy on PoCL; a map makes it current on any device)
     out = aligned_empty((V, H, W, 3), np.uint8)
     d_out = cl.Buffer(ctx, mf.WRITE_ONLY | mf.USE_HOST_PTR, hostbuf=out)
-    opts = ("-cl-fp32-correctly-rounded-divide-sqrt",)
     d_half = rt.scratch("shade.half", 12 * H * W)
-    kh = rt.kernel("shade", "half_vectors", opts)
+    kh = rt.kernel("shade", "half_vectors")
     kh.set_args(prm, d_half)
     cl.enqueue_nd_range_kernel(q, kh, ((H * W + 255) // 256 * 256,), (256,))
     # CPUs: 16 pixels a work-item in vector code (same bytes; integer shininess, views of a
@@ -147,7 +146,7 @@ def _shade_device(rt: Runtime, views, normals, v0, face_material, albedo, light,
         lanes = 16 if rt.device.type & cl.device_type.CPU else 1
     if prm["int_shininess"][0] == 0 or (H * W) % 16:
         lanes = 1
-    k = rt.kernel("shade", "shade_pixels16" if lanes == 16 else "shade_pixels", opts)
+    k = rt.kernel("shade", "shade_pixels16" if lanes == 16 else "shade_pixels")
     d_thr = buf(srgb8_thresholds(), np.float32)
     d_start = buf(srgb8_bucket_start(), np.uint8)
     k.set_args(d_tri, d_w2c, d_n, d_v0, d_fm, d_alb, d_thr, d_start, d_half, prm, d_out)
