@@ -148,3 +148,54 @@ def test_no_usable_device_is_one_line_naming_what_to_install(cache, tmp_path, mo
                            text=True, timeout=120)
     assert named.returncode == 2
     assert f"OpenCL device {spec}" in named.stderr and "kernels: simulated" in named.stderr
+
+
+def test_correctly_rounded_division_only_where_the_device_offers_it(monkeypatch):
+    """Every program's options come from ``Runtime.build_source``: it asks for correctly
+    rounded float division and sqrt only on a device whose single-precision config has
+    CL_FP_CORRECTLY_ROUNDED_DIVIDE_SQRT (the OpenCL specification allows the option nowhere
+    else), and no kernel module asks for it itself: the rasteriser's and the shading's
+    programs get the same options as the others."""
+    import pyopencl as cl
+
+    from ucad_cl.runtime import Runtime
+
+    seen: list[list[str]] = []
+
+    class Program:
+        def __init__(self, ctx, source):
+            pass
+
+        def build(self, options):
+            seen.append(list(options))
+            return self
+
+    class Device:
+        single_fp_config = 0
+
+    monkeypatch.setattr(cl, "Program", Program)
+    flag = "-cl-fp32-correctly-rounded-divide-sqrt"
+    rt = Runtime(ctx=None, queue=None, device=Device())
+    rt.build_source("kernel void k(void) {}")
+    assert flag not in seen[-1] and "-cl-std=CL1.2" in seen[-1]
+    Device.single_fp_config = int(cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT)
+    for name in ("raster_serial", "shade", "features"):
+        rt.program(name)
+        assert seen[-1].count(flag) == 1, (name, seen[-1])
+
+
+def test_no_kernel_module_passes_the_rounding_option_itself(runtime):
+    """A render and its shading on the session's device: no program was built with the
+    correctly-rounded option among its own options (``Runtime.compile_seconds`` keys: name,
+    options); ``build_source`` adds it where the device offers it."""
+    from ucad_cl.cameras import make_ring
+    from ucad_cl.render import render_views
+    from ucad_cl.shade import shade_views
+    from ucad_cl.synth import make_vehicle
+
+    mesh = make_vehicle(1, "sedan").mesh()
+    views = render_views(mesh, make_ring(90.0, (10.0,), size=(64, 48)), runtime=runtime)
+    shade_views(mesh, views, runtime=runtime)
+    built = [key for key in runtime.compile_seconds if key[0] in ("raster_serial", "shade")]
+    assert {k[0] for k in built} == {"raster_serial", "shade"}, built
+    assert not any("-cl-fp32-correctly-rounded-divide-sqrt" in opts for _, opts in built)
