@@ -357,6 +357,24 @@ def test_pose_search_over_the_catalogue(library, tmp_path, runtime, capsys, monk
     assert b0["distance"] == pytest.approx(c0["distance"], rel=0.05)
     side = max(big_box[2] - big_box[0], big_box[3] - big_box[1])
     assert np.abs(np.subtract(d2["object"]["box"], big_box)).max() <= 0.02 * side
+    # the vehicle cut by the photo's left edge (a third of its box): matched as going on past
+    # the edge, still the right mesh; with --as-shown, no growth
+    x0, y0, x1, y1 = (int(v) for v in box)
+    c = x0 + (x1 - x0) // 3
+    cut = tmp_path / "cut.png"
+    cv2.imwrite(str(cut), np.ascontiguousarray(img[:, c:, ::-1]))
+    cut_box = [str(v) for v in (0, y0, x1 - c, y1)]
+    assert main(["pose", str(cut), "--box", *cut_box, "--catalog", str(cat), "--top", "3",
+                 "--json"]) == 0
+    d3 = json.loads(capsys.readouterr().out)
+    assert d3["candidates"][0]["mesh"] == str(target)
+    assert d3["past_edge"][0] > 0 and d3["past_edge"][1:] == [0, 0, 0], d3["past_edge"]
+    assert main(["pose", str(cut), "--box", *cut_box, "--catalog", str(cat), "--top", "3",
+                 "--json", "--as-shown"]) == 0
+    assert json.loads(capsys.readouterr().out)["past_edge"] == [0, 0, 0, 0]
+    assert main(["pose", str(cut), "--box", *cut_box, "--catalog", str(cat), "--top", "3"]) == 0
+    assert "the vehicle touches the photo's edge: matched as going on past it by" in \
+        capsys.readouterr().out
     assert main(["pose", str(ref), "--box", *box]) == 2           # neither MESH nor --catalog
     capsys.readouterr()
     import shutil

@@ -281,12 +281,9 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     cands = search.report(found, top)
     moved = (0, 0, 0, 0)
     if grown is not None:                   # back in the photo's (window's) pixels
-        x, y = grown.at
-        h, w = shape
-        for c in cands:
-            if c.K is not None:
-                c.K = np.array(c.K, np.float64)
-                c.K[:2, 2] -= (x, y)
+        (x, y), (h, w) = grown.at, shape
+        for c in cands:                     # the principal point moved back
+            c.K = None if c.K is None else c.K - np.array([[0, 0, x], [0, 0, y], [0, 0, 0]])
         inside = obj.mask[y:y + h, x:x + w]
         obj = (ObjectMask(mask=inside, source=obj.source, box=first.box, kept=obj.kept)
                if inside.any() else first)
@@ -295,9 +292,11 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
         for c in cands:
             c.K = window.photo_K(c.K) if c.K is not None else None
         obj = window.photo_object(obj, full_shape)
+        moved = (int(round(v / window.scale)) for v in moved)
     runner = next((c for c in cands if c.flipped), None)
     ambiguous = bool(method.twins) and runner is not None and runner.gap < AMBIGUOUS_GAP
-    return PoseEstimate(candidates=cands, object=obj, ambiguous=ambiguous, past_edge=moved)
+    return PoseEstimate(candidates=cands, object=obj, ambiguous=ambiguous,
+                        past_edge=tuple(moved))
 
 
 def past_edge_choice(image: np.ndarray, obj: ObjectMask, ring: PoseRing,

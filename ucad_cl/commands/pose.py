@@ -69,7 +69,7 @@ def register(sub) -> None:
     p.add_argument("--as-shown", action="store_true",
                    help="a vehicle cut by the photo's edge: pose it as the photo shows it only "
                         "(default: also as going on past the edge, whichever matches the "
-                        "mesh's views better; with MESH only)")
+                        "stored or rendered views better)")
     p.add_argument("--json", action="store_true",
                    help="print JSON: object, decision and every candidate with K and w2c")
     p.add_argument("--out", type=Path, default=None,
@@ -145,8 +145,7 @@ def run(args) -> int:
               f"{c.score:7.4f} {c.gap:7.4f}  {note}")
     print(object_line(est.object))
     if any(est.past_edge):
-        print("the vehicle touches the photo's edge: posed as going on past it by "
-              "{} / {} / {} / {} px (left / top / right / bottom)".format(*est.past_edge))
+        print(past_edge_line(est.past_edge, "posed"))
     runner = est.runner_up
     if runner is not None:
         verdict = "close call" if est.ambiguous else "clear"
@@ -165,6 +164,11 @@ def object_line(obj) -> str:
                 f"{obj.kept * 100:.0f} % of it, too little to trust")
     return (f"object: {obj.source} kept {obj.kept * 100:.0f} % of the box "
             f"({x0} {y0} {x1} {y1})")
+
+
+def past_edge_line(past_edge, how: str) -> str:
+    return (f"the vehicle touches the photo's edge: {how} as going on past it by "
+            "{} / {} / {} / {} px (left / top / right / bottom)".format(*past_edge))
 
 
 def estimate_json(est, image_path, mesh_path, png) -> dict:
@@ -205,7 +209,7 @@ def run_catalog(args, image, mask) -> int:
     from ..features import HogExtractor
     from ..fit import catalog_rows
     from ..ingest import IngestError, load_mesh
-    from ..foreground import PhotoWindow, mask_box
+    from ..foreground import PhotoWindow, mask_box, past_the_edge
     from ..pose import PoseCandidate, query_features, search_catalog
 
     from .common import open_reader
@@ -219,29 +223,50 @@ def run_catalog(args, image, mask) -> int:
                           else window.cut(image, args.box, mask))
     with reader as r:
         try:
-            query, obj = query_features(img, HogExtractor(), box=box, mask=obj_mask,
-                                        isolate=not legacy)
-            if window is not None:
-                obj = window.photo_object(obj, image.shape[:2])
+            query, seen = query_features(img, HogExtractor(), box=box, mask=obj_mask,
+                                         isolate=not legacy)
+            obj = seen if window is None else window.photo_object(seen, image.shape[:2])
         except ValueError as exc:
             print(f"{args.image}: {exc}", file=sys.stderr)
             return 2
+
+        def nearest(q):
+            """The stored rows nearest to features ``q``, best first, and the notes."""
+            metas, db, mesh_of, view_of, notes = catalog_rows(r, q)
+            zeros = np.zeros(len(db))               # angles are read for the listed rows only
+            return metas, search_catalog(q, db, mesh_of, view_of, zeros, zeros,
+                                         top=min(args.top, len(db))), notes
+
         try:
-            metas, db, mesh_of, view_of, notes = catalog_rows(r, query)
+            metas, matches, notes = nearest(query)
+            grown = None                # a vehicle cut by the photo's edge: also as going on
+            for hyp in ([] if legacy or args.as_shown else past_the_edge(img, seen)):
+                q2, _ = query_features(hyp.image, HogExtractor(), mask=hyp.obj.mask)
+                metas2, m2, _ = nearest(q2)         # past it (ties: as seen, then growth order)
+                if m2[0].score < matches[0].score:
+                    metas, matches, grown = metas2, m2, hyp
         except ValueError as exc:
             print(f"{args.catalog}: {exc}", file=sys.stderr)
             return 2
         for note in notes:
             print(f"note: {note}", file=sys.stderr)
-        zeros = np.zeros(len(db))                   # angles are read for the listed rows only
-        matches = search_catalog(query, db, mesh_of, view_of, zeros, zeros,
-                                 top=min(args.top, len(db)))
         cameras: dict[int, dict] = {}
         for mt in matches:
             if mt.mesh not in cameras:
                 cameras[mt.mesh] = {v.index: v for v in r.views(metas[mt.mesh].sha256)}
     x0, y0, x1, y1 = mask_box(obj.mask)
     q_side = max(x1 - x0, y1 - y0) / min(obj.mask.shape)
+    past_edge = (0, 0, 0, 0)
+    if grown is not None:               # the whole assumed vehicle's size, in the photo
+        def longer(m):
+            bx0, by0, bx1, by1 = mask_box(m)
+            return max(bx1 - bx0, by1 - by0)
+        q_side *= longer(grown.obj.mask) / longer(seen.mask)
+        (h, w), (gh, gw) = img.shape[:2], grown.image.shape[:2]
+        left, top = grown.at
+        scale = 1.0 if window is None else window.scale
+        past_edge = tuple(int(round(v / scale))
+                          for v in (left, top, gw - w - left, gh - h - top))
     rows = []                # (match, its camera, the camera's distance, the photo's estimate)
     for mt in matches:
         v = cameras[mt.mesh][mt.view]
@@ -255,6 +280,7 @@ def run_catalog(args, image, mask) -> int:
         print(json.dumps({
             "image": str(args.image), "catalog": str(args.catalog),
             "object": {"source": obj.source, "box": list(obj.box), "kept": round(obj.kept, 4)},
+            "past_edge": list(past_edge),
             "conventions": "azimuth/elevation degrees in each mesh's canonical frame (azimuth 0 "
                            "= front); K and w2c: the stored view's render camera",
             "candidates": [{"rank": i + 1, "mesh": str(metas[mt.mesh].source),
@@ -270,6 +296,8 @@ def run_catalog(args, image, mask) -> int:
             print(f"{i + 1:4d} {v.azimuth:8.1f} {v.elevation:6.1f} {d:6.3f} {mt.score:7.4f}  "
                   f"{metas[mt.mesh].source} ({mt.view})")
         print(object_line(obj))
+        if any(past_edge):
+            print(past_edge_line(past_edge, "matched"))
     try:                          # in the frame the catalogue stored (its cameras are in it)
         from ..orient import in_frame
         mesh = in_frame(load_mesh(metas[best.mesh].source, orientation=None),
