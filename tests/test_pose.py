@@ -288,6 +288,13 @@ def test_a_vehicle_cut_by_the_photos_edge_is_posed_past_the_edge(vehicle, coarse
     kept = estimate_pose(img, mesh, box=box, coarse=coarse, past_edge=True,
                          valid=np.ones(m.shape, bool))
     assert kept.past_edge == (0, 0, 0, 0)
+    import cv2                              # a large photo (a window of it is analysed): the
+    small = estimate_pose(img, mesh, mask=m, coarse=coarse, past_edge=True)   # growth and K in
+    big_m = cv2.resize(m.astype(np.uint8), None, fx=6, fy=6, interpolation=cv2.INTER_NEAREST)
+    big = estimate_pose(cv2.resize(img, None, fx=6, fy=6, interpolation=cv2.INTER_LINEAR),
+                        mesh, mask=big_m > 0, coarse=coarse, past_edge=True)   # its pixels
+    assert small.past_edge[0] > 0 and abs(big.past_edge[0] / small.past_edge[0] - 6) < 1
+    assert _iou(_silhouette(mesh, big.best, big_m.shape), big_m > 0) > 0.75
 
 
 def test_deterministic_and_legacy_method(vehicle, coarse):
