@@ -284,6 +284,12 @@ class GrownPhoto(NamedTuple):
         out[y:y + shape[0], x:x + shape[1]] = True
         return out
 
+    def margins(self, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+        """(left, top, right, bottom): the pixels grown past each edge of the photo (of
+        ``shape`` (H, W))."""
+        (x, y), (h, w) = self.at, self.image.shape[:2]
+        return x, y, w - shape[1] - x, h - shape[0] - y
+
 
 def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[GrownPhoto]:
     """The hypotheses for an object cut by the photo's edge (its box, given or the mask's,

@@ -287,7 +287,7 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
         inside = obj.mask[y:y + h, x:x + w]
         obj = (ObjectMask(mask=inside, source=obj.source, box=first.box, kept=obj.kept)
                if inside.any() else first)
-        moved = (x, y, image.shape[1] - w - x, image.shape[0] - h - y)
+        moved = grown.margins(shape)
     if window is not None:                  # back in the photo's pixels
         for c in cands:
             c.K = window.photo_K(c.K) if c.K is not None else None
