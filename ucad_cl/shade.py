@@ -277,7 +277,7 @@ def shade_stored_view(depth: np.ndarray, mat_id: np.ndarray, tri_id: np.ndarray,
     t = tri[1:-1, 1:-1]
     same = fg & np.logical_and.reduce([tri[s] == t for s in nb])
     nf = n[fg]
-    nf /= np.maximum(np.linalg.norm(nf, axis=-1, keepdims=True), 1e-300)
+    nf /= np.maximum(_norms(nf), 1e-300)
     faces, f = np.unique(t[fg], return_inverse=True)
     ok = same[fg]
     if ok.any():
@@ -285,14 +285,14 @@ def shade_stored_view(depth: np.ndarray, mat_id: np.ndarray, tri_id: np.ndarray,
                         for c in range(3)], -1)
         has = np.bincount(f[ok], minlength=faces.size)[f] > 0
         nf[has] = acc[f[has]]
-    nf /= np.maximum(np.linalg.norm(nf, axis=-1, keepdims=True), 1e-300)
+    nf /= np.maximum(_norms(nf), 1e-300)
     p = P[fg]
     nf *= np.where(np.einsum("pk,pk->p", nf, p) > 0.0, -1.0, 1.0)[:, None]
     light = np.asarray(light_dir, np.float64)
     light = light / np.linalg.norm(light)
-    v = -p / np.linalg.norm(p, axis=-1, keepdims=True)
+    v = -p / _norms(p)
     half = light + v
-    half /= np.linalg.norm(half, axis=-1, keepdims=True)
+    half /= _norms(half)
     alb = np.asarray(albedo, np.float64)
     a = alb[np.minimum(np.asarray(mat_id, np.int64)[win][fg], len(alb) - 1)]
     diffuse = np.maximum(nf @ light, 0.0)
@@ -300,3 +300,12 @@ def shade_stored_view(depth: np.ndarray, mat_id: np.ndarray, tri_id: np.ndarray,
     out[win][fg] = linear_to_srgb8(a * (ambient + (1.0 - ambient) * diffuse)[:, None]
                                    + spec[:, None])
     return out
+
+
+def _norms(x: np.ndarray) -> np.ndarray:
+    """(N, 1) Euclidean lengths of the rows of ``x`` (N, 3): sqrt((x0^2 + x1^2) + x2^2), the
+    sums in that order (NumPy 2.4's ``linalg.norm(x, axis=-1)`` gives the same bits at ~6x the
+    time: its reduction over an axis of 3)."""
+    s = x * x
+    return np.sqrt((s[:, 0] + s[:, 1]) + s[:, 2])[:, None]
+
