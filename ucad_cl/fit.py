@@ -106,7 +106,7 @@ from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
                     plausible_cast, predict, shading)
 from .orient import in_frame
 from .pose import (FOV_PRIOR, CatalogMatch, PoseRing, check_fov, estimate_pose,
-                   past_edge_choice, query_features, search_catalog)
+                   nearest_ring_view, past_edge_choice, query_features, search_catalog)
 from .render import render_views
 from .runtime import Runtime
 from .segment import OnnxSegmenter
@@ -928,12 +928,8 @@ class _Fit:
 
     def _nearest_view(self, sha: str, photo, obj: ObjectMask) -> int:
         """The stored view of mesh ``sha`` nearest to the photo's object by HOG."""
-        ring = self._ring(sha)
-        q, _ = query_features(photo, HogExtractor(runtime=self.runtime), mask=obj.mask,
-                              runtime=self.runtime)
-        n = len(ring.feats)
-        return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
-                              ring.ring.azimuth, ring.ring.elevation, top=1)[0].view
+        return nearest_ring_view(photo, obj.mask, self._ring(sha),
+                                 HogExtractor(runtime=self.runtime)).view
 
     def _ring(self, sha: str) -> PoseRing:
         """``catalog_ring`` of mesh ``sha``, read once per photo."""

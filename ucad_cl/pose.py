@@ -156,14 +156,12 @@ class PoseCandidate:
 class PoseEstimate:
     """What ``estimate_pose`` found: ``candidates`` best first (the best twin second), the
     object it matched (``object``: mask source and the share of the box kept), ``ambiguous``
-    when the best twin is within AMBIGUOUS_GAP of the best; ``past_edge``: how far (pixels:
-    left, top, right, bottom) the vehicle was assumed to go on past the photo's edges
-    (``estimate_pose(past_edge=True)``; zeros: as the photo shows it)."""
+    when the best twin is within AMBIGUOUS_GAP of the best, ``past_edge`` (``estimate_pose``'s)."""
 
     candidates: list[PoseCandidate]
     object: ObjectMask
     ambiguous: bool = False
-    past_edge: tuple[int, int, int, int] = (0, 0, 0, 0)   # pixels assumed past each edge
+    past_edge: tuple[int, int, int, int] = (0, 0, 0, 0)   # px past the left/top/right/bottom
 
     @property
     def best(self) -> PoseCandidate:
@@ -215,7 +213,7 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     object come back in the photo's pixels. ``fov``: the photo's field of view over its
     narrower side in degrees (``FOV_RANGE``), when known (instead of ``method.fov_prior``; ignored with
     ``intrinsics``). ``valid``: (H, W) bool, the pixels the photo shows (None: all; e.g. a
-    photo grown past its edge, ``fit.past_the_edge``): the cues compare nothing else
+    photo grown past its edge, ``past_the_edge``): the cues compare nothing else
     (``cues.query_cues``). ``past_edge``: an object that touches the photo's edge is posed on
     the photo grown past that edge when ``past_edge_choice`` finds it nearer to the coarse ring
     so (the search framed by the grown object, its cues told which pixels the photo shows, the
@@ -310,19 +308,22 @@ def past_edge_choice(image: np.ndarray, obj: ObjectMask, ring: PoseRing,
     cut = past_the_edge(image, obj)
     if not cut:
         return None
-    n = len(ring.feats)
-
-    def nearest(img: np.ndarray, o: ObjectMask) -> float:
-        q, _ = query_features(img, extractor, mask=o.mask)
-        return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n),
-                              ring.ring.azimuth, ring.ring.elevation, top=1)[0].score
-
-    best, choice = nearest(image, obj), None
+    best, choice = nearest_ring_view(image, obj.mask, ring, extractor).score, None
     for hyp in cut:
-        d = nearest(hyp.image, hyp.obj)
+        d = nearest_ring_view(hyp.image, hyp.obj.mask, ring, extractor).score
         if d < best:
             best, choice = d, hyp
     return choice
+
+
+def nearest_ring_view(image: np.ndarray, mask: np.ndarray, ring: PoseRing,
+                      extractor: FeatureExtractor) -> CatalogMatch:
+    """The view of ``ring`` nearest to the object ``mask`` of ``image`` by its descriptor
+    (``extractor``, as ``ring``'s; ``search_catalog``'s distance and ties)."""
+    q, _ = query_features(image, extractor, mask=mask)
+    n = len(ring.feats)
+    return search_catalog(q, ring.feats, np.zeros(n, int), np.arange(n), ring.ring.azimuth,
+                          ring.ring.elevation, top=1)[0]
 
 
 def check_fov(fov: float | None) -> None:
