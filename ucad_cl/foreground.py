@@ -267,7 +267,7 @@ class PhotoWindow:
         return replace(obj, mask=full, box=self.photo_box(obj.box))
 
 
-# ----------------------------------------------------------------------------- GrabCut
+# --------------------------------------------------------------- past the photo's edge
 
 class GrownPhoto(NamedTuple):
     """A photo grown past its edge (``past_the_edge``): the grown image, the object there, and
@@ -330,6 +330,8 @@ def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[GrownPhoto]:
                               (left, top)))
     return out
 
+
+# ----------------------------------------------------------------------------- GrabCut
 
 def grabcut_box(image: np.ndarray, box: tuple[int, int, int, int], *,
                 follow_edges: bool = False) -> np.ndarray:
