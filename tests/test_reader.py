@@ -411,7 +411,8 @@ def test_search_index_rows_in_prefetch_batches_leave_no_descriptor(built, tmp_pa
                                                                   monkeypatch):
     """``SearchIndex.rows`` asks the kernel for a batch of objects' rows before reading them
     (``PREFETCH_MESHES`` objects a batch): any batch size gives the stored rows in the order
-    asked, also where ``posix_fadvise`` does not exist (macOS, Windows); no file descriptor
+    asked, also where ``posix_fadvise`` does not exist (macOS, Windows) and whatever the rows
+    one read takes (``IOV_RUN``: runs of consecutive views); no file descriptor
     stays open, also when an object is gone mid-way (an error naming that mesh)."""
     import shutil
 
@@ -433,6 +434,10 @@ def test_search_index_rows_in_prefetch_batches_leave_no_descriptor(built, tmp_pa
         with monkeypatch.context() as mp:
             mp.delattr(os, "posix_fadvise")
             assert np.array_equal(idx.rows(ask[::-1]), t.feats[ask[::-1]])
+        runs = np.array([5, 6, 7, 8, 9, 2, 3, 30, 31, 29])    # runs of consecutive views, each
+        for run in (1, 2, 1024):                                # read by preadv calls of at
+            monkeypatch.setattr(searchindex, "IOV_RUN", run)    # most IOV_RUN rows
+            assert np.array_equal(idx.rows(runs), t.feats[runs])
         idx.paths[1].unlink()
         monkeypatch.setattr(searchindex, "PREFETCH_MESHES", 2)
         with CatalogReader(copy) as r2:
