@@ -568,9 +568,6 @@ def test_isolated_child_warms_answers_calls_and_leaves_at_once():
     (new,) = [p for p in psutil.Process().children() if p.pid not in before]
     child.close()
     assert not new.is_running() and not child.alive
-    with IsolatedChild(nice=3) as child, IsolatedChild() as plain:   # a lower CPU priority
-        assert child.call(os.nice, 0, timeout=60) == os.nice(0) + 3
-        assert plain.call(os.nice, 0, timeout=60) == os.nice(0)
 
 
 def _sleep_then_pid(seconds):

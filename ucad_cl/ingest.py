@@ -121,8 +121,6 @@ MAX_NAME_CHARS = 1024          # material names and alpha modes are cut to this 
 GLTF_DEFAULT = Material("default", (1.0, 1.0, 1.0, 1.0), "OPAQUE", 1.0, 1.0)
 IDENTITY_TAG = b"ucad-mesh/1"  # first bytes hashed into every mesh identity (see module doc)
 READER_MODULES = ("ucad_cl.ingest", "trimesh")   # what load_mesh imports (IsolatedChild's warm)
-CHILD_NICE = 10     # MeshLoader's child runs this much lower in CPU priority: its imports beside a
-#                     photo's retrieval on 2 cores, a lone CLI fit 0.96x the time (docs/FIT.md)
 _GL_TRIANGLES = 4
 _TRIMESH_PRIMITIVE_MODES = (0, 1, 4, 5)   # modes trimesh turns into a geometry (points, lines, tris)
 _READ_CHUNK = 1 << 20
@@ -251,9 +249,9 @@ class MeshLoader:
     """Reads meshes in the file's own frame (``load_mesh(path, orientation=None)``: the frame
     the catalogue records ``file_to_norm`` from) for a caller that reads several, or wants a
     read started ahead. ``isolated`` (the default unless this process has imported
-    ``READER_MODULES`` already): in a child interpreter (``system.IsolatedChild``, at a lower
-    CPU priority: ``CHILD_NICE``) started at construction, which imports the reader's modules
-    meanwhile (trimesh and SciPy: ~0.4 s of a core, beside the caller's own work); a reader that crashes or hangs then costs one load
+    ``READER_MODULES`` already): in a child interpreter (``system.IsolatedChild``) started at
+    construction, which imports the reader's modules meanwhile (trimesh and SciPy: ~0.4 s of a
+    core, beside the caller's own work); a reader that crashes or hangs then costs one load
     (``IngestError``), not the process, and the next load starts a new child. ``prefetch(path)``
     starts that read in the child at once; the ``load(path)`` that follows collects it (the
     fit's CLI so reads a given mesh while it imports its own modules, reads the photo and finds
@@ -264,8 +262,7 @@ class MeshLoader:
     def __init__(self, isolated: bool | None = None) -> None:
         if isolated is None:
             isolated = not all(m in sys.modules for m in READER_MODULES)
-        self._child = (IsolatedChild(warm=READER_MODULES, nice=CHILD_NICE) if isolated
-                       else None)
+        self._child = IsolatedChild(warm=READER_MODULES) if isolated else None
         self._ahead: str | None = None          # the path a prefetch is reading
 
     @property
@@ -296,7 +293,7 @@ class MeshLoader:
     def _renew(self) -> None:
         assert self._child is not None
         self._child.close()
-        self._child = IsolatedChild(warm=READER_MODULES, nice=CHILD_NICE)
+        self._child = IsolatedChild(warm=READER_MODULES)
         self._ahead = None
 
     def close(self) -> None:

@@ -113,19 +113,15 @@ class IsolatedChild:
     timeout ends it (``alive`` is then False and later calls raise ``IsolatedCallFailed``);
     a call with ``clean_exit`` is the last: the child exits and its exit status is checked.
     ``submit`` starts a call ahead (the child runs it while this process goes on); the ``call``
-    with the same arguments then collects its answer. ``nice``: the child runs that much lower
-    in CPU priority (``os.nice``) from its start, so that its imports take a core only when
-    this process leaves one idle (the fit's retrieval keeps both of 2 cores busy)."""
+    with the same arguments then collects its answer."""
 
-    def __init__(self, warm: tuple[str, ...] = (), nice: int = 0):
+    def __init__(self, warm: tuple[str, ...] = ()):
         read_fd, write_fd = os.pipe()
-        code = ("import os, pickle, sys; os.nice(int(sys.argv[2])); "
-                "sys.path[:0] = pickle.load(sys.stdin.buffer); "
+        code = ("import pickle, sys; sys.path[:0] = pickle.load(sys.stdin.buffer); "
                 "from ucad_cl.system import serve_isolated_call; "
                 "serve_isolated_call(int(sys.argv[1]))")
         try:
-            self._proc = subprocess.Popen([sys.executable, "-c", code, str(write_fd),
-                                           str(int(nice))],
+            self._proc = subprocess.Popen([sys.executable, "-c", code, str(write_fd)],
                                           pass_fds=(write_fd,), stdin=subprocess.PIPE,
                                           stdout=subprocess.DEVNULL)
         except BaseException:
