@@ -178,7 +178,8 @@ def catalog_table(vehicles, refs, n_meshes: int = 100, repeats: int = 5, k: int 
     process for it (all threads; on an idle machine with 2 cores the wall time approaches
     cpu s / 2)."""
     from ucad_cl.cameras import make_ring
-    from ucad_cl.pose import query_features, search_catalog_batch
+    from ucad_cl.pose import query_features
+    from ucad_cl.search import search_catalog_batch
     from ucad_cl.render import render_views
     from ucad_cl.search import FeatureIndex
     from ucad_cl.shade import shade_views

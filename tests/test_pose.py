@@ -11,9 +11,9 @@ import pytest
 from ucad_cl.artifacts import CameraRing, Material, Mesh
 from ucad_cl.cameras import make_ring
 from ucad_cl.features import HogExtractor
-from ucad_cl.pose import (AMBIGUOUS_GAP, LEGACY, RANK_ROWS, ROBUST, TWINS, PoseRing, az_diff,
-                          estimate_pose, pose_ring, rank_features, search_catalog,
-                          search_catalog_batch, twin_azimuth)
+from ucad_cl.pose import (AMBIGUOUS_GAP, LEGACY, ROBUST, TWINS, PoseRing, az_diff, estimate_pose,
+                          pose_ring, twin_azimuth)
+from ucad_cl.search import RANK_ROWS, rank_features, search_catalog, search_catalog_batch
 from ucad_cl.render import render_views
 from ucad_cl.shade import shade_views
 

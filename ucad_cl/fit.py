@@ -17,7 +17,7 @@
    accepted mesh (``CatalogReader.feature_table``: stacked once per reader, so a batch of
    photos reads the catalogue's features once; meshes without readable features are left out
    with a note): the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
-   (the stored rows are unit vectors), then ``pose.search_catalog``'s exact float64 ranking of
+   (the stored rows are unit vectors), then ``search.search_catalog``'s exact float64 ranking of
    those; of the first ``PREFILTER_MESHES`` distinct meshes, the ``FINE_MESHES`` of least HOG
    distance + ``EDGE_WEIGHT`` x ``cues.edge_distance`` (below) at their best view, read from
    the stored material map (``_prefiltered``), are re-ranked by a finer HOG (``FINE_HOG``:
@@ -105,10 +105,11 @@ from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
                     plausible_cast, predict, shading)
 from .orient import in_frame
-from .pose import (FOV_PRIOR, CatalogMatch, PoseRing, check_fov, estimate_pose,
-                   nearest_ring_view, past_edge_choice, query_features, search_catalog)
+from .pose import (FOV_PRIOR, PoseRing, check_fov, estimate_pose, nearest_ring_view,
+                   past_edge_choice, query_features)
 from .render import render_views
 from .runtime import Runtime
+from .search import CatalogMatch, search_catalog
 from .segment import OnnxSegmenter
 from .shade import face_normals, shade_stored_view
 

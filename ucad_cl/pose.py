@@ -41,8 +41,8 @@ vehicle's centre, turned so that the centre projects onto the centre of the obje
 * Ties: equal scores go to the view rendered first (coarse views by index, then each refinement
   grid in elevation-major order); every stage keeps its seed on ties.
 
-``search_catalog`` is the catalogue-wide variant: one query feature against stored features of
-many (mesh, view) rows, exact float64 re-ranking of an OpenCL float32 preselection.
+The catalogue-wide variant, one query feature against the stored features of many (mesh, view)
+rows, is ``search.search_catalog``.
 """
 from __future__ import annotations
 
@@ -54,13 +54,13 @@ import numpy as np
 from .artifacts import CameraRing, Mesh
 from .cameras import look_at_w2c, make_ring, single_camera
 from .cues import Cues, combine, cue_distances, query_cues, query_hog_distance, view_cues
-from .features import FeatureExtractor, HogExtractor, box_mask, unit_rows
+from .features import FeatureExtractor, HogExtractor, box_mask
 from .foreground import (RENDER_BACKGROUND, GrownPhoto, ObjectMask, PhotoWindow, axis_turn,
                          centre_on_axis, check_image, composite, mask_box, object_mask,
                          past_the_edge, photo_intrinsics, refine_with_silhouette)
 from .render import render_views
 from .runtime import Runtime
-from .search import search as knn_search
+from .search import CatalogMatch, search_catalog
 from .shade import face_normals, shade_views
 
 FOV_PRIOR = 45.0            # assumed field of view of a photo over its narrower side, degrees
@@ -71,11 +71,6 @@ FOV_RANGE = (5.0, 120.0)    # a field of view given instead (estimate_pose / fit
 AMBIGUOUS_GAP = 0.03
 TWINS = ("mirror", "opposite", "front-back")
 FLIP_MIN_DEG = 135.0        # legacy flip rule (``twins=False``): best candidate this far away
-EXACT_ROWS = 50_000         # search_catalog ranks up to this many rows exactly on the host
-RANK_ROWS = 128             # rank_features normalises this many rows at a time (cache-sized:
-#                             2048 x 1764 rows 33 -> 13 ms on a Zen 4; the same bits)
-PRESELECT = 64              # rows taken from the OpenCL search for the exact re-rank (k <= 64)
-RERANK_BATCH = 32           # queries re-ranked together (bounds the float64 scratch to ~30 MB)
 MIN_DISTANCE = 0.55         # renders keep the camera outside the bounding sphere (radius 0.5)
 #: elevation climb (``PoseMethod.climb``): a pose at the upper edge of what the coarse ring's first
 #: grid reaches steps up by CLIMB_STEP x the elevation spacing (at the first grid's azimuth
@@ -367,106 +362,6 @@ def query_features(image: np.ndarray, extractor: FeatureExtractor | None = None,
     m = obj.mask if isolate else box_mask(obj.mask.shape, obj.box)
     img = composite(image, m) if isolate else np.asarray(image)
     return (extractor or HogExtractor(runtime=runtime)).extract(img[None], m[None]).feats[0], obj
-
-
-def rank_features(query: np.ndarray, db: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """All rows of ``db`` (N, D) ordered by squared L2 distance to ``query`` (D,).
-
-    Both sides are L2-normalised first (float64, after dividing by the largest magnitude, so huge
-    values rank like small ones); the distance is ``[q != 0] + [d != 0] - 2 q.d`` with the
-    normalised rows, so an all-zero row is at distance 1 from any unit row and identical rows get
-    identical distances (same row-wise sum). Returns (order (N,) int64, sq_dists (N,) float64 in
-    that order). Ties go to the lower row index.
-    """
-    q = np.asarray(query)
-    db = np.asarray(db)
-    if db.ndim != 2 or q.shape != (db.shape[1],):
-        raise ValueError(f"query must be (D,) and db (N, D); got {q.shape} and {db.shape}")
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(db))):
-        raise ValueError("features contain NaN or infinity")
-    qn, q_nz = unit_rows(q[None])
-    d = np.empty(len(db))
-    for r0 in range(0, len(db), RANK_ROWS):         # row-wise arithmetic: blocks change no bit
-        dn, d_nz = unit_rows(db[r0:r0 + RANK_ROWS])
-        d[r0:r0 + RANK_ROWS] = q_nz[0] + d_nz - 2.0 * (dn * qn).sum(axis=1)
-    order = np.lexsort((np.arange(d.size), d))
-    return order, d[order]
-
-
-@dataclass
-class CatalogMatch:
-    """One catalogue row matched by ``search_catalog``."""
-
-    row: int
-    mesh: int
-    view: int
-    azimuth: float
-    elevation: float
-    score: float
-
-
-def search_catalog(query: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
-                   views: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
-                   top: int = 5, *, index=None) -> list[CatalogMatch]:
-    """Best ``top`` (mesh, view) rows of a feature database for one query feature (D,).
-
-    ``feats`` (N, D) L2-normalised rows with per-row ``mesh_ids``, ``views``, ``azimuth``,
-    ``elevation`` (N,). Up to ``EXACT_ROWS`` rows (and no ``index``) the ranking is exact in
-    float64 (``rank_features``). Larger databases, or a given ``index`` (a
-    ``ucad_cl.search.FeatureIndex`` over ``feats`` without ids, built once for many queries),
-    take the ``PRESELECT`` nearest rows from the OpenCL float32 search and re-rank those exactly;
-    ties go to the lower row either way. Azimuths are canonical (azimuth 0 = the front of every
-    mesh), so matches of different meshes are comparable.
-    """
-    q = np.asarray(query)
-    if q.ndim != 1:
-        raise ValueError(f"query must be (D,), got {q.shape} (search_catalog_batch takes (Q, D))")
-    return search_catalog_batch(q[None], feats, mesh_ids, views, azimuth, elevation, top,
-                                index=index)[0]
-
-
-def search_catalog_batch(queries: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
-                         views: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
-                         top: int = 5, *, index=None, exact: bool = True,
-                         runtime: Runtime | None = None) -> list[list[CatalogMatch]]:
-    """``search_catalog`` for (Q, D) queries: one OpenCL preselection for the whole batch (the
-    way to many queries per second), then the exact float64 re-rank of each query's PRESELECT
-    rows; ``exact=False`` keeps the index's own float32 order and squared distances (with an
-    ``index``; an f32 index, or a pca index with rerank, gives exact float32 distances). Without
-    an ``index`` the preselection runs on ``runtime`` (default ``get_runtime()``)."""
-    feats = np.asarray(feats)
-    n = feats.shape[0] if feats.ndim == 2 else -1
-    cols = [np.asarray(a) for a in (mesh_ids, views, azimuth, elevation)]
-    if any(c.shape != (n,) for c in cols):
-        raise ValueError(f"mesh_ids, views, azimuth, elevation must all be ({n},)")
-    if not 1 <= top <= n:
-        raise ValueError(f"top={top} must be in 1..{n} (database rows)")
-    qs = np.asarray(queries)
-    if qs.ndim != 2 or qs.shape[1] != feats.shape[1]:
-        raise ValueError(f"queries must be (Q, {feats.shape[1]}), got {qs.shape}")
-    if index is None and n <= EXACT_ROWS:
-        ranked = [rank_features(q, feats) for q in qs]
-    else:
-        k = min(n, max(PRESELECT, top)) if exact else top
-        qn32 = unit_rows(qs)[0].astype(np.float32)
-        if index is not None:
-            cands, d32 = index.search(qn32, k)
-        else:
-            cands, d32 = knn_search(qn32, feats, k, runtime=runtime)
-        ranked = [] if exact else list(zip(cands, d32.astype(np.float64)))
-        for c0 in range(0, len(qs) if exact else 0, RERANK_BATCH):   # rank_features', batched
-            cand = cands[c0:c0 + RERANK_BATCH]
-            qn, q_nz = unit_rows(qs[c0:c0 + RERANK_BATCH])
-            dn, d_nz = unit_rows(feats[cand.ravel()])
-            dn = dn.reshape(cand.shape + (-1,))
-            d = q_nz[:, None] + d_nz.reshape(cand.shape) - 2.0 * (dn * qn[:, None, :]).sum(axis=2)
-            for c, dd in zip(cand, d):
-                o = np.lexsort((c, dd))
-                ranked.append((c[o], dd[o]))
-    return [[CatalogMatch(row=int(r), mesh=int(cols[0][r]), view=int(cols[1][r]),
-                          azimuth=float(cols[2][r]), elevation=float(cols[3][r]),
-                          score=float(s)) for r, s in zip(rows[:top], d[:top])]
-            for rows, d in ranked]
 
 
 def twin_azimuth(azimuth: float, kind: str) -> float:

@@ -28,6 +28,12 @@ Conventions
   centred vectors) can only swap candidates within that error of the R-th; the re-rank is exact.
 * k: 1 <= k <= min(N, 64); k > N is an error (not clipped). NaN/inf anywhere is an error.
 
+Catalogue search (``search_catalog``, ``search_catalog_batch``: the pose search's and the fit's
+retrieval over the stored views of many meshes): each row carries its (mesh, view); the
+ranking is ``rank_features``' exact float64 distance of unit rows, over every row up to
+``EXACT_ROWS`` rows, else over the ``PRESELECT`` rows this module's float32 search keeps; ties:
+the lower row.
+
 Cost (PoCL, 2 cores, 100 queries x 72,000 x 512, bench/search.py): f32 ~25-50 ms per batch, about
 2-5x NumPy's sgemm scan and 7-12x faiss IndexFlatL2 with the same top-1. f16 halves the resident
 database but is ~1.3x slower than f32 here (half -> float conversion in every work-item); pca
@@ -40,15 +46,22 @@ distance matrix.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 
 import numpy as np
 
 from ucad_catalog.searchindex import fit_pca
 
-from .runtime import Runtime, get_runtime
 from .abi import DIST_PARAMS, GATHER_PARAMS, K_MAX, MERGE_PARAMS, TOPK_PARAMS
+from .features import unit_rows
+from .runtime import Runtime, get_runtime
 
 MODES = ("f32", "f16", "pca")
+EXACT_ROWS = 50_000         # search_catalog ranks up to this many rows exactly on the host
+RANK_ROWS = 128             # rank_features normalises this many rows at a time (cache-sized:
+#                             2048 x 1764 rows 33 -> 13 ms on a Zen 4; the same bits)
+PRESELECT = 64              # rows taken from the OpenCL search for the exact re-rank (k <= 64)
+RERANK_BATCH = 32           # queries re-ranked together (bounds the float64 scratch to ~30 MB)
 # Register block (queries x rows) of sq_l2_tile. PoCL, 2 cores, 100 x 72,000 x 512, quietest
 # runs: 4x4 22 ms, 6x4 22, 2x8 22-27, 4x8 35, 8x4 52, 8x2 63. Batches of 1-3 queries use QB = 1
 # (memory-bound: 8 ms vs 15 ms with zero-padded QB = 4).
@@ -343,3 +356,105 @@ def _check_query_range(qbuf: np.ndarray, dim_pad: int) -> None:
 def _unscale_dists(d: np.ndarray, exp: int) -> np.ndarray:
     out = np.ldexp(d.astype(np.float64), 2 * exp)
     return np.minimum(out, np.finfo(np.float32).max).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- catalogue search
+
+def rank_features(query: np.ndarray, db: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All rows of ``db`` (N, D) ordered by squared L2 distance to ``query`` (D,).
+
+    Both sides are L2-normalised first (float64, after dividing by the largest magnitude, so huge
+    values rank like small ones); the distance is ``[q != 0] + [d != 0] - 2 q.d`` with the
+    normalised rows, so an all-zero row is at distance 1 from any unit row and identical rows get
+    identical distances (same row-wise sum). Returns (order (N,) int64, sq_dists (N,) float64 in
+    that order). Ties go to the lower row index.
+    """
+    q = np.asarray(query)
+    db = np.asarray(db)
+    if db.ndim != 2 or q.shape != (db.shape[1],):
+        raise ValueError(f"query must be (D,) and db (N, D); got {q.shape} and {db.shape}")
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(db))):
+        raise ValueError("features contain NaN or infinity")
+    qn, q_nz = unit_rows(q[None])
+    d = np.empty(len(db))
+    for r0 in range(0, len(db), RANK_ROWS):         # row-wise arithmetic: blocks change no bit
+        dn, d_nz = unit_rows(db[r0:r0 + RANK_ROWS])
+        d[r0:r0 + RANK_ROWS] = q_nz[0] + d_nz - 2.0 * (dn * qn).sum(axis=1)
+    order = np.lexsort((np.arange(d.size), d))
+    return order, d[order]
+
+
+@dataclass
+class CatalogMatch:
+    """One catalogue row matched by ``search_catalog``."""
+
+    row: int
+    mesh: int
+    view: int
+    azimuth: float
+    elevation: float
+    score: float
+
+
+def search_catalog(query: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
+                   views: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
+                   top: int = 5, *, index=None) -> list[CatalogMatch]:
+    """Best ``top`` (mesh, view) rows of a feature database for one query feature (D,).
+
+    ``feats`` (N, D) L2-normalised rows with per-row ``mesh_ids``, ``views``, ``azimuth``,
+    ``elevation`` (N,). Up to ``EXACT_ROWS`` rows (and no ``index``) the ranking is exact in
+    float64 (``rank_features``). Larger databases, or a given ``index`` (a
+    ``ucad_cl.search.FeatureIndex`` over ``feats`` without ids, built once for many queries),
+    take the ``PRESELECT`` nearest rows from the OpenCL float32 search and re-rank those exactly;
+    ties go to the lower row either way. Azimuths are canonical (azimuth 0 = the front of every
+    mesh), so matches of different meshes are comparable.
+    """
+    q = np.asarray(query)
+    if q.ndim != 1:
+        raise ValueError(f"query must be (D,), got {q.shape} (search_catalog_batch takes (Q, D))")
+    return search_catalog_batch(q[None], feats, mesh_ids, views, azimuth, elevation, top,
+                                index=index)[0]
+
+
+def search_catalog_batch(queries: np.ndarray, feats: np.ndarray, mesh_ids: np.ndarray,
+                         views: np.ndarray, azimuth: np.ndarray, elevation: np.ndarray,
+                         top: int = 5, *, index=None, exact: bool = True,
+                         runtime: Runtime | None = None) -> list[list[CatalogMatch]]:
+    """``search_catalog`` for (Q, D) queries: one OpenCL preselection for the whole batch (the
+    way to many queries per second), then the exact float64 re-rank of each query's PRESELECT
+    rows; ``exact=False`` keeps the index's own float32 order and squared distances (with an
+    ``index``; an f32 index, or a pca index with rerank, gives exact float32 distances). Without
+    an ``index`` the preselection runs on ``runtime`` (default ``get_runtime()``)."""
+    feats = np.asarray(feats)
+    n = feats.shape[0] if feats.ndim == 2 else -1
+    cols = [np.asarray(a) for a in (mesh_ids, views, azimuth, elevation)]
+    if any(c.shape != (n,) for c in cols):
+        raise ValueError(f"mesh_ids, views, azimuth, elevation must all be ({n},)")
+    if not 1 <= top <= n:
+        raise ValueError(f"top={top} must be in 1..{n} (database rows)")
+    qs = np.asarray(queries)
+    if qs.ndim != 2 or qs.shape[1] != feats.shape[1]:
+        raise ValueError(f"queries must be (Q, {feats.shape[1]}), got {qs.shape}")
+    if index is None and n <= EXACT_ROWS:
+        ranked = [rank_features(q, feats) for q in qs]
+    else:
+        k = min(n, max(PRESELECT, top)) if exact else top
+        qn32 = unit_rows(qs)[0].astype(np.float32)
+        if index is not None:
+            cands, d32 = index.search(qn32, k)
+        else:
+            cands, d32 = search(qn32, feats, k, runtime=runtime)
+        ranked = [] if exact else list(zip(cands, d32.astype(np.float64)))
+        for c0 in range(0, len(qs) if exact else 0, RERANK_BATCH):   # rank_features', batched
+            cand = cands[c0:c0 + RERANK_BATCH]
+            qn, q_nz = unit_rows(qs[c0:c0 + RERANK_BATCH])
+            dn, d_nz = unit_rows(feats[cand.ravel()])
+            dn = dn.reshape(cand.shape + (-1,))
+            d = q_nz[:, None] + d_nz.reshape(cand.shape) - 2.0 * (dn * qn[:, None, :]).sum(axis=2)
+            for c, dd in zip(cand, d):
+                o = np.lexsort((c, dd))
+                ranked.append((c[o], dd[o]))
+    return [[CatalogMatch(row=int(r), mesh=int(cols[0][r]), view=int(cols[1][r]),
+                          azimuth=float(cols[2][r]), elevation=float(cols[3][r]),
+                          score=float(s)) for r, s in zip(rows[:top], d[:top])]
+            for rows, d in ranked]

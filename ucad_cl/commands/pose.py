@@ -210,7 +210,8 @@ def run_catalog(args, image, mask) -> int:
     from ..fit import catalog_rows
     from ..ingest import IngestError, load_mesh
     from ..foreground import PhotoWindow, mask_box, past_the_edge
-    from ..pose import PoseCandidate, query_features, search_catalog
+    from ..pose import PoseCandidate, query_features
+    from ..search import search_catalog
 
     from .common import open_reader
 
