@@ -27,6 +27,9 @@ features are nearest to the photo's), made robust to what a real photo does to a
    glazing and cab tell them apart). The best twin is reported second (``flipped=True``, its
    ``twin`` kind and ``gap`` = its score minus the best score); ``PoseEstimate.ambiguous`` says
    when the gap is below ``AMBIGUOUS_GAP``.
+5. **A vehicle cut by the photo's edge** (``past_edge=True``, what ``ucad-index pose`` does):
+   posed on the photo grown past that edge (``foreground.past_the_edge``) when that matches the
+   coarse ring better (``past_edge_choice``), the cues told which pixels the photo shows.
 
 Conventions (``docs/CONVENTIONS.md``): azimuth/elevation in degrees in the mesh's canonical frame
 (azimuth 0 looks from +X, the vehicle's front, and grows counter-clockwise seen from +Y), reported
