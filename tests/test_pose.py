@@ -246,6 +246,17 @@ def test_empty_tiny_and_border_objects(vehicle, coarse):
                         mask=np.ascontiguousarray(mask[:, cut:]), coarse=coarse, top=2)
     assert est.object.mask[:, 0].any()
     assert az_diff(est.best.azimuth, 250.0) <= 15.0
+    # past the edge: a mask of the whole photo touches all four edges (grown on every side, the
+    # answer in the photo's pixels); a 2-pixel sliver at the edge is too small to grow
+    every = estimate_pose(full, mesh, mask=np.ones(mask.shape, bool), coarse=coarse,
+                          past_edge=True)
+    left, top, right, bottom = every.past_edge          # (24, 18, 24, 18) when written
+    assert every.object.mask.shape == mask.shape and left == right and top == bottom
+    assert every.best.K is not None and every.best.K.shape == (3, 3)
+    sliver = np.zeros(mask.shape, bool)
+    sliver[50:60, :2] = True
+    assert estimate_pose(full, mesh, mask=sliver, coarse=coarse,
+                         past_edge=True).past_edge == (0, 0, 0, 0)
 
 
 def _cut_reference(mesh, parts, az, seed):
