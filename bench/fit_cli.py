@@ -16,7 +16,8 @@ project, run with ``PYTHONPATH=ROOT``) each call of this checkout is paired with
 code, alternating, and which of the two goes first alternates too (the second call of a pair
 finds the catalogue pages the first read in the page cache: ~5 % when measured), so that the
 machine's drift and the cache fall on both alike: the table gives both and the median of the
-paired ratios, and the answers are compared (the JSON but ``seconds`` and ``glb``). On a shared 2-core machine single times are noise: read medians and ratios.
+paired ratios, and the answers are compared (the JSON but ``seconds`` and ``glb``). On a shared
+2-core machine single times are noise: read medians and ratios.
 """
 from __future__ import annotations
 
