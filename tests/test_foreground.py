@@ -282,16 +282,17 @@ def test_past_the_edge_grows_the_photo_on_the_sides_the_box_touches():
     """The hypotheses of a vehicle cut by the photo's edge: the photo grown past each side its
     box touches by the share x the mask's visible extent, the renders' background there, the
     photo unchanged inside, one mask pixel at the new edge; none for a box inside the photo."""
-    from ucad_cl.foreground import (PAST_EDGE, RENDER_BACKGROUND, GrownPhoto, ObjectMask,
-                                    past_the_edge)
+    from ucad_cl.foreground import PAST_EDGE, RENDER_BACKGROUND, ObjectMask, past_the_edge
 
     rng = np.random.default_rng(0)
     photo = rng.integers(0, 255, (60, 80, 3), np.uint8)
     mask = np.zeros((60, 80), bool)
     mask[20:41, 0:30] = True                            # 30 wide, 21 high, at the left edge
-    hyps = past_the_edge(photo, ObjectMask(mask=mask, source="grabcut", box=(0, 18, 32, 44)))
+    seen = ObjectMask(mask=mask, source="grabcut", box=(0, 18, 32, 44))
+    hyps = past_the_edge(photo, seen)
     assert len(hyps) == len(PAST_EDGE)
-    for e, (wider, past, at) in zip(PAST_EDGE, hyps):
+    for e, hyp in zip(PAST_EDGE, hyps):
+        wider, past, at, was = hyp
         g = int(round(e * 30))
         assert at == (g, 0)
         assert wider.shape == (60, 80 + g, 3)
@@ -300,13 +301,16 @@ def test_past_the_edge_grows_the_photo_on_the_sides_the_box_touches():
         assert np.array_equal(past.mask[:, g:], mask) and past.source == "mask"
         assert np.argwhere(past.mask[:, :g]).tolist() == [[20, 0]]
         assert past.box == (0, 20, g + 30, 41)
-        assert GrownPhoto(wider, past, at).margins(photo.shape[:2]) == (g, 0, 0, 0)
+        assert was is seen and hyp.margins() == (g, 0, 0, 0)
+        shown = np.zeros(wider.shape[:2], bool)
+        shown[:, g:] = True
+        assert np.array_equal(hyp.shown(), shown)
     inside = ObjectMask(mask=mask, source="grabcut", box=(3, 18, 32, 44))
     assert past_the_edge(photo, inside) == []
     both = past_the_edge(photo, ObjectMask(mask=mask, source="mask", box=(0, 0, 80, 60)))
     g, h = int(round(PAST_EDGE[0] * 30)), int(round(PAST_EDGE[0] * 21))
     assert both[0][0].shape == (60 + 2 * h, 80 + 2 * g, 3) and both[0][2] == (g, h)
-    assert both[0].margins(photo.shape[:2]) == (g, h, g, h)
+    assert both[0].margins() == (g, h, g, h)
     dot = np.zeros((60, 80), bool)
     dot[30, 0] = True                                   # one pixel: nothing to grow by
     assert past_the_edge(photo, ObjectMask(mask=dot, source="mask", box=(0, 30, 1, 31))) == []

@@ -253,6 +253,12 @@ def test_empty_tiny_and_border_objects(vehicle, coarse):
     left, top, right, bottom = every.past_edge          # (24, 18, 24, 18) when written
     assert every.object.mask.shape == mask.shape and left == right and top == bottom
     assert every.best.K is not None and every.best.K.shape == (3, 3)
+    from ucad_cl.foreground import ObjectMask, past_the_edge
+    hyp = past_the_edge(full, ObjectMask(mask=np.ones(mask.shape, bool), source="mask",
+                                         box=(0, 0, mask.shape[1], mask.shape[0])))[0]
+    with pytest.raises(ValueError, match="give valid or grown, not both"):
+        estimate_pose(full, mesh, mask=mask, coarse=coarse, grown=hyp,
+                      valid=np.ones(mask.shape, bool))
     sliver = np.zeros(mask.shape, bool)
     sliver[50:60, :2] = True
     assert estimate_pose(full, mesh, mask=sliver, coarse=coarse,

@@ -98,8 +98,7 @@ from .cues import boundary_points, edge_distance, edge_recall, photo_edges, regi
 from .decimate import render_proxy
 from .features import HogExtractor, unit_rows
 from .foreground import (GrownPhoto, ObjectMask, PhotoWindow, box_stretch, check_image,
-                         mask_box, object_mask, past_the_edge, photo_intrinsics,
-                         refine_with_silhouette)
+                         mask_box, object_mask, past_the_edge, refine_with_silhouette)
 from .ingest import IngestError, MeshLoader
 from .jobs import content_sha256
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
@@ -698,7 +697,7 @@ class _Fit:
                 if c2[0].score < candidates[0].score:                    # PAST_EDGE order)
                     meta, candidates, best_view, canvas = m2, c2, v2, hyp
         elif cut:                               # the given mesh's own stored views decide
-            canvas = past_edge_choice(photo, obj, self._ring(meta.sha256),
+            canvas = past_edge_choice(photo, cut, self._ring(meta.sha256),
                                       HogExtractor(runtime=self.runtime))
         if cut and mesh_key is None:
             self.notes.append("the vehicle touches the photo's edge: retrieval also tried it "
@@ -944,30 +943,17 @@ class _Fit:
         """The pose search's best pose and its score (lower is better); ``given``: the box
         or the object's mask. A mesh over ``POSE_PROXY_FROM`` triangles is searched on its
         ``render_proxy`` (the caller renders the fit with the mesh itself). ``canvas``: the
-        photo grown past its edge (``past_the_edge``): the search runs there, framed by the
-        grown box (or the grown mask, whose pixel at the new edge lies where the photo shows
-        nothing), the photo's camera moved with it, its cues told which pixels the photo
-        shows (``valid``); the pose's K comes back in the photo's pixels."""
+        photo grown past its edge (``past_the_edge``) that retrieval chose: the search runs
+        there (``estimate_pose(grown=...)``: framed by the grown box or mask, the camera moved
+        with it, the cues told what the photo shows); the pose's K is in the photo's pixels."""
         ring = self._ring(sha)
         if mesh.n_faces > POSE_PROXY_FROM:        # silhouettes at RING_SIDE px: a proxy will do
             mesh = render_proxy(mesh, POSE_PROXY_CELLS)
-        K, shift = self.intrinsics, np.zeros(2)
-        if canvas is not None:
-            shift = np.array(canvas.at, np.float64)
-            base = (K if K is not None else
-                    photo_intrinsics(photo.shape[:2], self.fov or FOV_PRIOR))
-            K = base.copy()
-            K[:2, 2] += shift
-            given = ({"box": canvas.obj.box} if "box" in given      # a given mask: its grown one
-                     else {"mask": canvas.obj.mask}) | {"valid": canvas.shown(photo.shape[:2])}
-            photo = canvas.image
         est = estimate_pose(photo, mesh, coarse=ring, top=1, runtime=self.runtime,
-                            intrinsics=K, fov=self.fov, **given)
+                            intrinsics=self.intrinsics, fov=self.fov, grown=canvas, **given)
         c = est.best
         assert c.K is not None and c.w2c is not None
-        K_out = np.asarray(c.K, np.float64).copy()
-        K_out[:2, 2] -= shift
-        return FitPose(c.azimuth, c.elevation, K_out,
+        return FitPose(c.azimuth, c.elevation, np.asarray(c.K, np.float64),
                        np.asarray(c.w2c, np.float64), "refined"), float(c.score)
 
     def _stored_pose(self, sha, view, obj, photo) -> FitPose:

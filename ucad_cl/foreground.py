@@ -270,25 +270,26 @@ class PhotoWindow:
 # --------------------------------------------------------------- past the photo's edge
 
 class GrownPhoto(NamedTuple):
-    """A photo grown past its edge (``past_the_edge``): the grown image, the object there, and
-    (x, y) where the photo's pixel (0, 0) lies in it."""
+    """A photo grown past its edge (``past_the_edge``): the grown image, the object there,
+    (x, y) where the photo's pixel (0, 0) lies in it, and the object as the photo shows it
+    (``seen``, in the photo's pixels)."""
 
     image: np.ndarray
     obj: ObjectMask
     at: tuple[int, int]
+    seen: ObjectMask
 
-    def shown(self, shape: tuple[int, int]) -> np.ndarray:
-        """(h, w) bool over the grown image: the pixels of the photo (of ``shape`` (H, W))."""
+    def shown(self) -> np.ndarray:
+        """(h, w) bool over the grown image: the pixels of the photo."""
         out = np.zeros(self.image.shape[:2], bool)
-        x, y = self.at
-        out[y:y + shape[0], x:x + shape[1]] = True
+        (x, y), (H, W) = self.at, self.seen.mask.shape
+        out[y:y + H, x:x + W] = True
         return out
 
-    def margins(self, shape: tuple[int, int]) -> tuple[int, int, int, int]:
-        """(left, top, right, bottom): the pixels grown past each edge of the photo (of
-        ``shape`` (H, W))."""
-        (x, y), (h, w) = self.at, self.image.shape[:2]
-        return x, y, w - shape[1] - x, h - shape[0] - y
+    def margins(self) -> tuple[int, int, int, int]:
+        """(left, top, right, bottom): the pixels grown past each edge of the photo."""
+        (x, y), (h, w), (H, W) = self.at, self.image.shape[:2], self.seen.mask.shape
+        return x, y, w - W - x, h - H - y
 
 
 def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[GrownPhoto]:
@@ -327,7 +328,7 @@ def past_the_edge(photo: np.ndarray, obj: ObjectMask) -> list[GrownPhoto]:
         if bottom:
             past[-1, left + int(np.flatnonzero(mask[y1 - 1])[0])] = True
         out.append(GrownPhoto(wider, ObjectMask(mask=past, source="mask", box=mask_box(past)),
-                              (left, top)))
+                              (left, top), obj))
     return out
 
 

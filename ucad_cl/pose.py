@@ -196,7 +196,7 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
                   runtime: Runtime | None = None,
                   intrinsics: np.ndarray | None = None,
                   fov: float | None = None, valid: np.ndarray | None = None,
-                  past_edge: bool = False) -> PoseEstimate:
+                  past_edge: bool = False, grown: GrownPhoto | None = None) -> PoseEstimate:
     """Best ``top`` poses of ``mesh`` for the object in ``image`` ((H, W, 3) uint8 RGB), rendered
     on ``runtime`` (default ``get_runtime()``).
 
@@ -216,15 +216,20 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     the photo grown past that edge when ``past_edge_choice`` finds it nearer to the coarse ring
     so (the search framed by the grown object, its cues told which pixels the photo shows, the
     photo's camera moved with it; ``PoseEstimate.past_edge`` says by how much); not with
-    ``valid``. ValueError naming the problem for a bad image, an empty or tiny mask or box, a
-    ``valid`` of another shape.
+    ``valid``. ``grown``: a ``past_the_edge`` hypothesis of this photo (pixels, not a
+    window's) that the caller chose (the fit's retrieval), searched the same way; the object is
+    then its own (``grown.obj``, or GrabCut in its box when the photo's object came from a
+    box). ValueError naming the problem for a bad image, an empty or tiny mask or box, a
+    ``valid`` of another shape, both ``valid`` and ``grown``.
     """
     check_fov(fov)
     if valid is not None and np.shape(valid) != np.shape(image)[:2]:
         raise ValueError(f"valid has shape {np.shape(valid)}, the image {np.shape(image)[:2]}")
+    if valid is not None and grown is not None:
+        raise ValueError("give valid or grown, not both: a grown photo says what it shows")
     prior = fov or method.fov_prior or FOV_PRIOR
-    window = (PhotoWindow.around(np.shape(image)[:2], box, mask) if intrinsics is None
-              else None)
+    window = (PhotoWindow.around(np.shape(image)[:2], box, mask)
+              if intrinsics is None and grown is None else None)
     if window is not None:
         full_shape = np.shape(image)[:2]
         image, box, mask = window.cut(check_image(image), box, mask)
@@ -233,7 +238,8 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
         intrinsics = window.intrinsics(full_shape, prior)
     elif intrinsics is None and fov is not None:
         intrinsics = photo_intrinsics(np.shape(image)[:2], fov)
-    obj = object_mask(image, box=box, mask=mask, grabcut=method.isolate)
+    if grown is None:                       # (a grown photo brings its own object)
+        obj = object_mask(image, box=box, mask=mask, grabcut=method.isolate)
     if top < 1:
         raise ValueError(f"top={top} must be >= 1")
     image = np.asarray(image)
@@ -241,17 +247,15 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     if coarse is None:
         coarse = pose_ring(mesh, extractor, azimuth_step=azimuth_step, runtime=runtime,
                            elevations=elevations, fov_deg=fov_deg, size=size)
-    first = obj
-    grown = (past_edge_choice(image, obj, coarse, extractor)
-             if past_edge and valid is None and method.isolate else None)
+    if grown is None and past_edge and valid is None and method.isolate:
+        grown = past_edge_choice(image, past_the_edge(image, obj), coarse, extractor)
     if grown is not None:                   # the search runs on the grown photo
-        shape = image.shape[:2]
         base = (intrinsics if intrinsics is not None
-                else photo_intrinsics(shape, method.fov_prior or FOV_PRIOR))
+                else photo_intrinsics(image.shape[:2], method.fov_prior or FOV_PRIOR))
         intrinsics = np.array(base, np.float64)
         intrinsics[:2, 2] += grown.at
-        valid, image = grown.shown(shape), grown.image
-        obj = (grown.obj if obj.source == "mask"
+        valid, image = grown.shown(), grown.image
+        obj = (grown.obj if mask is not None
                else object_mask(image, box=grown.obj.box, grabcut=method.isolate))
     if not method.isolate:                  # the box, background included (before issue 12)
         obj = ObjectMask(mask=box_mask(obj.mask.shape, obj.box), source="box", box=obj.box,
@@ -277,13 +281,13 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
     cands = search.report(found, top)
     moved = (0, 0, 0, 0)
     if grown is not None:                   # back in the photo's (window's) pixels
-        (x, y), (h, w) = grown.at, shape
+        (x, y), (h, w) = grown.at, grown.seen.mask.shape
         for c in cands:                     # the principal point moved back
             c.K = None if c.K is None else c.K - np.array([[0, 0, x], [0, 0, y], [0, 0, 0]])
         inside = obj.mask[y:y + h, x:x + w]
-        obj = (ObjectMask(mask=inside, source=obj.source, box=first.box, kept=obj.kept)
-               if inside.any() else first)
-        moved = grown.margins(shape)
+        obj = (ObjectMask(mask=inside, source=obj.source, box=grown.seen.box, kept=obj.kept)
+               if inside.any() else grown.seen)
+        moved = grown.margins()
     if window is not None:                  # back in the photo's pixels
         for c in cands:
             c.K = window.photo_K(c.K) if c.K is not None else None
@@ -295,18 +299,18 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
                         past_edge=tuple(moved))
 
 
-def past_edge_choice(image: np.ndarray, obj: ObjectMask, ring: PoseRing,
+def past_edge_choice(image: np.ndarray, cut: list[GrownPhoto], ring: PoseRing,
                      extractor: FeatureExtractor) -> GrownPhoto | None:
-    """For an object that touches the photo's edge: the photo grown past that edge
-    (``foreground.past_the_edge``) whose object's descriptor (``extractor``, as ``ring``'s) is
-    nearest to one of ``ring``'s views, when nearer than the photo's own object (ties: the
-    photo, then ``PAST_EDGE`` order); None when the object touches no edge or the photo as it
+    """Of the photo grown past its edge (``cut``: ``foreground.past_the_edge``'s hypotheses
+    for its object), the one whose object's descriptor (``extractor``, as ``ring``'s) is
+    nearest to one of ``ring``'s views, when nearer than the object as the photo shows it
+    (ties: the photo, then ``PAST_EDGE`` order); None when ``cut`` is empty or the photo as it
     is is nearest. A vehicle cut by the photo's edge described as it shows compares with views
     of a shorter vehicle; grown, with views of the whole one (docs/FIT.md)."""
-    cut = past_the_edge(image, obj)
     if not cut:
         return None
-    best, choice = nearest_ring_view(image, obj.mask, ring, extractor).score, None
+    best = nearest_ring_view(image, cut[0].seen.mask, ring, extractor).score
+    choice = None
     for hyp in cut:
         d = nearest_ring_view(hyp.image, hyp.obj.mask, ring, extractor).score
         if d < best:
