@@ -512,6 +512,31 @@ def test_mesh_ids_prefixes_and_path_spellings(built, monkeypatch):
             assert r.export(lib.parent / "nested.jsonl") == len(metas)
 
 
+def test_mesh_named_through_symlinks_and_after_its_file_moved(built, tmp_path, monkeypatch):
+    """A path key matches a recorded path that names the same file once symlinks are resolved,
+    on either side, and a recorded file that is gone by its recorded path; another file of the
+    library, a link to another file, or a missing file elsewhere match nothing by path."""
+    lib, cat, _ = built
+    with CatalogReader(cat) as r:
+        metas = [m for m in r.meshes(None) if m.state == "accepted"]
+        m, other = metas[0], metas[1]
+        tmp_path.joinpath("lib_link").symlink_to(lib, target_is_directory=True)
+        tmp_path.joinpath("file_link.bin").symlink_to(m.source)
+        tmp_path.joinpath("other_link.bin").symlink_to(other.source)
+        for key in (tmp_path / "lib_link" / m.path, tmp_path / "file_link.bin"):
+            assert [x.sha256 for x in r.find(str(key))] == [m.sha256], key
+        assert [x.sha256 for x in r.find(str(tmp_path / "other_link.bin"))] == [other.sha256]
+        assert r.find(str(tmp_path / "lib_link" / "missing.glb")) == []
+        moved = tmp_path / "moved.bin"
+        os.replace(m.source, moved)
+        try:
+            assert [x.sha256 for x in r.find(str(m.source))] == [m.sha256]
+            assert [x.sha256 for x in r.find(str(tmp_path / "lib_link" / m.path))] == [m.sha256]
+            assert r.find(str(moved)) == []
+        finally:
+            os.replace(moved, m.source)
+
+
 def test_ambiguous_prefix_is_an_error_listing_the_matches(tmp_path):
     from tests.test_catalog import build, make_entry
 

@@ -35,7 +35,7 @@ import os
 import sqlite3
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Iterator, NamedTuple
 
 import numpy as np
@@ -85,7 +85,12 @@ class MeshInfo:
     @property
     def source(self) -> Path:
         """Where the source file was when it was catalogued."""
-        return Path(self.library_root) / self.path if self.library_root else Path(self.path)
+        return Path(_source(self.library_root, self.path))
+
+
+def _source(library_root: str, path: str) -> str:
+    """A mesh's recorded source path from its catalogue columns (``MeshInfo.source``)."""
+    return str(Path(library_root) / path if library_root else Path(path))
 
 
 class PartRow(NamedTuple):
@@ -193,6 +198,7 @@ class FeatureTable:
 
 
 _STATES = ("accepted", "rejected", None)
+_IN_LIST = 500              # ids in one "IN (...)" query at most (SQLite's limit is 999 or more)
 _MESH_COLUMNS = ("sha256, library_root, path, size, mtime, state, reason, detail, n_triangles, "
                  "n_materials, file_to_norm, options_hash, run_id, timings, orientation, meta")
 
@@ -284,13 +290,20 @@ class CatalogReader:
             hits = self._query_meshes("WHERE sha256 >= ? AND sha256 < ?", (k, k + "g"))
             if hits:
                 return hits
-        every = self.meshes(state=None)
-        wanted = _spellings(key)
-        hits = [m for m in every if _spellings(str(m.source)) & wanted
-                or (not os.path.isabs(key) and _norm(key) == _norm(m.path))]
-        if hits:
-            return hits
-        return [m for m in every if m.name == key or m.name.lower() == k]
+        rows = self._conn.execute("SELECT sha256, library_root, path FROM meshes "
+                                  f"ORDER BY {MESH_ORDER}").fetchall()   # (match on these alone)
+        named = _SameFile(key)
+        relative = None if os.path.isabs(key) else _norm(key)
+        hits = [sha for sha, root, path in rows
+                if named.is_(_source(root, path)) or relative == _norm(path)]
+        if not hits:
+            hits = [sha for sha, _, path in rows
+                    if (name := PurePath(path).name) == key or name.lower() == k]
+        if len(hits) > _IN_LIST:
+            wanted = set(hits)
+            return [m for m in self.meshes(state=None) if m.sha256 in wanted]
+        return self._query_meshes(f"WHERE sha256 IN ({', '.join('?' * len(hits))})",
+                                  tuple(hits)) if hits else []
 
     def parts(self, key: str) -> list[PartRow]:
         """Material decisions of a mesh, ordered by material index, with material properties."""
@@ -654,11 +667,44 @@ def _norm(path: str) -> str:
     return os.path.normpath(path).replace(os.sep, "/")
 
 
-def _spellings(path: str) -> set[str]:
-    """Absolute forms of ``path``, lexical and with symlinks resolved (relative to the working
-    folder when relative)."""
-    p = os.path.normpath(os.path.join(os.getcwd(), os.path.expanduser(path)))
-    out = {p}
+def _lexical(path: str) -> str:
+    """``path`` made absolute (relative to the working folder) and normalised, no disk access."""
+    return os.path.normpath(os.path.join(os.getcwd(), os.path.expanduser(path)))
+
+
+def _resolved(lexical: str) -> str:
+    """``lexical`` with symlinks resolved (itself when that fails: a loop, say)."""
     with contextlib.suppress(OSError, RuntimeError):
-        out.add(str(Path(p).resolve()))
-    return out
+        return str(Path(lexical).resolve())
+    return lexical
+
+
+def _file_id(path: str) -> tuple[int, int] | None:
+    """(device, inode) of the file ``path`` names, following symlinks; None when none."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino
+
+
+class _SameFile:
+    """Whether a recorded path names what a key names: the same absolute path, lexically or
+    with symlinks resolved on either side. Resolving a path costs a system call per component
+    (~70 us), too much for every mesh of a large catalogue, so a mesh path is resolved only
+    where it can match: where the key names an existing file, paths of that file's (device,
+    inode) (one ``stat``); where it names none, paths that name none either (a resolved path
+    equal to the key's resolved one names the same file, or, missing, none)."""
+
+    def __init__(self, key: str):
+        lex = _lexical(key)
+        self.wanted = {lex, _resolved(lex)}
+        self.file = _file_id(lex)
+
+    def is_(self, path: str) -> bool:
+        lex = _lexical(path)
+        if lex in self.wanted:
+            return True
+        if _file_id(lex) != self.file:
+            return False
+        return _resolved(lex) in self.wanted
