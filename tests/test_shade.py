@@ -186,6 +186,10 @@ def test_srgb_bucket_table_is_a_tight_lower_bound():
     from ucad_cl.shade import SRGB_BUCKETS, linear_to_srgb8, srgb8_bucket_start, srgb8_thresholds
 
     thr = srgb8_thresholds()
+    levels = np.arange(1, 256)                      # each threshold the smallest float32 of its level
+    assert np.array_equal(linear_to_srgb8(thr.astype(np.float64)), levels)
+    assert np.array_equal(linear_to_srgb8(np.nextafter(thr, np.float32(-1)).astype(np.float64)),
+                          levels - 1)
     start = srgb8_bucket_start()
     edges = (np.arange(SRGB_BUCKETS) / (SRGB_BUCKETS - 1)).astype(np.float32)
     xs = np.concatenate([np.linspace(0, 1, 2_000_001, dtype=np.float32), edges,

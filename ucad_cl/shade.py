@@ -167,19 +167,17 @@ def srgb8_thresholds() -> np.ndarray:
     """(255,) float32: the smallest float32 linear value giving sRGB level k = 1..255 under
     :func:`linear_to_srgb8` (found by bisection on float32 values, so a comparison with them
     gives exactly the level ``linear_to_srgb8`` computes in float64 for float32 inputs)."""
-    out = np.empty(255, np.float32)
-    for k in range(1, 256):
-        lo, hi = np.float32(0.0), np.float32(1.0)         # level(lo) < k <= level(hi)
-        while True:
-            mid = np.float32((np.float64(lo) + np.float64(hi)) / 2)
-            if mid in (lo, hi):
-                break
-            if linear_to_srgb8(np.float64(mid)) >= k:
-                hi = mid
-            else:
-                lo = mid
-        out[k - 1] = hi
-    return out
+    k = np.arange(1, 256)
+    lo = np.zeros(255, np.float32)                          # level(lo) < k <= level(hi)
+    hi = np.ones(255, np.float32)
+    while True:                                             # every level bisected at once
+        mid = ((lo.astype(np.float64) + hi.astype(np.float64)) / 2).astype(np.float32)
+        open_ = (mid != lo) & (mid != hi)
+        if not open_.any():
+            return hi
+        up = linear_to_srgb8(mid.astype(np.float64)) >= k
+        hi = np.where(open_ & up, mid, hi)
+        lo = np.where(open_ & ~up, mid, lo)
 
 
 
