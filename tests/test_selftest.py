@@ -150,7 +150,7 @@ def test_no_usable_device_is_one_line_naming_what_to_install(cache, tmp_path, mo
     assert f"OpenCL device {spec}" in named.stderr and "kernels: simulated" in named.stderr
 
 
-def test_correctly_rounded_division_only_where_the_device_offers_it(monkeypatch):
+def test_correctly_rounded_division_only_where_the_device_offers_it(monkeypatch, tmp_path):
     """Every program's options come from ``Runtime.build_source``: it asks for correctly
     rounded float division and sqrt only on a device whose single-precision config has
     CL_FP_CORRECTLY_ROUNDED_DIVIDE_SQRT (the OpenCL specification allows the option nowhere
@@ -170,10 +170,19 @@ def test_correctly_rounded_division_only_where_the_device_offers_it(monkeypatch)
             seen.append(list(options))
             return self
 
+        def get_info(self, what):
+            return [b""]                            # no binary: nothing cached
+
+    class Platform:
+        name = version = "fake"
+
     class Device:
         single_fp_config = 0
+        platform = Platform()
+        name = version = driver_version = "fake"
 
     monkeypatch.setattr(cl, "Program", Program)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     flag = "-cl-fp32-correctly-rounded-divide-sqrt"
     rt = Runtime(ctx=None, queue=None, device=Device())
     rt.build_source("kernel void k(void) {}")
@@ -199,3 +208,76 @@ def test_no_kernel_module_passes_the_rounding_option_itself(runtime):
     built = [key for key in runtime.compile_seconds if key[0] in ("raster_serial", "shade")]
     assert {k[0] for k in built} == {"raster_serial", "shade"}, built
     assert not any("-cl-fp32-correctly-rounded-divide-sqrt" in opts for _, opts in built)
+
+
+SUM_KERNEL = ("kernel void add(global const float *a, global const float *b, global float *c) "
+              "{ int i = get_global_id(0); c[i] = (a[i] + b[i]) * 2.0f; }")
+
+
+def _run_add(rt, prg) -> np.ndarray:
+    import pyopencl as cl
+
+    a = np.linspace(-1, 1, 64, dtype=np.float32)
+    b = np.linspace(2, 5, 64, dtype=np.float32)
+    mf = cl.mem_flags
+    da = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
+    db = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=b)
+    dc = cl.Buffer(rt.ctx, mf.WRITE_ONLY, a.nbytes)
+    prg.add(rt.queue, (64,), None, da, db, dc)
+    c = np.empty_like(a)
+    cl.enqueue_copy(rt.queue, c, dc)
+    assert np.array_equal(c, (a + b) * np.float32(2.0))
+    return c
+
+
+def test_program_binaries_cached_on_disk(runtime, tmp_path, monkeypatch):
+    """``Runtime.build_source`` keeps each built program's binary (``program_cache_dir``) and
+    builds from it next time (the driver is handed the binary, not the source); a binary whose
+    bytes were damaged is refused by its checksum and built from source again (and cached
+    anew); programs from the binary compute what NumPy does and render the same bytes as from
+    source; at most ``PROGRAM_CACHE_FILES`` are kept, the newest."""
+    import pyopencl as cl
+
+    from ucad_cl import runtime as rtm
+    from ucad_cl.cameras import make_ring
+    from ucad_cl.render import render_views
+    from ucad_cl.synth import make_vehicle
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    folder = rtm.program_cache_dir()
+    built = []
+    real = cl.Program
+
+    def spy(ctx, *args):
+        built.append("binary" if len(args) == 2 else "source")
+        return real(ctx, *args)
+
+    monkeypatch.setattr(cl, "Program", spy)
+    _run_add(runtime, runtime.build_source(SUM_KERNEL))
+    assert built == ["source"] and len(list(folder.glob("*.bin"))) == 1
+    _run_add(runtime, runtime.build_source(SUM_KERNEL))
+    assert built[1:] == ["binary"]
+    (path,) = folder.glob("*.bin")
+    blob = bytearray(path.read_bytes())
+    blob[len(blob) // 2] ^= 0xFF                   # a damaged binary
+    path.write_bytes(bytes(blob))
+    _run_add(runtime, runtime.build_source(SUM_KERNEL))
+    assert built[2:] == ["source"]
+    _run_add(runtime, runtime.build_source(SUM_KERNEL))
+    assert built[3:] == ["binary"]                 # cached anew
+
+    mesh = make_vehicle(3, "suv").mesh()
+    ring = make_ring(60.0, (10.0,), size=(64, 48))
+    fresh = [rtm.Runtime(ctx=runtime.ctx, queue=runtime.queue, device=runtime.device)
+             for _ in range(2)]
+    del built[:]
+    first = render_views(mesh, ring, runtime=fresh[0])
+    again = render_views(mesh, ring, runtime=fresh[1])
+    assert built == ["source", "binary"]
+    for name in ("tri_id", "mat_id", "depth"):
+        assert getattr(first, name).tobytes() == getattr(again, name).tobytes(), name
+
+    monkeypatch.setattr(rtm, "PROGRAM_CACHE_FILES", 2)
+    for k in range(3):
+        runtime.build_source(f"{SUM_KERNEL}\n// variant {k}")
+    assert len(list(folder.glob("*.bin"))) == 2

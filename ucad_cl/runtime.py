@@ -26,8 +26,9 @@ substring of the platform or device name (e.g. ``"pocl"``, ``"nvidia"``).
 
 Programs are loaded from the installed ``ucad_cl.kernels`` package; ``#include "common.h"`` is
 inlined textually so the source string is complete. Built programs are cached in-process (key:
-kernel file, options) and on disk by pyopencl's binary cache (key: source, options, device,
-driver). PoCL additionally compiles a work-group function at the first launch of each kernel
+kernel file, options) and their binaries on disk (``program_cache_dir``; key: source, options,
+device, driver; pyopencl leaves PoCL to its own source cache, ~25 ms a program against ~3-9 ms
+from a binary). PoCL additionally compiles a work-group function at the first launch of each kernel
 for each local size (its own disk cache, ``~/.cache/pocl``); ``Runtime.warm_up`` measures that.
 The per-device thread count is PoCL's ``POCL_CPU_MAX_CU_NUM`` / ``POCL_MAX_PTHREAD_COUNT``; it
 must be set before the first OpenCL call in the process.
@@ -54,6 +55,8 @@ from .system import IsolatedCallFailed, call_isolated
 INSTALL_HINT = ("install Debian/Ubuntu's PoCL (`apt-get install pocl-opencl-icd`; scripts/setup.sh "
                 "does it and pyopencl[pocl]) or a vendor OpenCL driver (an ICD); "
                 "`ucad-index info` lists every device and why it is or is not usable")
+#: built programs' binaries kept on disk at most (``program_cache_dir``)
+PROGRAM_CACHE_FILES = 128
 #: the self-test, run by name in a child process (``system.call_isolated``)
 SELF_TEST = "ucad_cl.selftest:check_device"
 SELF_TEST_TIMEOUT_S = 900.0
@@ -249,8 +252,57 @@ class Runtime:
         exact = (["-cl-fp32-correctly-rounded-divide-sqrt"]
                  if self.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT
                  else [])
-        return cl.Program(self.ctx, source).build(
-            options=["-cl-std=CL1.2", *abi.defines(), *exact, *options])
+        return _build_cached(self.ctx, self.device, source,
+                             ["-cl-std=CL1.2", *abi.defines(), *exact, *options])
+
+
+def _build_cached(ctx, device, source: str, options: list[str]):
+    """``cl.Program(ctx, source).build(options)``, its binary kept on disk
+    (``program_cache_dir()``, key: the device, its platform and driver versions, the source and
+    the options) and built from there the next time. Why: PoCL's own cache (which pyopencl
+    relies on for PoCL, skipping its binary cache) still costs ~25 ms a program to find a cached
+    build from source, a binary ~3-9 ms; a lone ``ucad-index fit`` builds ~8 programs. A
+    binary whose checksum does not match, or that the driver refuses, is built from source
+    again; a cache that cannot be written is skipped."""
+    import pyopencl as cl
+
+    ident = [device.platform.name, device.platform.version, device.name, device.version,
+             device.driver_version]
+    key = hashlib.sha256(json.dumps([ident, source, options]).encode()).hexdigest()[:40]
+    path = program_cache_dir() / f"{key}.bin"
+    try:
+        blob = path.read_bytes()
+        if len(blob) > 32 and hashlib.sha256(blob[32:]).digest() == blob[:32]:
+            return cl.Program(ctx, [device], [blob[32:]]).build(options=options)
+    except (OSError, cl.Error):
+        pass                                    # absent, unreadable or refused: from source
+    prg = cl.Program(ctx, source).build(options=options)
+    try:
+        binary = bytes(prg.get_info(cl.program_info.BINARIES)[0])
+        if binary:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
+            tmp.write_bytes(hashlib.sha256(binary).digest() + binary)
+            os.replace(tmp, path)
+            _prune(path.parent, PROGRAM_CACHE_FILES)
+    except (OSError, cl.Error):
+        pass                                    # a read-only home: built from source next time
+    return prg
+
+
+def _prune(folder: Path, keep: int) -> None:
+    """Delete all but the ``keep`` most recently written ``*.bin`` files of ``folder``."""
+    files = []
+    for p in folder.glob("*.bin"):
+        try:
+            files.append((p.stat().st_mtime_ns, p.name, p))
+        except OSError:
+            pass
+    for _, _, p in sorted(files, reverse=True)[keep:]:
+        try:
+            p.unlink()
+        except OSError:
+            pass
 
 
 _RUNTIME: Runtime | None = None
@@ -397,6 +449,14 @@ def self_test_cache_dir() -> Path:
     ``~/.cache``). Delete it to test every device again."""
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "ucad-cl" / "selftest"
+
+
+def program_cache_dir() -> Path:
+    """Where built programs' binaries are kept (``Runtime.build_source``):
+    ``$XDG_CACHE_HOME/ucad-cl/programs`` (default ``~/.cache``), at most ``PROGRAM_CACHE_FILES``
+    (the oldest are deleted). Deleting it costs only the next builds' time."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "ucad-cl" / "programs"
 
 
 def _status_key(info: DeviceInfo) -> str:
