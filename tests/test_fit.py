@@ -974,6 +974,42 @@ def test_mesh_loader_child_reused_crash_falls_back_no_child_left(photo, catalogu
     assert not children()
 
 
+def test_cli_starts_the_mesh_reader_first_and_uses_only_that_child(photo, catalogue, tmp_path):
+    """``ucad-index fit ... --mesh M`` in a fresh interpreter: one child process in all, started
+    before the parser's modules are imported (``cli._mesh_reader_ahead``), and the mesh read
+    there (the pose refined, trimesh never imported here); the command word is found past
+    the global ``--device`` value; other commands start none."""
+    import subprocess
+    import sys
+
+    from ucad_cl.cli import _command_of
+
+    assert _command_of(["--device", "fit", "show", "x"]) == "show"
+    assert _command_of(["--version"]) is None and _command_of(["fit", "--help"]) == "fit"
+    path, box, m = photo
+    out = tmp_path / "o"
+    args = ["fit", str(path), "--box", *map(str, box), "--catalog", str(catalogue), "--out",
+            str(out), "--mesh", m.sha256[:12]]
+    code = ("import sys, ucad_cl.system as s\n"
+            "seen = []\n"
+            "start = s.IsolatedChild.__init__\n"
+            "def counted(self, *a, **k):\n"
+            "    seen.append(sorted(m for m in sys.modules if m.startswith('ucad_cl.')))\n"
+            "    start(self, *a, **k)\n"
+            "s.IsolatedChild.__init__ = counted\n"
+            "from ucad_cl.cli import main\n"
+            f"assert main({args!r}) == 0\n"
+            "assert len(seen) == 1, len(seen)\n"
+            "assert 'ucad_cl.fit' not in seen[0] and 'ucad_cl.commands.fit' not in seen[0]\n"
+            "assert 'trimesh' not in sys.modules\n"
+            f"assert main(['status', '--catalog', {str(catalogue)!r}]) == 0 and len(seen) == 1\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, cwd=Path(__file__).resolve().parents[1])
+    assert run.returncode == 0, run.stderr[-2000:]
+    doc = json.loads((out / f"{path.stem}.json").read_text())
+    assert doc["mesh_id"] == m.sha256 and doc["pose"]["source"] == "refined"
+
+
 def test_no_process_for_the_mesh_reader_is_one_line(photo, catalogue, tmp_path, capsys,
                                                      monkeypatch):
     """When no child process can be started for the mesh reader (process or memory limits),

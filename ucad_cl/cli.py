@@ -32,8 +32,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    reader = _mesh_reader_ahead(argv)
+    try:
+        return _main(argv, reader)
+    finally:
+        if reader is not None:
+            reader.close()                  # (done already where the fit's loader took it)
+
+
+def _main(argv: list[str], mesh_reader) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
+    args.mesh_reader = mesh_reader
     # argparse cannot match an optional positional that follows options ("pose IMAGE --box ...
     # MESH"); a sub-command names such a positional with set_defaults(late_positional=NAME)
     late = getattr(args, "late_positional", None)
@@ -72,6 +83,35 @@ def main(argv: list[str] | None = None) -> int:
         import os
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+
+
+def _mesh_reader_ahead(argv: list[str]):
+    """For ``fit``: the mesh reader's child (``system.IsolatedChild`` importing
+    ``READER_MODULES``), started before this process imports the parser's modules. Its imports
+    (trimesh, SciPy: ~0.45 s of a core) were the longest wait of a lone ``fit --mesh`` call: a
+    child started after the parser left the fit waiting ~0.3 s for its mesh (docs/FIT.md). None
+    for any other command, where the reader's modules are loaded already (a caller that loads
+    meshes in process), or when no process can be started (the fit then starts its own)."""
+    from .system import READER_MODULES, IsolatedChild
+
+    if _command_of(argv) != "fit" or all(m in sys.modules for m in READER_MODULES):
+        return None
+    try:
+        return IsolatedChild(warm=READER_MODULES)
+    except OSError:
+        return None
+
+
+def _command_of(argv: list[str]) -> str | None:
+    """The sub-command ``argv`` names: its first word that is neither an option nor the value
+    of the global ``--device``; None when there is none."""
+    words = iter(argv)
+    for word in words:
+        if word == "--device":
+            next(words, None)
+        elif not word.startswith("-"):
+            return word
+    return None
 
 
 if __name__ == "__main__":

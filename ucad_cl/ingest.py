@@ -111,7 +111,7 @@ import numpy as np
 from . import reasons
 from .artifacts import IngestReport, Material, Mesh, node_stem
 from .orient import orient_mesh
-from .system import IsolatedCallFailed, IsolatedChild, call_isolated
+from .system import READER_MODULES, IsolatedCallFailed, IsolatedChild, call_isolated
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 DRACO = "KHR_draco_mesh_compression"
@@ -120,7 +120,6 @@ MAX_MATERIALS = 65534          # material id = index + 1 must fit uint16 (0 = ba
 MAX_NAME_CHARS = 1024          # material names and alpha modes are cut to this many characters
 GLTF_DEFAULT = Material("default", (1.0, 1.0, 1.0, 1.0), "OPAQUE", 1.0, 1.0)
 IDENTITY_TAG = b"ucad-mesh/1"  # first bytes hashed into every mesh identity (see module doc)
-READER_MODULES = ("ucad_cl.ingest", "trimesh")   # what load_mesh imports (IsolatedChild's warm)
 _GL_TRIANGLES = 4
 _TRIMESH_PRIMITIVE_MODES = (0, 1, 4, 5)   # modes trimesh turns into a geometry (points, lines, tris)
 _READ_CHUNK = 1 << 20
@@ -257,12 +256,17 @@ class MeshLoader:
     fit's CLI so reads a given mesh while it imports its own modules, reads the photo and finds
     the object: ``ucad_cl.commands.fit``). Not isolated: in this process (where the modules are
     loaded already, or when nothing would run beside the child's start); ``prefetch`` then does
-    nothing. ``close`` ends the child (also on leaving a ``with`` block)."""
+    nothing. ``child``: such a child started earlier (``IsolatedChild(warm=READER_MODULES)``;
+    the CLI starts one before its own imports), used instead of a new one. ``close`` ends the
+    child (also on leaving a ``with`` block)."""
 
-    def __init__(self, isolated: bool | None = None) -> None:
-        if isolated is None:
-            isolated = not all(m in sys.modules for m in READER_MODULES)
-        self._child = IsolatedChild(warm=READER_MODULES) if isolated else None
+    def __init__(self, isolated: bool | None = None, child: IsolatedChild | None = None) -> None:
+        if child is not None:
+            self._child: IsolatedChild | None = child
+        else:
+            if isolated is None:
+                isolated = not all(m in sys.modules for m in READER_MODULES)
+            self._child = IsolatedChild(warm=READER_MODULES) if isolated else None
         self._ahead: str | None = None          # the path a prefetch is reading
 
     @property

@@ -12,6 +12,12 @@ import sys
 from multiprocessing.connection import Connection
 
 
+#: what ``ingest.load_mesh`` imports: a mesh reader's child (``IsolatedChild(warm=...)``)
+#: imports these ahead (here, not in ``ingest``, so that the CLI can start such a child before
+#: importing anything heavy)
+READER_MODULES = ("ucad_cl.ingest", "trimesh")
+
+
 def printable(text: str) -> str:
     """``text`` as valid UTF-8 for logs and terminals: bytes of a non-UTF-8 file name (Python's
     surrogate escapes) are written ``\\xNN``."""

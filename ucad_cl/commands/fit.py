@@ -94,7 +94,7 @@ def run(args) -> int:
         return 2
     with reader:
         if args.photo is not None:
-            loader = _loader_for(args.mesh)
+            loader = _loader_for(args.mesh, getattr(args, "mesh_reader", None))
             try:
                 res, out = fit_one(reader, args.photo, args.box, args.mask, args.mesh,
                                    args.out, segmenter, loader, args.fov)
@@ -109,18 +109,19 @@ def run(args) -> int:
         return run_list(reader, args, segmenter)
 
 
-def _loader_for(mesh_key):
-    """With ``--mesh`` for one photo: an isolated ``ingest.MeshLoader`` started now, so that
-    ``fit_one`` can have the mesh read while this process imports the fit, reads the photo and
-    finds the object (the fit's ``load`` step then finds it read; docs/FIT.md); None without
-    ``--mesh`` (the fit starts its own beside retrieval) or when no process can be had (the
-    fit then reads the mesh in this process)."""
-    if mesh_key is None:
+def _loader_for(mesh_key, child=None):
+    """The ``ingest.MeshLoader`` of one photo: on ``child``, the reader's child the CLI started
+    first thing (``cli._mesh_reader_ahead``), when there is one; else, with ``--mesh``, an
+    isolated one started now, so that ``fit_one`` can have the mesh read while this process
+    imports the fit, reads the photo and finds the object (the fit's ``load`` step then finds it
+    read; docs/FIT.md); None without either (the fit starts its own beside retrieval) or when
+    no process can be had (the fit then reads the mesh in this process)."""
+    if mesh_key is None and child is None:
         return None
     from ..ingest import MeshLoader
 
     try:
-        return MeshLoader()
+        return MeshLoader(child=child)
     except OSError:
         return None
 
@@ -151,7 +152,7 @@ def run_list(reader, args, segmenter) -> int:
     from ..ingest import MeshLoader
 
     failed = 0
-    with MeshLoader() as mesh_loader:        # one mesh-reading child for the list
+    with MeshLoader(child=getattr(args, "mesh_reader", None)) as mesh_loader:   # one child
         for path, box, mask, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
             try:
                 res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out,
