@@ -34,23 +34,29 @@ def check_uncreatable_kernel(rt) -> None:
 
 def check_wrong_results(rt) -> None:
     """A kernel whose result differs from NumPy's in one element (a device computing wrong)."""
-    import pyopencl as cl
 
     prg = rt.build_source("kernel void add(global const float *a, global const float *b, "
                           "global float *c) { int i = get_global_id(0); "
                           "c[i] = a[i] + b[i] + (i == 7 ? 1.0f : 0.0f); }")
     a = np.arange(16, dtype=np.float32)
     b = np.full(16, 0.5, np.float32)
+    bad = np.flatnonzero(_add(rt, prg, a, b) != a + b)
+    if bad.size:
+        raise SelfTestFailed(f"add: {bad.size} of 16 sums differ from NumPy")
+
+
+def _add(rt, prg, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``prg``'s kernel ``add(a, b, c)`` run over float32 ``a`` and ``b``: c."""
+    import pyopencl as cl
+
     mf = cl.mem_flags
     da = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
     db = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=b)
     dc = cl.Buffer(rt.ctx, mf.WRITE_ONLY, a.nbytes)
-    prg.add(rt.queue, (16,), None, da, db, dc)
+    prg.add(rt.queue, a.shape, None, da, db, dc)
     c = np.empty_like(a)
     cl.enqueue_copy(rt.queue, c, dc)
-    bad = np.flatnonzero(c != a + b)
-    if bad.size:
-        raise SelfTestFailed(f"add: {bad.size} of 16 sums differ from NumPy")
+    return c
 
 
 def check_aborts(rt) -> None:
@@ -214,20 +220,10 @@ SUM_KERNEL = ("kernel void add(global const float *a, global const float *b, glo
               "{ int i = get_global_id(0); c[i] = (a[i] + b[i]) * 2.0f; }")
 
 
-def _run_add(rt, prg) -> np.ndarray:
-    import pyopencl as cl
-
+def _run_add(rt, prg) -> None:
     a = np.linspace(-1, 1, 64, dtype=np.float32)
     b = np.linspace(2, 5, 64, dtype=np.float32)
-    mf = cl.mem_flags
-    da = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a)
-    db = cl.Buffer(rt.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=b)
-    dc = cl.Buffer(rt.ctx, mf.WRITE_ONLY, a.nbytes)
-    prg.add(rt.queue, (64,), None, da, db, dc)
-    c = np.empty_like(a)
-    cl.enqueue_copy(rt.queue, c, dc)
-    assert np.array_equal(c, (a + b) * np.float32(2.0))
-    return c
+    assert np.array_equal(_add(rt, prg, a, b), (a + b) * np.float32(2.0))
 
 
 def test_program_binaries_cached_on_disk(runtime, tmp_path, monkeypatch):
