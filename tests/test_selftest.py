@@ -34,7 +34,6 @@ def check_uncreatable_kernel(rt) -> None:
 
 def check_wrong_results(rt) -> None:
     """A kernel whose result differs from NumPy's in one element (a device computing wrong)."""
-
     prg = rt.build_source("kernel void add(global const float *a, global const float *b, "
                           "global float *c) { int i = get_global_id(0); "
                           "c[i] = a[i] + b[i] + (i == 7 ? 1.0f : 0.0f); }")
