@@ -261,7 +261,7 @@ def _build_cached(ctx, device, source: str, options: list[str]):
     (``program_cache_dir()``, key: the device, its platform and driver versions, the source and
     the options) and built from there the next time. Why: PoCL's own cache (which pyopencl
     relies on for PoCL, skipping its binary cache) still costs ~25 ms a program to find a cached
-    build from source, a binary ~3-9 ms; a lone ``ucad-index fit`` builds ~8 programs. A
+    build from source, a binary ~3-9 ms; a lone ``ucad-index fit`` builds 3-8 programs. A
     binary whose checksum does not match, or that the driver refuses, is built from source
     again; a cache that cannot be written is skipped."""
     import pyopencl as cl
