@@ -257,6 +257,10 @@ class PhotoWindow:
         return (self.x0 + int(np.floor(box[0] / s)), self.y0 + int(np.floor(box[1] / s)),
                 self.x0 + int(np.ceil(box[2] / s)), self.y0 + int(np.ceil(box[3] / s)))
 
+    def photo_lengths(self, lengths) -> tuple[int, ...]:
+        """Lengths in the window's pixels (e.g. ``GrownPhoto.margins``) -> the photo's, rounded."""
+        return tuple(int(round(v / self.scale)) for v in lengths)
+
     def photo_object(self, obj: ObjectMask, shape: tuple[int, int]) -> ObjectMask:
         """``obj`` of the window -> the photo's (H, W) mask (nearest neighbour)."""
         full = np.zeros(shape, bool)

@@ -292,11 +292,10 @@ def estimate_pose(image: np.ndarray, mesh: Mesh, *, box: Sequence[float] | None 
         for c in cands:
             c.K = window.photo_K(c.K) if c.K is not None else None
         obj = window.photo_object(obj, full_shape)
-        moved = (int(round(v / window.scale)) for v in moved)
+        moved = window.photo_lengths(moved)
     runner = next((c for c in cands if c.flipped), None)
     ambiguous = bool(method.twins) and runner is not None and runner.gap < AMBIGUOUS_GAP
-    return PoseEstimate(candidates=cands, object=obj, ambiguous=ambiguous,
-                        past_edge=tuple(moved))
+    return PoseEstimate(candidates=cands, object=obj, ambiguous=ambiguous, past_edge=moved)
 
 
 def past_edge_choice(image: np.ndarray, cut: list[GrownPhoto], ring: PoseRing,

@@ -263,8 +263,7 @@ def run_catalog(args, image, mask) -> int:
             bx0, by0, bx1, by1 = mask_box(m)
             return max(bx1 - bx0, by1 - by0)
         q_side *= longer(grown.obj.mask) / longer(seen.mask)
-        scale = 1.0 if window is None else window.scale
-        past_edge = tuple(int(round(v / scale)) for v in grown.margins())
+        past_edge = grown.margins() if window is None else window.photo_lengths(grown.margins())
     rows = []                # (match, its camera, the camera's distance, the photo's estimate)
     for mt in matches:
         v = cameras[mt.mesh][mt.view]
