@@ -279,15 +279,24 @@ def _build_cached(ctx, device, source: str, options: list[str]):
     prg = cl.Program(ctx, source).build(options=options)
     try:
         binary = bytes(prg.get_info(cl.program_info.BINARIES)[0])
-        if binary:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
-            tmp.write_bytes(hashlib.sha256(binary).digest() + binary)
-            os.replace(tmp, path)
-            _prune(path.parent, PROGRAM_CACHE_FILES)
-    except (OSError, cl.Error):
-        pass                                    # a read-only home: built from source next time
+    except cl.Error:
+        binary = b""
+    if binary and _cache_write(path, hashlib.sha256(binary).digest() + binary):
+        _prune(path.parent, PROGRAM_CACHE_FILES)
     return prg
+
+
+def _cache_write(path: Path, data: bytes) -> bool:
+    """Write ``data`` to the cache file ``path`` atomically (a temporary file renamed over it);
+    False when it cannot be written (a read-only home: the cache is skipped, not an error)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    except OSError:
+        return False
+    return True
 
 
 def _prune(folder: Path, keep: int) -> None:
@@ -432,15 +441,10 @@ def device_status(info: DeviceInfo, *, checks: tuple[str, ...] | None = None,
     except Exception as exc:  # noqa: BLE001 - SelfTestFailed, or the device could not open
         status = DeviceStatus(info, False, (str(exc).strip().splitlines() or [""])[0]
                               or type(exc).__name__)
-    if checks is None:
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp")
-            tmp.write_text(json.dumps({"device": info.summary(), "usable": status.usable,
-                                       "reason": status.reason, "seconds": status.seconds}))
-            os.replace(tmp, path)
-        except OSError:
-            pass                                       # a read-only home: test again next time
+    if checks is None:                                 # (a read-only home: test again next time)
+        _cache_write(path, json.dumps({"device": info.summary(), "usable": status.usable,
+                                       "reason": status.reason,
+                                       "seconds": status.seconds}).encode())
     return status
 
 
