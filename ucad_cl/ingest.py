@@ -261,12 +261,11 @@ class MeshLoader:
     child (also on leaving a ``with`` block)."""
 
     def __init__(self, isolated: bool | None = None, child: IsolatedChild | None = None) -> None:
-        if child is not None:
-            self._child: IsolatedChild | None = child
-        else:
+        if child is None:
             if isolated is None:
                 isolated = not all(m in sys.modules for m in READER_MODULES)
-            self._child = IsolatedChild(warm=READER_MODULES) if isolated else None
+            child = IsolatedChild(warm=READER_MODULES) if isolated else None
+        self._child = child
         self._ahead: str | None = None          # the path a prefetch is reading
 
     @property
