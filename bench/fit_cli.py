@@ -12,7 +12,7 @@ reader's child, none of which ``bench/fit.py`` (one process for all photos) sees
 ``DIR`` holds ``photos.csv`` (``path,x0,y0,x1,y1``) and ``truth.json`` (``bench/fit.py
 --save``); ``--mesh-given`` passes each photo's true mesh (``--mesh``) instead of retrieval.
 Every photo is fitted ``--runs`` times; with ``--against ROOT`` (another checkout of this
-project, run with ``PYTHONPATH=ROOT``) each call of this checkout is paired with one of that
+project, run in ROOT) each call of this checkout is paired with one of that
 code, alternating, and which of the two goes first alternates too (the second call of a pair
 finds the catalogue pages the first read in the page cache: ~5 % when measured), so that the
 machine's drift and the cache fall on both alike: the table gives both and the median of the
@@ -38,13 +38,17 @@ ROOT = Path(__file__).resolve().parents[1]
 def fit_call(root: Path, photo: Path, box: list[str], catalog: Path, out: Path,
              mesh: str | None) -> tuple[float, dict]:
     """(wall seconds, the JSON written) of one ``ucad-index fit`` in a fresh interpreter running
-    the code at ``root``."""
+    the code at ``root``: run in ``root`` (``python -m`` puts the working folder first on
+    ``sys.path``, ahead of ``PYTHONPATH``: from another checkout it would import that one's
+    code), with ``root`` ahead of the caller's ``PYTHONPATH``."""
+    photo, catalog, out = (Path(p).resolve() for p in (photo, catalog, out))
     cmd = [sys.executable, "-m", "ucad_cl.cli", "fit", str(photo), "--box", *box,
            "--catalog", str(catalog), "--out", str(out)] + (["--mesh", mesh] if mesh else [])
-    env = dict(os.environ, PYTHONPATH=str(root))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+        [str(root)] + [p for p in [os.environ.get("PYTHONPATH", "")] if p]))
     t = time.perf_counter()
-    done = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                          text=True, check=False)
+    done = subprocess.run(cmd, cwd=root, env=env, stdout=subprocess.DEVNULL,
+                          stderr=subprocess.PIPE, text=True, check=False)
     wall = time.perf_counter() - t
     if done.returncode != 0:
         raise RuntimeError(f"{photo.name}: exit {done.returncode}: {done.stderr.strip()[-300:]}")

@@ -1,0 +1,38 @@
+"""The benchmark harnesses time the code they name (bench/ is not a test; its plumbing is)."""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _bench_module(name: str):
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_fit_cli_runs_the_checkout_it_is_given(tmp_path, monkeypatch):
+    """``bench/fit_cli.py --against ROOT`` pairs calls of two checkouts: each call must import
+    its own checkout's ``ucad_cl``, also when the bench is started inside the other checkout
+    (``python -m`` puts the working folder ahead of ``PYTHONPATH``: it ran this checkout's code
+    twice until stop 51)."""
+    fit_cli = _bench_module("fit_cli")
+    other = tmp_path / "other"
+    (other / "ucad_cl").mkdir(parents=True)
+    (other / "ucad_cl" / "__init__.py").write_text("")
+    (other / "ucad_cl" / "cli.py").write_text(
+        "import json, sys\nfrom pathlib import Path\n"
+        "a = sys.argv[1:]\nout = Path(a[a.index('--out') + 1]); out.mkdir(parents=True)\n"
+        "doc = {'seconds': {'all': 0.0}, 'code': __file__, 'mesh': a[a.index('--mesh') + 1]}\n"
+        "(out / (Path(a[1]).stem + '.json')).write_text(json.dumps(doc))\n")
+    monkeypatch.chdir(ROOT)                     # started inside this checkout, relative paths
+    (tmp_path / "photo.png").write_bytes(b"")
+    wall, doc = fit_cli.fit_call(other, tmp_path / "photo.png", ["0", "0", "1", "1"],
+                                 tmp_path / "catalog", tmp_path / "out", "abc")
+    assert wall > 0
+    assert doc["code"] == str(other / "ucad_cl" / "cli.py") and doc["mesh"] == "abc"
+    assert json.loads((tmp_path / "out" / "photo.json").read_text())["code"] == doc["code"]
