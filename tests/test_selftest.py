@@ -199,19 +199,23 @@ def test_correctly_rounded_division_only_where_the_device_offers_it(monkeypatch,
 
 
 def test_no_kernel_module_passes_the_rounding_option_itself(runtime):
-    """A render and its shading on the session's device: no program was built with the
-    correctly-rounded option among its own options (``Runtime.compile_seconds`` keys: name,
-    options); ``build_source`` adds it where the device offers it."""
+    """Renders through both raster paths and their shading on the session's device: no program
+    was built with the correctly-rounded option among its own options
+    (``Runtime.compile_seconds`` keys: name, options); ``build_source`` adds it where the device
+    offers it. (Both paths asked for by name: a GPU's default is the parallel one.)"""
     from ucad_cl.cameras import make_ring
     from ucad_cl.render import render_views
     from ucad_cl.shade import shade_views
     from ucad_cl.synth import make_vehicle
 
     mesh = make_vehicle(1, "sedan").mesh()
-    views = render_views(mesh, make_ring(90.0, (10.0,), size=(64, 48)), runtime=runtime)
-    shade_views(mesh, views, runtime=runtime)
-    built = [key for key in runtime.compile_seconds if key[0] in ("raster_serial", "shade")]
-    assert {k[0] for k in built} == {"raster_serial", "shade"}, built
+    names = ("raster_serial", "raster_parallel", "shade")
+    for path in ("serial", "parallel"):
+        views = render_views(mesh, make_ring(90.0, (10.0,), size=(64, 48)), runtime=runtime,
+                             path=path)
+        shade_views(mesh, views, runtime=runtime)
+    built = [key for key in runtime.compile_seconds if key[0] in names]
+    assert {k[0] for k in built} == set(names), built
     assert not any("-cl-fp32-correctly-rounded-divide-sqrt" in opts for _, opts in built)
 
 
