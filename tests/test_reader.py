@@ -575,8 +575,10 @@ def test_schema_1_catalogue_is_upgraded_by_the_writer(tmp_path):
                                                   (None, "zlib")])
 def test_one_part_decoder_equals_openexr(tmp_path, monkeypatch, head_bytes, inflate):
     """ViewStackFile against OpenEXR's own decoder: ZIP (compressible and incompressible
-    chunks), ZIPS, no compression, a single-part file, empty views, one part whose header has
-    one more attribute (the others repeat a layout); PIZ goes through OpenEXR.
+    chunks), ZIPS, no compression, a single-part file, empty views, parts whose header has
+    one more attribute among runs of headers that repeat a layout (``_repeated_headers``
+    compares a run at once: it must end at each such part and start again after it); PIZ goes
+    through OpenEXR.
     With a 16-byte first read the headers are read in doubling steps (as a long stack's are);
     a stack cut or removed after it was opened gives ValueError naming it at the read. ZIP
     chunks inflate through libdeflate, or through zlib where ``deflate`` is not installed (the
@@ -595,7 +597,7 @@ def test_one_part_decoder_equals_openexr(tmp_path, monkeypatch, head_bytes, infl
     rng = np.random.default_rng(3)
     H, W = 37, 29
     for comp in ("ZIP_COMPRESSION", "ZIPS_COMPRESSION", "NO_COMPRESSION", "PIZ_COMPRESSION"):
-        for n_parts in (1, 4):
+        for n_parts in (1, 4, 9):
             parts = []
             for v in range(n_parts):
                 box = (v % 3, H - (v % 2) * 5, 2 * v, W)       # y0, y1, x0, x1 (half-open)
@@ -611,7 +613,7 @@ def test_one_part_decoder_equals_openexr(tmp_path, monkeypatch, head_bytes, infl
                           "displayWindow": (np.array([0, 0], np.int32),
                                             np.array([W - 1, H - 1], np.int32)),
                           "compression": getattr(OpenEXR, comp), "type": OpenEXR.scanlineimage}
-                if v == 1:                  # a header of another layout among repeated ones
+                if v in (1, 6):             # a header of another layout among repeated ones
                     header["comments"] = "one more attribute"
                 parts.append(OpenEXR.Part(header, {k: OpenEXR.Channel(x)
                                                    for k, x in chans.items()}, f"view_{v:03d}"))

@@ -256,8 +256,8 @@ def read_viewset_exr(path):
 #
 # ``read_viewset_exr`` decodes every part (OpenEXR's Python API reads a whole file: ~30 ms for
 # 72 views at 256 px). A consumer usually wants one view, so ``ViewStackFile`` reads and parses
-# the headers once (names, windows, channels, compression, chunk offsets; no pixels: ~0.6 ms for
-# 72 views, against ~2-7 ms to read a whole 5-10 MB stack), then reads and decodes only the
+# the headers once (names, windows, channels, compression, chunk offsets; no pixels: ~0.9 ms for
+# 144 views, against ~2-7 ms to read a whole 5-10 MB stack), then reads and decodes only the
 # chunks of the part asked for, straight from the file with NumPy and zlib. It handles the
 # scanline compressions this package writes (ZIP, 16 lines a chunk) plus NONE and ZIPS; any other
 # file (tiled, deep, another compression) is read through OpenEXR instead, with the same result.
@@ -430,14 +430,18 @@ def _parse_headers(data: bytes) -> tuple[list[dict], bool]:
     multipart, tiled, deep = bool(flags & 0x1000), bool(flags & 0x200), bool(flags & 0x800)
     pos, parts = 8, []
     chlists: dict[bytes, dict[str, tuple[int, int]]] = {}
-    layout = None
     while True:
-        part, pos, layout = _parse_header(data, pos, chlists, layout)
-        if tiled and not multipart:
-            part["type"] = "tiledimage"
-        if deep:
-            part.setdefault("type", "deepscanline")
-        parts.append(part)
+        part, pos, layout = _parse_header(data, pos, chlists)
+        batch = [part]
+        if multipart and data[pos] != 0:                # the next headers alike, at once
+            alike, pos = _repeated_headers(data, pos, layout, chlists)
+            batch += alike
+        for part in batch:
+            if tiled and not multipart:
+                part["type"] = "tiledimage"
+            if deep:
+                part.setdefault("type", "deepscanline")
+        parts += batch
         if not multipart or data[pos] == 0:
             break
     if multipart:
@@ -454,20 +458,12 @@ def _parse_headers(data: bytes) -> tuple[list[dict], bool]:
     return parts, multipart
 
 
-def _parse_header(data: bytes, pos: int, chlists: dict[bytes, dict[str, tuple[int, int]]],
-                  last: _Layout | None = None) -> tuple[dict, int, _Layout]:
-    """One part's header from byte ``pos``: (what ``_parse_headers`` keeps, the byte after it,
-    its layout). A header whose names, types, sizes and terminators are byte for byte those
-    of ``last`` (the parts of a view stack differ in values only) is read at the layout's
-    offsets with one comparison; any other is walked attribute by attribute. ``chlists`` maps
-    channel-list bytes already parsed in this file to their result."""
-    if last is not None and pos + last.length <= len(data) and np.array_equal(
-            np.frombuffer(data, np.uint8, count=last.length, offset=pos)[last.skeleton],
-            last.expected):
-        part: dict = {"compression": 0}
-        for name, v, size in last.wanted:
-            _store(part, name, data[pos + v:pos + v + size], chlists)
-        return _checked(part), pos + last.length, last
+def _parse_header(data: bytes, pos: int, chlists: dict[bytes, dict[str, tuple[int, int]]]
+                  ) -> tuple[dict, int, _Layout]:
+    """One part's header from byte ``pos``, walked attribute by attribute: (what
+    ``_parse_headers`` keeps, the byte after it, its layout: the headers after it that repeat
+    it byte for byte but for the values, as a view stack's do, ``_repeated_headers`` reads at
+    once). ``chlists`` maps channel-list bytes already parsed in this file to their result."""
     part, start, fixed, wanted = {"compression": 0}, pos, [], []
     find = data.index
     while data[pos] != 0:
@@ -489,6 +485,30 @@ def _parse_header(data: bytes, pos: int, chlists: dict[bytes, dict[str, tuple[in
                      np.frombuffer(data, np.uint8, count=pos + 1 - start, offset=start)[skeleton],
                      tuple(wanted))
     return _checked(part), pos + 1, layout
+
+
+def _repeated_headers(data: bytes, pos: int, layout: _Layout,
+                      chlists: dict[bytes, dict[str, tuple[int, int]]]) -> tuple[list[dict], int]:
+    """The run of headers from byte ``pos`` on that have ``layout`` (``_parse_header``'s),
+    compared all at once: (their parts, the byte
+    after the run). The run ends at the first header that differs, at the end of the header
+    list (its terminating 0 never matches a layout, which starts with a name) or where ``data``
+    ends; the caller reads on from there. A view stack of 144 views opens in ~0.9 ms, ~2 ms
+    with its headers compared one at a time (a retrieval over 1,003 meshes opens ~40)."""
+    n = (len(data) - pos) // layout.length
+    if n < 1:
+        return [], pos
+    rows = np.frombuffer(data, np.uint8, count=n * layout.length, offset=pos).reshape(
+        n, layout.length)
+    same = (rows[:, layout.skeleton] == layout.expected).all(axis=1)
+    k = n if same.all() else int(same.argmin())
+    parts = []
+    for at in range(pos, pos + k * layout.length, layout.length):
+        part: dict = {"compression": 0}
+        for name, v, size in layout.wanted:
+            _store(part, name, data[at + v:at + v + size], chlists)
+        parts.append(_checked(part))
+    return parts, pos + k * layout.length
 
 
 @dataclass(frozen=True)
