@@ -431,8 +431,8 @@ def _parse_headers(data: bytes) -> tuple[list[dict], bool]:
     pos, parts = 8, []
     chlists: dict[bytes, dict[str, tuple[int, int]]] = {}
     while True:
-        part, pos, layout = _parse_header(data, pos, chlists)
-        batch = [part]
+        first, pos, layout = _parse_header(data, pos, chlists)
+        batch = [first]
         if multipart and data[pos] != 0:                # the next headers alike, at once
             alike, pos = _repeated_headers(data, pos, layout, chlists)
             batch += alike
