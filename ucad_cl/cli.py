@@ -92,9 +92,9 @@ def _mesh_reader_ahead(argv: list[str]):
     child started after the parser left the fit waiting ~0.3 s for its mesh (docs/FIT.md). None
     for any other command, where the reader's modules are loaded already (a caller that loads
     meshes in process), or when no process can be started (the fit then starts its own)."""
-    from .system import READER_MODULES, IsolatedChild
+    from .system import READER_MODULES, IsolatedChild, reader_modules_loaded
 
-    if _command_of(argv) != "fit" or all(m in sys.modules for m in READER_MODULES):
+    if _command_of(argv) != "fit" or reader_modules_loaded():
         return None
     try:
         return IsolatedChild(warm=READER_MODULES)

@@ -100,7 +100,6 @@ import os
 import re
 import stat
 import struct
-import sys
 import traceback
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -111,7 +110,8 @@ import numpy as np
 from . import reasons
 from .artifacts import IngestReport, Material, Mesh, node_stem
 from .orient import orient_mesh
-from .system import READER_MODULES, IsolatedCallFailed, IsolatedChild, call_isolated
+from .system import (READER_MODULES, IsolatedCallFailed, IsolatedChild, call_isolated,
+                     reader_modules_loaded)
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
 DRACO = "KHR_draco_mesh_compression"
@@ -263,7 +263,7 @@ class MeshLoader:
     def __init__(self, isolated: bool | None = None, child: IsolatedChild | None = None) -> None:
         if child is None:
             if isolated is None:
-                isolated = not all(m in sys.modules for m in READER_MODULES)
+                isolated = not reader_modules_loaded()
             child = IsolatedChild(warm=READER_MODULES) if isolated else None
         self._child = child
         self._ahead: str | None = None          # the path a prefetch is reading

@@ -18,6 +18,12 @@ from multiprocessing.connection import Connection
 READER_MODULES = ("ucad_cl.ingest", "trimesh")
 
 
+def reader_modules_loaded() -> bool:
+    """Whether this process has imported ``READER_MODULES`` already (then a mesh is read here,
+    no child is started for it)."""
+    return all(m in sys.modules for m in READER_MODULES)
+
+
 def printable(text: str) -> str:
     """``text`` as valid UTF-8 for logs and terminals: bytes of a non-UTF-8 file name (Python's
     surrogate escapes) are written ``\\xNN``."""
