@@ -43,12 +43,10 @@ def test_fit_cli_byte_compiles_both_checkouts(tmp_path, monkeypatch):
     ``PYTHONDONTWRITEBYTECODE`` says: a checkout without them compiles its sources in every
     call (stop 51: a fresh worktree of old code paid that in every call, this checkout for ten
     edited modules)."""
-    import importlib.util as iu
-
     fit_cli = _bench_module("fit_cli")
     monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
     source = tmp_path / "ucad_cl" / "sub" / "mod.py"
     source.parent.mkdir(parents=True)
     source.write_text("X = 1\n")
     fit_cli.byte_compiled(tmp_path)
-    assert Path(iu.cache_from_source(str(source))).is_file()
+    assert Path(importlib.util.cache_from_source(str(source))).is_file()

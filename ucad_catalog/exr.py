@@ -490,11 +490,11 @@ def _parse_header(data: bytes, pos: int, chlists: dict[bytes, dict[str, tuple[in
 def _repeated_headers(data: bytes, pos: int, layout: _Layout,
                       chlists: dict[bytes, dict[str, tuple[int, int]]]) -> tuple[list[dict], int]:
     """The run of headers from byte ``pos`` on that have ``layout`` (``_parse_header``'s),
-    compared all at once: (their parts, the byte
-    after the run). The run ends at the first header that differs, at the end of the header
-    list (its terminating 0 never matches a layout, which starts with a name) or where ``data``
-    ends; the caller reads on from there. A view stack of 144 views opens in ~0.9 ms, ~2 ms
-    with its headers compared one at a time (a retrieval over 1,003 meshes opens ~40)."""
+    compared all at once: (their parts, the byte after the run). The run ends at the first
+    header that differs, at the end of the header list (its terminating 0 never matches a
+    layout, which starts with a name) or where ``data`` ends; the caller reads on from there.
+    A view stack of 144 views opens in ~0.9 ms, ~2 ms with its headers compared one at a time
+    (a retrieval over 1,003 meshes opens ~40)."""
     n = (len(data) - pos) // layout.length
     if n < 1:
         return [], pos
