@@ -33,11 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-
-def unit(a: np.ndarray) -> np.ndarray:
-    """Rows scaled to unit L2 norm (zero rows stay zero), float64."""
-    a = np.asarray(a, np.float64)
-    return a / np.maximum(np.linalg.norm(a, axis=-1, keepdims=True), 1e-30)
+from ucad_cl.features import unit_rows  # noqa: E402  (the search's own float64 unit rows)
 
 
 def queries(refs: Path, catalog: Path) -> tuple[np.ndarray, list[dict], list[str]]:
@@ -76,7 +72,7 @@ def best_per_mesh(q: np.ndarray, catalog: str, shas: list[str] | None):
     with CatalogReader(path) as reader:
         tab = reader.feature_table()
         keep = np.asarray(tab.view) % int(step or 1) == 0
-        rows = unit(tab.feats[keep])
+        rows = unit_rows(tab.feats[keep])[0]
         mine = [m.sha256 for m in tab.meshes]
         mesh_of = np.asarray(tab.mesh)[keep]
     shas = mine if shas is None else shas
@@ -98,7 +94,7 @@ def main(argv=None) -> int:
                     help="stored rows of another catalogue of the same meshes, added in turn")
     args = ap.parse_args(argv)
     q, truth, answers = queries(args.refs, args.catalog)
-    q = unit(q)
+    q = unit_rows(q)[0]
     best, shas = best_per_mesh(q, str(args.catalog), None)
     where = {s: i for i, s in enumerate(shas)}
     print("\n| stored rows | source | photos | first stage top-1 / top-5 / top-20 | "
