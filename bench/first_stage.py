@@ -100,10 +100,9 @@ def main(argv=None) -> int:
     print("\n| stored rows | source | photos | first stage top-1 / top-5 / top-20 | "
           "places of the rest | the fit's top-1 (first catalogue) |")
     print("|---|---|---|---|---|---|")
-    for label in [str(args.catalog)] + [f"+ {a}" for a in args.also]:
-        if label.startswith("+ "):
-            more, _ = best_per_mesh(q, label[2:], shas)
-            best = np.minimum(best, more)
+    for label, more in [(str(args.catalog), None)] + [(f"+ {a}", a) for a in args.also]:
+        if more is not None:
+            best = np.minimum(best, best_per_mesh(q, more, shas)[0])
         place = np.array([int((best[i] < best[i, where[t["mesh_id"]]]).sum())
                           if t["mesh_id"] in where else -1 for i, t in enumerate(truth)])
         for source in ("real", "generated"):
