@@ -122,9 +122,10 @@ def test_known_colours_under_known_light(catalogue, tmp_path):
 def test_heavy_mesh_is_posed_on_its_render_proxy(catalogue, monkeypatch):
     """A mesh over POSE_PROXY_FROM triangles is posed on its render proxy (here every mesh,
     clustered coarsely: 96 cells, about 23 % of the faces gone) and fitted with the mesh
-    itself: the pose stays within 3 deg of the photo's (measured: 1.5 and 0.75 deg off; the
-    whole mesh 0.25 and 0.75) and the body colour within CIEDE2000 4 (2.8 and 1.0; the whole
-    mesh 1.5 and 1.0), box given, cluttered background."""
+    itself: the pose stays within 4 deg of the photo's and the body colour within CIEDE2000 4,
+    box given, cluttered background (measured since stop 53, the pose search framed by the
+    refined object mask: 1.5 and 3.25 deg off, the whole mesh the same; dE 1.3 and 0.5; with
+    the pose framed by the box, stop 52: 3.0 and 0.25 deg, the whole mesh 0.75 and 0.25)."""
     from ucad_cl import fit
     from ucad_cl.decimate import render_proxy
     from ucad_cl.refphoto import render_reference
@@ -138,7 +139,7 @@ def test_heavy_mesh_is_posed_on_its_render_proxy(catalogue, monkeypatch):
                                light=_neutral_light(), seed=1, background="clutter")
         res = fit.fit_photo(ref.image, box=ref.box, catalog=catalogue, mesh=m.sha256[:12])
         assert res.pose.source == "refined" and res.mesh is not None
-        assert abs((res.pose.azimuth - az + 180.0) % 360.0 - 180.0) <= 3.0, res.pose
+        assert abs((res.pose.azimuth - az + 180.0) % 360.0 - 180.0) <= 4.0, res.pose
         assert abs(res.pose.elevation - 8.0) <= 3.0, res.pose
         body = res.parts["body"]
         assert _de(body.color_linear, COLORS["body"],
@@ -1135,6 +1136,47 @@ def test_onnx_photo_segmenter_replaces_the_rendered_masks(photo, catalogue, tmp_
                  "--segmenter", "onnx:nowhere.onnx:x.json", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err
+
+
+def test_box_photos_are_posed_on_the_refined_object_mask(catalogue, tmp_path, monkeypatch):
+    """With a box and the mesh given, the pose search is framed by GrabCut's refined object
+    (fit._pose_given), not by the box: over twenty cluttered photo-like references (Embree)
+    of the five vehicles at random azimuths and elevations of 3-25 deg, against the build's
+    default rings, its median |azimuth error| is smaller and it turns no more vehicles back to
+    front (measured: 1.29 against 2.16 deg, one against two turned; the bench's held-out
+    draws: docs/FIT.md, "The pose framed by the object's mask")."""
+    from ucad_cl import fit
+    from ucad_cl.pose import az_diff
+    from ucad_cl.refphoto import draw_light, render_reference
+
+    cat = tmp_path / "rings"
+    build(catalogue.parent / "lib", cat, BuildOptions(), progress=False, log=lambda *a: None)
+    rng = np.random.default_rng(5)
+    photos = []
+    for k in range(5):
+        m, mesh, rows = _mesh(catalogue, k)
+        for _ in range(4):
+            az, el = float(rng.uniform(0, 360)), float(rng.uniform(3, 25))
+            ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=az,
+                                   elevation=el, seed=int(rng.integers(1 << 30)),
+                                   background="clutter", size=(240, 320), light=draw_light(rng))
+            photos.append((m.sha256, ref, az))
+    framed = []
+    shipped = fit._pose_given
+
+    def spy(box, obj, canvas):
+        framed.append(sorted(shipped(box, obj, canvas)))
+        return shipped(box, obj, canvas)
+
+    err = {}
+    for name, rule in (("mask", spy), ("box", lambda box, obj, canvas: {"box": box})):
+        monkeypatch.setattr(fit, "_pose_given", rule)
+        err[name] = np.array([az_diff(fit.fit_photo(ref.image, box=ref.box, catalog=cat,
+                                                    mesh=sha).pose.azimuth, az)
+                              for sha, ref, az in photos])
+    assert framed == [["mask"]] * len(photos)          # GrabCut kept every vehicle
+    assert np.median(err["mask"]) < np.median(err["box"]) - 0.5, err
+    assert np.sum(err["mask"] > 90) <= np.sum(err["box"] > 90), err
 
 
 def test_second_stored_ring_poses_and_finds_low_photos(catalogue, tmp_path):

@@ -7,8 +7,8 @@
    the best stored views of the first ``REFINE_MESHES`` meshes by the HOG of GrabCut's object
    (``_first_views``; with ``mesh`` given, its stored view nearest by HOG), stretched onto the
    box; their majority is probable foreground, its core (eroded by ``REFINE_CORE`` of the box
-   side) foreground; retrieval then runs with the new mask (pose search still gets the box:
-   measured better than the new mask, docs/FIT.md), and the fit uses it. When GrabCut keeps
+   side) foreground; retrieval, the pose search (``_pose_given``) and the fit then run with
+   the new mask. When GrabCut keeps
    too little of the box both times (clutter of the vehicle's colours), the box goes to the
    pose search and the render's silhouette at the pose, inside the box, is the outline (a note
    says so); a box of uniform pixels (standard deviation under ``UNIFORM_STD`` levels) is
@@ -585,7 +585,7 @@ class _Fit:
         if obj.source == "box":
             self.notes.append(f"GrabCut kept {obj.kept:.0%} of the box: the vehicle's outline "
                               "is the render's silhouette at the pose, inside the box")
-        given = {"box": box} if box is not None else {"mask": obj.mask}   # see docs/FIT.md
+        given = _pose_given(box, obj, canvas)
         mesh, note = self._load(meta)
         self._lap("load")
         crop, scale = _work_crop(photo.shape[:2], obj)
@@ -984,6 +984,16 @@ class _Fit:
         view = -rays
         return _Frame(part_map=lut[np.minimum(mat, len(lut) - 1)], normal=_facing(nrm, view),
                       view=view, K=K_work, w2c=pose.w2c, mat_map=mat)
+
+
+def _pose_given(box, obj: ObjectMask, canvas: GrownPhoto | None) -> dict:
+    """What the pose search is framed by: the object's mask, or the box when GrabCut lost the
+    vehicle (``obj.source == "box"``) or the photo was grown past its edge (``canvas``: its
+    grown box; a grown GrabCut mask posed worse there). With ``RERANK_POSE`` = 1 this choice
+    sets the pose only, not the mesh (docs/FIT.md, "The pose framed by the object's mask")."""
+    if box is not None and (obj.source == "box" or canvas is not None):
+        return {"box": box}
+    return {"mask": obj.mask}
 
 
 def _part_lut(rows) -> np.ndarray:
