@@ -219,10 +219,13 @@ def test_black_paint_is_not_fitted_as_zero(catalogue):
     assert res.to_json()["parts"]["body"]["reflection"] == "folded"
 
 
-def test_white_balance_only_for_a_plausible_cast():
-    """light.balance moves a tyre's cast into the light when it is one a camera leaves (gains
-    within BALANCE_RANGE): the tyre comes out grey and the paint loses the cast; a tyre far
-    from grey (its mask on red paint) gives no gains and leaves the colours as they are."""
+def test_white_balance_only_for_a_plausible_cast(monkeypatch):
+    """light.balance moves half (BALANCE_SHARE, in log gains) of a tyre's cast into the light
+    when it is one a camera leaves (gains within BALANCE_RANGE): the tyre keeps the square root
+    of its cast (all of it balanced away with BALANCE_SHARE = 1: grey) and the paint loses as
+    much; a tyre far from grey (its mask on red paint) gives no gains and leaves the colours
+    as they are."""
+    import ucad_cl.light as light_mod
     from ucad_cl.light import BALANCE_RANGE, LightFit, Lighting, balance, sun_direction
 
     def fit(tyre):
@@ -232,12 +235,18 @@ def test_white_balance_only_for_a_plausible_cast():
         return LightFit(lighting=light, albedo=albedo, loss=0.0, kept=np.ones(1, bool))
 
     cast = np.array([1.08, 1.0, 0.9])               # a warm cast, within the range
+    assert light_mod.BALANCE_SHARE == 0.5
     out, g = balance(fit(0.03 * cast), {1: 100.0})
     assert BALANCE_RANGE[0] <= g.min() and g.max() <= BALANCE_RANGE[1]
-    t = out.albedo[1]
-    assert float(t.max() - t.min()) < 1e-9 * float(t.max())            # the tyre is grey
+    t = out.albedo[1] / np.sqrt(cast)
+    assert float(t.max() - t.min()) < 1e-9 * float(t.max())            # half the cast is left
     assert np.allclose(out.albedo[0] * g, [0.5, 0.1, 0.08])             # paint / gains
     assert np.allclose(out.lighting.sky, 0.3 * g)                       # the light takes it
+    monkeypatch.setattr(light_mod, "BALANCE_SHARE", 1.0)                # all of the cast
+    out, g1 = balance(fit(0.03 * cast), {1: 100.0})
+    t = out.albedo[1]
+    assert float(t.max() - t.min()) < 1e-9 * float(t.max())            # the tyre is grey
+    assert np.allclose(g1 ** 0.5 / float(light_mod.LUMA @ g1 ** 0.5), g)
     out, g = balance(fit(np.array([0.09, 0.03, 0.03])), {1: 100.0})    # red: not a cast
     assert np.all(g == 1.0) and np.allclose(out.albedo[0], [0.5, 0.1, 0.08])
 

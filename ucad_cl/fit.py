@@ -53,7 +53,8 @@
 5. **Light and colours**: ``ucad_cl.light.fit_light`` (sky, sun, clear-coat Fresnel; closed-form
    base colours; the paper's ``l_rgb + 0.1 l_stat``; trimmed residuals; the scale convention
    E_up = 1 is documented there), then white-balanced on the tyres (``NEUTRAL_PARTS``: the
-   light takes the colour cast that makes them neutral grey). Each part keeps its prior
+   light takes half, ``light.BALANCE_SHARE``, of the colour cast that would make them neutral
+   grey). Each part keeps its prior
    (``ucad_catalog.parts``) metallic, roughness, clear coat and transmission; only the base
    colour is fitted.
 6. **Status per part**: ``fitted``; ``prior`` when the render shows none of it inside the

@@ -32,9 +32,10 @@ fixed so that a horizontal surface facing up receives ``E_up = sky + sun * max(l
 ``E_up`` (the radiance of an asphalt-like ground of albedo ~0.1 under the same light). The
 light's shape is then one number, the sky share ``g = sky / E_up`` in [0, 1]
 (``sun = (1 - g) / l_y``), the same for the three channels (``SHARED_SKY``); B and C are affine
-in it. **White balance** (``balance``): a photo's colour cast is moved into the light's colour
-by per-channel gains that make parts known to be neutral grey (the fit uses the tyres) come out
-grey; without them the light stays neutral.
+in it. **White balance** (``balance``): half (``BALANCE_SHARE``, in log gains) of a photo's
+colour cast is moved into the light's colour by per-channel gains towards what would make
+parts known to be neutral grey (the fit uses the tyres) come out grey; without them the light
+stays neutral.
 
 **Search.** Sun directions on a grid (``SUN_AZIMUTHS`` x ``SUN_ELEVATIONS``, then a finer grid
 around the best, elevations within ``SUN_RANGE``), and for each the sky share on ``SKY_STEPS``
@@ -75,6 +76,7 @@ SKY_STEPS = 11              # sky share grid per channel: 0, 0.1, ..., 1
 TRIM_SIGMA = 2.5            # residual trim, robust standard deviations
 MIN_SIGMA = 0.01            # floor of the robust standard deviation (linear RGB)
 BALANCE_RANGE = (0.8, 1.25)  # white-balance gains allowed per channel (else none)
+BALANCE_SHARE = 0.5         # share of the neutral parts' cast (as log gains) the light takes
 E_MAX = 1.2                 # mean diffuse irradiance allowed on the visible surfaces (x E_up)
 ENV_BLUR = 1.0              # mirror-direction step half-width per unit of roughness
 SHARED_SKY = True           # one sky share for the three channels
@@ -202,20 +204,25 @@ def objective(s: Samples, light: Lighting, albedo: np.ndarray, n_parts: int) -> 
 
 def balance(fit: LightFit, neutral: dict[int, float]) -> tuple[LightFit, np.ndarray]:
     """The fit white-balanced on parts known to be neutral grey (``neutral``: part index ->
-    weight, e.g. its pixel count): per-channel gains ``g`` (luminance 1) make the weighted mean
-    chromaticity of those parts' colours neutral; every colour is divided by ``g`` and the
-    light multiplied by it, so the model's pixels are unchanged (the light's colour, not the
-    paint's, takes the cast). Returns (fit, g); g = 1 without a usable neutral part, or when a
-    gain falls outside ``BALANCE_RANGE`` (a cast that strong means the "neutral" part's mask
-    holds something else, e.g. paint)."""
+    weight, e.g. its pixel count): the per-channel gains ``c`` (luminance 1) that would make
+    the weighted mean chromaticity of those parts' colours neutral are taken ``BALANCE_SHARE``
+    of the way, ``g = c ** BALANCE_SHARE`` (luminance 1 again): the photo's camera has
+    balanced most of its cast already, and a tyre's few pixels, shaded and often mixed with
+    a rim or the road, are a noisy witness of what is left (docs/FIT.md, "The white balance
+    half-way"). Every colour is divided by ``g`` and the light multiplied by it, so the
+    model's pixels are unchanged (the light's colour, not the paint's, takes the cast).
+    Returns (fit, g); g = 1 without a usable neutral part, or when a gain of ``c`` falls
+    outside ``BALANCE_RANGE`` (a cast that strong means the "neutral" part's mask holds
+    something else, e.g. paint)."""
     rows = [(fit.albedo[p], w) for p, w in neutral.items()
             if w > 0 and np.all(np.isfinite(fit.albedo[p])) and fit.albedo[p].mean() > 1e-4]
     if not rows:
         return fit, np.ones(3)
     chroma = sum(w * a / a.mean() for a, w in rows) / sum(w for _, w in rows)
-    g = neutral_gains(chroma)
-    if not plausible_cast(g):
+    c = neutral_gains(chroma)
+    if not plausible_cast(c):
         return fit, np.ones(3)              # not a plausible cast: the "grey" part is not grey
+    g = neutral_gains(c ** BALANCE_SHARE)
     light = replace(fit.lighting, sky=fit.lighting.sky * g, sun=fit.lighting.sun * g,
                     white_balance=g)
     return LightFit(lighting=light, albedo=fit.albedo / g, loss=fit.loss, kept=fit.kept), g
