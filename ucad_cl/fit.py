@@ -8,10 +8,10 @@
    (``_first_views``; with ``mesh`` given, its stored view nearest by HOG), stretched onto the
    box; their majority is probable foreground, its core (eroded by ``REFINE_CORE`` of the box
    side) foreground; retrieval, the pose search (``_pose_given``) and the fit then run with
-   the new mask. When GrabCut keeps
-   too little of the box both times (clutter of the vehicle's colours), the box goes to the
-   pose search and the render's silhouette at the pose, inside the box, is the outline (a note
-   says so); a box of uniform pixels (standard deviation under ``UNIFORM_STD`` levels) is
+   the new mask. When GrabCut keeps too little of the box both times (clutter of the
+   vehicle's colours), the box goes to the pose search and the render's silhouette at the
+   pose, inside the box, is the outline (a note says so); a box of uniform pixels (standard
+   deviation under ``UNIFORM_STD`` levels) is
    refused as holding no vehicle.
 2. **Retrieval** (no ``mesh``): the photo's HOG feature against every stored view of every
    accepted mesh (``CatalogReader.feature_table``: stacked once per reader, so a batch of
@@ -54,9 +54,8 @@
    base colours; the paper's ``l_rgb + 0.1 l_stat``; trimmed residuals; the scale convention
    E_up = 1 is documented there), then white-balanced on the tyres (``NEUTRAL_PARTS``: the
    light takes half, ``light.BALANCE_SHARE``, of the colour cast that would make them neutral
-   grey). Each part keeps its prior
-   (``ucad_catalog.parts``) metallic, roughness, clear coat and transmission; only the base
-   colour is fitted.
+   grey). Each part keeps its prior (``ucad_catalog.parts``) metallic, roughness, clear coat
+   and transmission; only the base colour is fitted.
 6. **Status per part**: ``fitted``; ``prior`` when the render shows none of it inside the
    object (the prior's colour is kept: the source colour for car paint and 'other'); ``flagged``
    with a reason when fewer than ``MIN_PIXELS`` pixels are left after erosion (prior colour), or
