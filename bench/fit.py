@@ -472,15 +472,18 @@ def lookalike_line(results: list[tuple[Vehicle, dict]], threshold: float = LOOKA
 
 
 def pose_line(results: list[tuple[Vehicle, dict]], row: str = "mesh given") -> str:
-    """The fitted pose against the photo's camera (the row's right-mesh photos): median
-    azimuth error and signed elevation error, overall and by the photo's elevation."""
+    """The fitted pose against the photo's camera (the row's right-mesh photos): median and
+    90th percentile azimuth error, the vehicles turned back to front (azimuth error over 90
+    deg), signed elevation error, overall and by the photo's elevation."""
     sc = [r[row] for _, r in results if row in r and np.isfinite(r[row].el_err)
           and (row != "end to end" or r[row].top1 == 1.0)]
 
     def part(items) -> str:
         az = [s.az_err for s in items]
         el = [s.el_err for s in items]
-        return (f"{len(items)} photos, |azimuth error| {_q(az, 50):.1f}, elevation error "
+        turned = sum(1 for a in az if abs(a) > 90.0)
+        return (f"{len(items)} photos, |azimuth error| {_q(az, 50):.1f} (p90 {_q(az, 90):.1f}; "
+                f"{turned} turned back to front), elevation error "
                 f"{_q(el, 50):+.1f} (|.| {_q(np.abs(el), 50):.1f}, p90 {_q(np.abs(el), 90):.1f})")
     bins = [(lo, hi, [s for s in sc if lo <= s.photo_el < hi]) for lo, hi in POSE_BINS]
     return (f"pose ({row}, deg): {part(sc)}; by the photo's elevation: " + "; ".join(
