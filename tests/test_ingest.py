@@ -563,11 +563,60 @@ def test_isolated_child_warms_answers_calls_and_leaves_at_once():
     t0 = time.monotonic()
     assert call_isolated(_exits_slowly, 2, timeout=60, clean_exit=True) == "answered"
     assert time.monotonic() - t0 >= 2
+    with IsolatedChild(warm=("xml.dom.pulldom",), hide=("xml.dom",)) as child:
+        assert child.call(_in_modules, "xml.dom.pulldom", timeout=60) is False  # hidden
+        assert child.call(_in_modules, "xml.dom", timeout=60) is False
+        assert child.call(_imports, "xml.dom.pulldom", timeout=60) is True      # and back
     before = {p.pid for p in psutil.Process().children()}
     child = IsolatedChild(warm=("trimesh",))
     (new,) = [p for p in psutil.Process().children() if p.pid not in before]
     child.close()
     assert not new.is_running() and not child.alive
+
+
+def _imports(name):
+    import importlib
+    return importlib.import_module(name).__name__ == name
+
+
+def test_mesh_readers_child_reads_every_real_model_as_this_process_without_scipy(tmp_path):
+    """The mesh reader's child (``ingest.MeshLoader``, isolated) imports trimesh with SciPy
+    hidden (``system.READER_HIDDEN``: half of trimesh's import, for functions a read never
+    calls): every shared real model (GLB with and without Draco, glTF with external buffers,
+    OBJ+MTL) and a LINES/POINTS glTF read there give this process's mesh field for field (the
+    same arrays to the byte, materials, nodes, report) or the same error, and SciPy is still
+    not imported in the child after all the reads; this process's own import of it works."""
+    import dataclasses
+
+    from ucad_cl.system import READER_HIDDEN, READER_MODULES, IsolatedChild
+
+    if not MODELS or not (VEHICLES / MODELS[0]["file"]).exists():
+        pytest.skip("shared vehicle models not found")
+    _gltf_with_wireframe(tmp_path / "wire.glb", glb=True)
+    paths = [VEHICLES / m["file"] for m in MODELS] + [tmp_path / "wire.glb"]
+    with IsolatedChild(warm=READER_MODULES, hide=READER_HIDDEN) as reader:
+        with ingest.MeshLoader(child=reader) as loader:
+            for path in paths:
+                got = []
+                for read in (loader.load, lambda p: ingest.load_mesh(p, orientation=None)):
+                    try:
+                        got.append(read(path))
+                    except IngestError as e:
+                        got.append(f"{e.reason}: {e}")
+                child, here = got
+                if isinstance(here, str) or isinstance(child, str):
+                    assert child == here, path
+                    continue
+                for f in dataclasses.fields(here):
+                    a, b = getattr(child, f.name), getattr(here, f.name)
+                    if isinstance(b, np.ndarray):
+                        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), (path, f.name)
+                    else:
+                        assert a == b, (path, f.name)
+            assert reader.call(_in_modules, "scipy", timeout=60) is False
+            assert reader.call(_in_modules, "trimesh", timeout=60) is True
+    import scipy.spatial  # noqa: F401 - hidden in the child only
+    assert sys.modules.get("scipy") is not None
 
 
 def _sleep_then_pid(seconds):

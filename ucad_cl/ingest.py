@@ -110,7 +110,7 @@ import numpy as np
 from . import reasons
 from .artifacts import IngestReport, Material, Mesh, node_stem
 from .orient import orient_mesh
-from .system import (READER_MODULES, IsolatedCallFailed, IsolatedChild, call_isolated,
+from .system import (READER_HIDDEN, READER_MODULES, IsolatedCallFailed, IsolatedChild, call_isolated,
                      reader_modules_loaded)
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
@@ -249,22 +249,23 @@ class MeshLoader:
     the catalogue records ``file_to_norm`` from) for a caller that reads several, or wants a
     read started ahead. ``isolated`` (the default unless this process has imported
     ``READER_MODULES`` already): in a child interpreter (``system.IsolatedChild``) started at
-    construction, which imports the reader's modules meanwhile (trimesh and SciPy: ~0.4 s of a
-    core, beside the caller's own work); a reader that crashes or hangs then costs one load
-    (``IngestError``), not the process, and the next load starts a new child. ``prefetch(path)``
-    starts that read in the child at once; the ``load(path)`` that follows collects it (the
-    fit's CLI so reads a given mesh while it imports its own modules, reads the photo and finds
-    the object: ``ucad_cl.commands.fit``). Not isolated: in this process (where the modules are
-    loaded already, or when nothing would run beside the child's start); ``prefetch`` then does
-    nothing. ``child``: such a child started earlier (``IsolatedChild(warm=READER_MODULES)``;
-    the CLI starts one before its own imports), used instead of a new one. ``close`` ends the
-    child (also on leaving a ``with`` block)."""
+    construction, which imports the reader's modules meanwhile (trimesh, without the SciPy it
+    would import: ``system.READER_HIDDEN``; ~0.5 s of a core, beside the caller's own work); a
+    reader that crashes or hangs then costs one load (``IngestError``), not the process, and the
+    next load starts a new child. ``prefetch(path)`` starts that read in the child at once; the
+    ``load(path)`` that follows collects it (the fit's CLI so reads a given mesh while it
+    imports its own modules, reads the photo and finds the object: ``ucad_cl.commands.fit``).
+    Not isolated: in this process (where the modules are loaded already, or when nothing would
+    run beside the child's start); ``prefetch`` then does nothing. ``child``: such a child
+    started earlier (``IsolatedChild(warm=READER_MODULES)``; the CLI starts one before its own
+    imports), used instead of a new one. ``close`` ends the child (also on leaving a ``with``
+    block)."""
 
     def __init__(self, isolated: bool | None = None, child: IsolatedChild | None = None) -> None:
         if child is None:
             if isolated is None:
                 isolated = not reader_modules_loaded()
-            child = IsolatedChild(warm=READER_MODULES) if isolated else None
+            child = IsolatedChild(warm=READER_MODULES, hide=READER_HIDDEN) if isolated else None
         self._child = child
         self._ahead: str | None = None          # the path a prefetch is reading
 
@@ -296,7 +297,7 @@ class MeshLoader:
     def _renew(self) -> None:
         assert self._child is not None
         self._child.close()
-        self._child = IsolatedChild(warm=READER_MODULES)
+        self._child = IsolatedChild(warm=READER_MODULES, hide=READER_HIDDEN)
         self._ahead = None
 
     def close(self) -> None:

@@ -16,6 +16,11 @@ from multiprocessing.connection import Connection
 #: imports these ahead (here, not in ``ingest``, so that the CLI can start such a child before
 #: importing anything heavy)
 READER_MODULES = ("ucad_cl.ingest", "trimesh")
+#: what those warm imports go without: trimesh imports SciPy's ``spatial`` and ``optimize`` as
+#: it loads (over half of its import: ~0.8 of 1.4 s of a core on a slow Zen 4) for functions a
+#: mesh read never calls, and treats SciPy as optional (such a function raises when called).
+#: Hidden for the warm import only: a later ``import scipy`` (the orientation's) loads it.
+READER_HIDDEN = ("scipy",)
 
 
 def reader_modules_loaded() -> bool:
@@ -116,18 +121,20 @@ def call_isolated(func, *args, timeout: float, clean_exit: bool = False, **kwarg
 
 class IsolatedChild:
     """A child interpreter for isolated calls (``call_isolated`` makes one call in a new one),
-    started now: it imports the modules ``warm`` names (errors ignored: a call meets them
-    again) while this process goes on, then answers ``call``s one at a time until ``close``
-    (also on leaving a ``with`` block). Why: a mesh reader's import (trimesh and the SciPy
-    modules it imports: ~0.4 s of one core) runs beside a photo's retrieval instead of after
-    it, and a batch of photos pays it once (``ucad_cl.ingest.MeshLoader``; a thread would share
-    this process's GIL with the retrieval). A call that crashes the child or runs past its
-    timeout ends it (``alive`` is then False and later calls raise ``IsolatedCallFailed``);
-    a call with ``clean_exit`` is the last: the child exits and its exit status is checked.
-    ``submit`` starts a call ahead (the child runs it while this process goes on); the ``call``
-    with the same arguments then collects its answer."""
+    started now: it imports the modules ``warm`` names (errors ignored: a call meets them again;
+    any module ``hide`` names is unimportable meanwhile, as if not installed, and importable
+    again after) while this process goes on, then answers ``call``s one at a time until
+    ``close`` (also on leaving a ``with`` block). Why: a mesh reader's import (trimesh: ~0.5 s
+    of one core with SciPy hidden, ~1.3 s with it, on a slow Zen 4) runs beside a photo's
+    retrieval instead of after it, and a batch of photos pays it once
+    (``ucad_cl.ingest.MeshLoader``; a thread would share this process's GIL with the retrieval).
+    A call that crashes the child or runs past its timeout ends it (``alive`` is then False and
+    later calls raise ``IsolatedCallFailed``); a call with ``clean_exit`` is the last: the child
+    exits and its exit status is checked. ``submit`` starts a call ahead (the child runs it
+    while this process goes on); the ``call`` with the same arguments then collects its
+    answer."""
 
-    def __init__(self, warm: tuple[str, ...] = ()):
+    def __init__(self, warm: tuple[str, ...] = (), hide: tuple[str, ...] = ()):
         read_fd, write_fd = os.pipe()
         code = ("import pickle, sys; sys.path[:0] = pickle.load(sys.stdin.buffer); "
                 "from ucad_cl.system import serve_isolated_call; "
@@ -145,7 +152,7 @@ class IsolatedChild:
         self._calls = 0
         self._closed = False
         self._pending: tuple | None = None      # (func, args, kwargs) submitted, not collected
-        self._send([p for p in sys.path if isinstance(p, str)], tuple(warm))
+        self._send([p for p in sys.path if isinstance(p, str)], tuple(warm), tuple(hide))
 
     @property
     def alive(self) -> bool:
@@ -258,19 +265,26 @@ class IsolatedChild:
 
 
 def serve_isolated_call(fd: int) -> None:
-    """Child side of ``IsolatedChild``: import the modules named on stdin (errors ignored),
-    then read calls (func, args, kwargs, clean_exit) on stdin until it closes, answering each
-    on ``fd``: ("ok", result), ("raise", exception) or ("error", "Type: message"); then,
-    unless the last call asked for a clean exit (its status is checked), leave at once
-    (``os._exit``): the interpreter's own shutdown, which the parent would wait for, takes
-    ~0.15 s once trimesh and SciPy are loaded."""
+    """Child side of ``IsolatedChild``: import the modules named on stdin (errors ignored), with
+    those named next hidden (``None`` in ``sys.modules``: their import raises
+    ``ModuleNotFoundError``) until the imports are done, then read calls (func, args, kwargs,
+    clean_exit) on stdin until it closes, answering each on ``fd``: ("ok", result), ("raise",
+    exception) or ("error", "Type: message"); then, unless the last call asked for a clean exit
+    (its status is checked), leave at once (``os._exit``): the interpreter's own shutdown, which
+    the parent would wait for, takes ~0.15 s once trimesh and SciPy are loaded."""
     conn = Connection(fd, readable=False)
     clean_exit = False
-    for module in pickle.load(sys.stdin.buffer):
+    warm, hide = pickle.load(sys.stdin.buffer), pickle.load(sys.stdin.buffer)
+    hidden = [name for name in hide if name not in sys.modules]
+    sys.modules.update(dict.fromkeys(hidden))
+    for module in warm:
         try:
             importlib.import_module(module)
         except Exception:  # noqa: BLE001, S112 - a call imports it again and reports
             continue
+    for name in hidden:
+        if sys.modules.get(name, 0) is None:
+            del sys.modules[name]
     while True:
         try:
             func, args, kwargs, clean_exit = pickle.load(sys.stdin.buffer)
