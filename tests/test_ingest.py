@@ -580,18 +580,18 @@ def _imports(name):
 
 
 def test_mesh_readers_child_reads_every_real_model_as_this_process_without_scipy(tmp_path):
-    """The mesh reader's child (``ingest.MeshLoader``, isolated) imports trimesh with SciPy
-    hidden (``system.READER_HIDDEN``: half of trimesh's import, for functions a read never
-    calls): every shared real model (GLB with and without Draco, glTF with external buffers,
-    OBJ+MTL), a LINES/POINTS glTF and PLY, OFF and STL files read there give this process's
-    mesh field for field (the same arrays to the byte, materials, nodes, report) or the same
-    error, and SciPy is still not imported in the child after all the reads; this process's
-    own import of it works."""
+    """The mesh reader's child (``system.reader_child``, ``ingest.MeshLoader``'s) imports
+    trimesh with SciPy hidden (``system.READER_HIDDEN``: half of trimesh's import, for functions
+    a read never calls): every shared real model (GLB with and without Draco, glTF with external
+    buffers, OBJ+MTL), a LINES/POINTS glTF and PLY, OFF and STL files read there give this
+    process's mesh field for field (the same arrays to the byte, materials, nodes, report) or
+    the same error, and SciPy is still not imported in the child after all the reads; this
+    process's own import of it works."""
     import dataclasses
 
     import trimesh
 
-    from ucad_cl.system import READER_HIDDEN, READER_MODULES, IsolatedChild
+    from ucad_cl.system import reader_child
 
     if not MODELS or not (VEHICLES / MODELS[0]["file"]).exists():
         pytest.skip("shared vehicle models not found")
@@ -600,7 +600,7 @@ def test_mesh_readers_child_reads_every_real_model_as_this_process_without_scipy
     for ext in ("ply", "off", "stl"):                 # the other formats ingest reads
         trimesh.creation.box().export(tmp_path / f"box.{ext}")
         paths.append(tmp_path / f"box.{ext}")
-    with IsolatedChild(warm=READER_MODULES, hide=READER_HIDDEN) as reader:
+    with reader_child() as reader:
         with ingest.MeshLoader(child=reader) as loader:
             for path in paths:
                 got = []

@@ -86,19 +86,18 @@ def _main(argv: list[str], mesh_reader) -> int:
 
 
 def _mesh_reader_ahead(argv: list[str]):
-    """For ``fit``: the mesh reader's child (``system.IsolatedChild`` importing
-    ``READER_MODULES``, ``READER_HIDDEN`` hidden), started before this process imports the
-    parser's modules. Its imports (trimesh: ~0.5 s of a core) were the longest wait of a lone
-    ``fit --mesh`` call: a child started after the parser left the fit waiting ~0.3 s for its
-    mesh (docs/FIT.md). None
-    for any other command, where the reader's modules are loaded already (a caller that loads
-    meshes in process), or when no process can be started (the fit then starts its own)."""
-    from .system import READER_HIDDEN, READER_MODULES, IsolatedChild, reader_modules_loaded
+    """For ``fit``: the mesh reader's child (``system.reader_child``), started before this
+    process imports the parser's modules. Its imports (trimesh: ~0.5 s of a core) were the
+    longest wait of a lone ``fit --mesh`` call: a child started after the parser left the fit
+    waiting ~0.3 s for its mesh (docs/FIT.md). None for any other command, where the reader's
+    modules are loaded already (a caller that loads meshes in process), or when no process can
+    be started (the fit then starts its own)."""
+    from .system import reader_child, reader_modules_loaded
 
     if _command_of(argv) != "fit" or reader_modules_loaded():
         return None
     try:
-        return IsolatedChild(warm=READER_MODULES, hide=READER_HIDDEN)
+        return reader_child()
     except OSError:
         return None
 

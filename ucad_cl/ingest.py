@@ -79,8 +79,8 @@ Conventions and decisions (see also ``ucad_cl/artifacts.py``):
   primitive is rejected the same way. ``EXT_meshopt_compression`` is rejected.
 * **Isolation.** ``load_mesh_isolated`` runs the loader in a fresh ``python -c`` child; it costs
   about 0.6-0.9 s per file (interpreter, NumPy and trimesh imports) on top of the load, unless
-  the child was started earlier with ``READER_MODULES`` to import (``system.IsolatedChild``,
-  as the fit does: then ~0.02 s and the pickled mesh's transfer).
+  the child was started earlier to import the reader's modules (``system.reader_child``, as
+  the fit does: then ~0.02 s and the pickled mesh's transfer).
 * **Errors** are :class:`IngestError` (a ``ValueError``) with ``.path``, ``.reason`` (a code of
   ``ucad_cl.reasons``) and a message naming the file. ``MemoryError`` is not turned into an
   ``IngestError``: the caller decides (the build records ``too_large`` only for a mesh that
@@ -110,7 +110,7 @@ import numpy as np
 from . import reasons
 from .artifacts import IngestReport, Material, Mesh, node_stem
 from .orient import orient_mesh
-from .system import (READER_HIDDEN, READER_MODULES, IsolatedCallFailed, IsolatedChild, call_isolated,
+from .system import (IsolatedCallFailed, IsolatedChild, call_isolated, reader_child,
                      reader_modules_loaded)
 
 SUPPORTED_SUFFIXES = (".glb", ".gltf", ".obj", ".ply", ".off", ".stl")
@@ -257,15 +257,15 @@ class MeshLoader:
     imports its own modules, reads the photo and finds the object: ``ucad_cl.commands.fit``).
     Not isolated: in this process (where the modules are loaded already, or when nothing would
     run beside the child's start); ``prefetch`` then does nothing. ``child``: such a child
-    started earlier (``IsolatedChild(warm=READER_MODULES)``; the CLI starts one before its own
-    imports), used instead of a new one. ``close`` ends the child (also on leaving a ``with``
+    started earlier (``system.reader_child()``; the CLI starts one before its own imports),
+    used instead of a new one. ``close`` ends the child (also on leaving a ``with``
     block)."""
 
     def __init__(self, isolated: bool | None = None, child: IsolatedChild | None = None) -> None:
         if child is None:
             if isolated is None:
                 isolated = not reader_modules_loaded()
-            child = IsolatedChild(warm=READER_MODULES, hide=READER_HIDDEN) if isolated else None
+            child = reader_child() if isolated else None
         self._child = child
         self._ahead: str | None = None          # the path a prefetch is reading
 
@@ -297,7 +297,7 @@ class MeshLoader:
     def _renew(self) -> None:
         assert self._child is not None
         self._child.close()
-        self._child = IsolatedChild(warm=READER_MODULES, hide=READER_HIDDEN)
+        self._child = reader_child()
         self._ahead = None
 
     def close(self) -> None:
@@ -323,8 +323,8 @@ def load_mesh_isolated(path: str | os.PathLike, *, timeout: float = 120.0, clean
     and raises reason ``timeout``; any other exception than ``IngestError`` raises reason
     ``unreadable`` naming it. ``loader`` (a picklable module-level function
     ``loader(path, clean=..., **kwargs) -> Mesh``) replaces ``load_mesh``, for tests; ``kwargs``
-    (budgets, orientation, overrides) must pickle. ``child``: a child started earlier (with
-    ``READER_MODULES`` warm: ``MeshLoader``) instead of a new one; it stays open.
+    (budgets, orientation, overrides) must pickle. ``child``: a child started earlier
+    (``system.reader_child``: ``MeshLoader``) instead of a new one; it stays open.
     """
     try:
         if child is not None:

@@ -23,6 +23,12 @@ READER_MODULES = ("ucad_cl.ingest", "trimesh")
 READER_HIDDEN = ("scipy",)
 
 
+def reader_child() -> "IsolatedChild":
+    """A mesh reader's child: ``IsolatedChild`` warming ``READER_MODULES`` with
+    ``READER_HIDDEN`` hidden (``ingest.MeshLoader``; the CLI's ``fit`` starts one first)."""
+    return IsolatedChild(warm=READER_MODULES, hide=READER_HIDDEN)
+
+
 def reader_modules_loaded() -> bool:
     """Whether this process has imported ``READER_MODULES`` already (then a mesh is read here,
     no child is started for it)."""
