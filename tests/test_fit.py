@@ -84,6 +84,39 @@ def test_light_model_recovers_its_own_colours_exactly():
     assert abs(float(fit.lighting.sun_dir @ d)) > np.cos(np.radians(12))
 
 
+def test_light_search_scores_equal_the_objective_pixel_by_pixel():
+    """The light search scores a candidate light (sun direction, sky share) from per-part sums
+    (``light._Moments``: the sums that do not depend on the sun shared by every direction of a
+    search through ``light._Scorer``, the three channels evaluated together): each score equals the objective computed
+    pixel by pixel (``objective`` of ``solve_albedo``'s colours under that light, NumPy), for
+    random samples with painted, matte and metal parts, suns high and low, sky shares 0-1."""
+    from ucad_cl.light import (Lighting, Samples, _Moments, _Scorer, objective, solve_albedo,
+                               sun_direction)
+
+    rng = np.random.default_rng(11)
+    for n, P in ((40, 1), (900, 4), (3000, 7)):
+        nrm = rng.normal(size=(n, 3))
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        view = rng.normal(size=(n, 3))
+        view /= np.linalg.norm(view, axis=1, keepdims=True)
+        part = np.arange(n) % P
+        s = Samples(rgb=rng.random((n, 3)), normal=nrm, view=view, part=part,
+                    coat=(part % 2).astype(np.float64), metallic=(part % 3 == 2) * 0.8,
+                    roughness=rng.random(n))
+        scorer = _Scorer(s, P)
+        for az, el in ((0.0, 5.0), (75.0, 30.0), (200.0, 62.0)):
+            d = sun_direction(az, el)
+            B0, B1, _, _ = scorer.free.sun_terms(d)
+            mom = _Moments(scorer, B0, B1)
+            shares = np.array([0.0, 0.35, 1.0])
+            got = mom.losses(shares, range(3))
+            for g, score in zip(shares, got):
+                light = Lighting(sky=np.full(3, g), sun=np.full(3, (1 - g) / max(d[1], 1e-3)),
+                                 sun_dir=d)
+                want = objective(s, light, solve_albedo(s, light, P), P)
+                assert score == pytest.approx(want, rel=1e-9, abs=1e-12), (n, P, az, g)
+
+
 def test_known_colours_under_known_light(catalogue, tmp_path):
     """Photo-like Embree references (not the project's renderer) of known part colours under a
     known neutral daylight, the true mask given: the body colour after one exposure factor.
