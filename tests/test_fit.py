@@ -87,9 +87,10 @@ def test_light_model_recovers_its_own_colours_exactly():
 def test_light_search_scores_equal_the_objective_pixel_by_pixel():
     """The light search scores a candidate light (sun direction, sky share) from per-part sums
     (``light._Moments``: the sums that do not depend on the sun shared by every direction of a
-    search through ``light._Scorer``, the three channels evaluated together): each score equals the objective computed
-    pixel by pixel (``objective`` of ``solve_albedo``'s colours under that light, NumPy), for
-    random samples with painted, matte and metal parts, suns high and low, sky shares 0-1."""
+    search through ``light._Scorer``, the three channels evaluated together): each score
+    equals the objective computed pixel by pixel (``objective`` of ``solve_albedo``'s colours
+    under that light, NumPy), for random samples with painted, matte and metal parts, suns
+    high and low, sky shares 0-1."""
     from ucad_cl.light import (Lighting, Samples, _Moments, _Scorer, objective, solve_albedo,
                                sun_direction)
 

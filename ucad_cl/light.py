@@ -412,8 +412,14 @@ class _Moments:
 
 def _channel_search(mom: _Moments, c: int) -> tuple[float, float]:
     """(best sky share, its loss) of channel ``c`` for one sun direction."""
-    grid = np.linspace(0.0, 1.0, SKY_STEPS)
-    ls = mom.losses(grid, (c,))
+    return _best_share(np.linspace(0.0, 1.0, SKY_STEPS), lambda g: mom.losses(g, (c,)))
+
+
+def _best_share(grid: np.ndarray, losses) -> tuple[float, float]:
+    """(sky share, loss): the grid's best share (ties: the first), moved to the vertex of the
+    parabola through it and its two neighbours when that scores lower (``losses(g)``: (G,)
+    losses at shares g (G,))."""
+    ls = losses(grid)
     k = int(np.argmin(ls))
     best_g, best_l = float(grid[k]), float(ls[k])
     if 0 < k < len(grid) - 1:                       # parabola through the three points
@@ -421,7 +427,7 @@ def _channel_search(mom: _Moments, c: int) -> tuple[float, float]:
         den = l0 - 2.0 * l1 + l2
         if den > 0:
             g = float(grid[k] + 0.5 * (l0 - l2) / den * (grid[1] - grid[0]))
-            lg = float(mom.losses(np.array([g]), (c,))[0])
+            lg = float(losses(np.array([g]))[0])
             if lg < best_l:
                 best_g, best_l = g, lg
     return best_g, best_l
@@ -475,18 +481,8 @@ class _Scorer:
                 sky[c] = g
                 total += lc
             return total, sky
-        grid = np.linspace(g_min, 1.0, SKY_STEPS)
-        ls = mom.losses(grid, range(3))
-        k = int(np.argmin(ls))
-        best_g, best_l = float(grid[k]), float(ls[k])
-        if 0 < k < len(grid) - 1:                   # parabola through the three points
-            l0, l1, l2 = ls[k - 1], ls[k], ls[k + 1]
-            den = l0 - 2.0 * l1 + l2
-            if den > 0:
-                g = float(grid[k] + 0.5 * (l0 - l2) / den * (grid[1] - grid[0]))
-                lg = float(mom.losses(np.array([g]), range(3))[0])
-                if lg < best_l:
-                    best_g, best_l = g, lg
+        best_g, best_l = _best_share(np.linspace(g_min, 1.0, SKY_STEPS),
+                                     lambda g: mom.losses(g, range(3)))
         return best_l, np.full(3, best_g)
 
 
