@@ -114,6 +114,37 @@ def _dense_edges(tri, mat, depth, normals):
     return out
 
 
+def test_distances_of_a_batch_equal_one_transform_an_image():
+    """``_distances`` runs one distance transform over the stacked batch (edge-free rows between
+    the images): the same bytes as OpenCV's transform of each image alone, capped at TAU, and
+    within float32 rounding of SciPy's exact transform. Edges on the rows next to the seams, an
+    image without edges, one all edges, and a batch without any edge."""
+    import cv2
+
+    rng = np.random.default_rng(7)
+    S = 40
+    edges = np.stack([rng.random((S, S)) < p for p in (0.002, 0.01, 0.05, 0.3, 0.0, 1.0, 0.01)])
+    edges[1, 0, :] = edges[1, -1, :] = False
+    edges[1, 0, 5] = edges[1, -1, 30] = True        # alone at the top and bottom rows
+    edges[2, -1, :] = True                          # a whole bottom row next to the seam
+    edges[6] = False
+    edges[6, 0, 0] = True                           # one pixel in the first row
+    got = cues._distances(edges)
+    assert got.dtype == np.float32 and got.shape == edges.shape
+    for b in range(len(edges)):
+        if not edges[b].any():
+            ref = np.full((S, S), cues.TAU, np.float32)
+        else:
+            ref = np.minimum(cv2.distanceTransform((~edges[b]).astype(np.uint8), cv2.DIST_L2,
+                                                   cv2.DIST_MASK_PRECISE), cues.TAU)
+            exact = np.minimum(ndimage.distance_transform_edt(~edges[b]), cues.TAU)
+            np.testing.assert_allclose(got[b], exact, atol=1e-5)
+        assert np.array_equal(got[b], ref), b
+    assert np.all(got[4] == cues.TAU) and np.all(got[5] == 0.0)
+    none = cues._distances(np.zeros((3, S, S), bool))
+    assert none.dtype == np.float32 and np.all(none == cues.TAU)
+
+
 def test_map_edges_equal_dense_reference_and_crop_sampling(rendered):
     mesh, views, images, c = rendered
     normals = face_normals(mesh).astype(np.float32)
@@ -238,6 +269,14 @@ def test_combine_and_offsets(rendered):
         cy = (ys.min() + ys.max() + 1) / 2.0
         np.testing.assert_allclose(c.offsets[v], [(cx - K[0, 2]) / K[0, 0],
                                                   (cy - K[1, 2]) / K[1, 1]])
+        # sides: the box's longer side over the narrower image side; the silhouette: the
+        # mask's square window area-resized (crop_window of the float mask)
+        side = max(xs.max() - xs.min() + 1, ys.max() - ys.min() + 1)
+        assert c.sides[v] == side / min(views.depth.shape[1:])
+        mask = np.isfinite(views.depth[v])
+        window = square_windows(mask[None], cues.PAD)[0]
+        assert np.array_equal(c.sil[v], crop_window(mask.astype(np.float32), window,
+                                                     c.sil.shape[1]))
 
 
 # ----------------------------------------------------------------------------- photo edges

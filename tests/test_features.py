@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ucad_cl.features import HogExtractor, OnnxExtractor, box_mask, crop_square, l2_rows
+from ucad_cl.features import (HogExtractor, OnnxExtractor, box_mask, crop_square, l2_rows,
+                              mask_bounds, square_windows)
 
 pytestmark = pytest.mark.every_device      # tests/conftest.py: UCAD_TEST_DEVICES
 
@@ -170,6 +171,30 @@ def test_flat_image_gives_all_zero_row(runtime):
     f = HogExtractor(runtime=runtime).describe(crops)
     assert np.all(f[0] == 0.0)
     assert abs(np.linalg.norm(f[1]) - 1.0) < 1e-5
+
+
+def test_mask_bounds_and_windows_equal_a_per_mask_loop():
+    """``mask_bounds`` (one reduction over the batch) against flatnonzero on each mask; an
+    empty mask gives -1 and ``square_windows`` refuses it, naming the image."""
+    rng = np.random.default_rng(11)
+    masks = rng.random((9, 23, 31)) < 0.02
+    masks[3] = False
+    masks[4] = True
+    masks[5] = False
+    masks[5, 22, 30] = True                         # the last pixel alone
+    masks[6] = False
+    masks[6, 0, 0] = True                           # the first pixel alone
+    got = mask_bounds(masks)
+    assert got.dtype == np.int64 and got.shape == (9, 4)
+    for b, m in enumerate(masks):
+        rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        ref = [-1] * 4 if rows.size == 0 else [rows[0], cols[0], rows[-1], cols[-1]]
+        assert got[b].tolist() == list(ref), b
+    keep = np.array([b != 3 for b in range(9)])
+    assert square_windows(masks[keep], 0.1) == square_windows(masks[keep], 0.1,
+                                                              mask_bounds(masks[keep]))
+    with pytest.raises(ValueError, match="image 3: mask is empty"):
+        square_windows(masks, 0.1)
 
 
 def test_crop_square_box_and_padding():

@@ -41,13 +41,14 @@ equal scores by view index.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2  # noqa: TID253  # OpenCV throughout (Canny, distance transforms)
 import numpy as np
 
 from .artifacts import BACKGROUND_TRI, Mesh, ViewSet
-from .features import FeatureExtractor, crop_window, square_windows, unit_rows
+from .features import FeatureExtractor, crop_window, mask_bounds, square_windows, unit_rows
 from .foreground import box_stretch, mask_box
 from .shade import face_normals
 
@@ -106,28 +107,39 @@ def view_cues(mesh: Mesh, views: ViewSet, images: np.ndarray, extractor: Feature
     if normals is None:
         normals = face_normals(mesh)
     masks = np.isfinite(views.depth)
-    windows = square_windows(masks, PAD)
     V, H, W = masks.shape
+    with ThreadPoolExecutor(1) as pool:         # the HOG beside the rest (both free the GIL)
+        hog = pool.submit(lambda: extractor.extract(images, masks).feats)
+        out = _map_cues(views, masks, normals, size)
+    return Cues(hog=hog.result(), **out)
+
+
+def _map_cues(views: ViewSet, masks: np.ndarray, normals: np.ndarray, size: int) -> dict:
+    """``view_cues``'s cues from the maps: the fields of ``Cues`` but ``hog``."""
+    V, H, W = masks.shape
+    bounds = mask_bounds(masks)                 # (y0, x0, y1, x1) inclusive, once for all uses
+    windows = square_windows(masks, PAD, bounds)
     sil = np.empty((V, size, size), np.float32)
-    rows = np.empty((V, size, 1), np.int64)
-    cols = np.empty((V, 1, size), np.int64)
-    for v, (top, left, side) in enumerate(windows):
-        sil[v] = crop_window(masks[v].astype(np.float32), windows[v], size)
-        at = np.floor((np.arange(size) + 0.5) * (side / size)).astype(np.int64)
-        rows[v, :, 0] = np.clip(top + at, 0, H - 1)
-        cols[v, 0, :] = np.clip(left + at, 0, W - 1)
-    vi = np.arange(V)[:, None, None]
-    tri = np.asarray(views.tri_id)[vi, rows, cols]
-    mat = np.asarray(views.mat_id)[vi, rows, cols]
-    depth = np.asarray(views.depth)[vi, rows, cols]
+    for v in range(V):
+        sil[v] = crop_window(masks[v], windows[v], size, dtype=np.float32)
+    top, left, side = (np.array(c, np.int64)[:, None] for c in zip(*windows))
+    at = np.floor((np.arange(size) + 0.5) * (side / size)).astype(np.int64)   # (V, size)
+    rows = np.clip(top + at, 0, H - 1)
+    cols = np.clip(left + at, 0, W - 1)
+    flat = ((np.arange(V)[:, None, None] * H + rows[:, :, None]) * W
+            + cols[:, None, :])                 # the sampled pixels, (V, size, size)
+    tri = np.asarray(views.tri_id).reshape(-1).take(flat)
+    mat = np.asarray(views.mat_id).reshape(-1).take(flat)
+    depth = np.asarray(views.depth).reshape(-1).take(flat)
     e = map_edges(tri, mat, depth, normals)
-    hog = extractor.extract(images, masks).feats
-    sides = np.array([_side(m) for m in masks]) / min(H, W)
+    hw = bounds[:, 2:] - bounds[:, :2] + 1      # (h, w) of each box
+    sides = hw.max(axis=1).astype(np.float64) / min(H, W)
     K = views.cameras.K
-    offsets = np.array([[(t[1] + t[3]) / 2.0, (t[0] + t[2]) / 2.0] for t in map(_box, masks)])
+    offsets = np.stack([(bounds[:, 1] + bounds[:, 3] + 1) / 2.0,
+                        (bounds[:, 0] + bounds[:, 2] + 1) / 2.0], axis=1)
     offsets = (offsets - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
-    return Cues(hog=hog, sil=sil, edges=e, dist=_distances(e), sides=sides,
-                labels=mat.astype(np.int32), offsets=offsets)
+    return dict(sil=sil, edges=e, dist=_distances(e), sides=sides, labels=mat.astype(np.int32),
+                offsets=offsets)
 
 
 def query_cues(image: np.ndarray, mask: np.ndarray, extractor: FeatureExtractor,
@@ -432,14 +444,20 @@ def _side(mask: np.ndarray) -> float:
 
 def _distances(edges: np.ndarray) -> np.ndarray:
     """(B, S, S) float32 Euclidean distance to the nearest edge pixel, capped at TAU (TAU
-    everywhere for an image without edges)."""
-    out = np.full(edges.shape, TAU, np.float32)
-    for b in range(edges.shape[0]):
-        if edges[b].any():
-            d = cv2.distanceTransform((~edges[b]).astype(np.uint8), cv2.DIST_L2,
-                                      cv2.DIST_MASK_PRECISE)
-            out[b] = np.minimum(d, TAU)
-    return out
+    everywhere for an image without edges). One distance transform for the batch: the images
+    stacked with ``ceil(TAU)`` edge-free rows between them, so that an edge of another image
+    lies more than TAU away and the cap hides it (the exact transform's values are the
+    distances themselves: the same as one transform an image)."""
+    B, S, T = edges.shape
+    if not edges.any():
+        return np.full(edges.shape, TAU, np.float32)
+    gap = int(np.ceil(TAU))
+    stack = np.ones((B, S + gap, T), np.uint8)
+    stack[:, :S] = ~edges
+    d = cv2.distanceTransform(stack.reshape(B * (S + gap), T)[:B * (S + gap) - gap],
+                              cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    d = np.pad(d, ((0, gap), (0, 0))).reshape(B, S + gap, T)[:, :S]
+    return np.minimum(d, np.float32(TAU))
 
 
 def query_hog_distance(query: Cues, db: np.ndarray) -> np.ndarray:
