@@ -225,12 +225,15 @@ def map_edges(tri: np.ndarray, mat: np.ndarray, depth: np.ndarray,
         a[axis], b[axis] = slice(None, -1), slice(1, None)
         a, b = tuple(a), tuple(b)
         diff = (fg[a] != fg[b]) | (mat[a] != mat[b])
-        # pairs inside one material that show two faces: a depth jump or a crease
-        two = np.nonzero(fg[a] & fg[b] & (tri[a] != tri[b]) & ~diff)
-        ta, tb = tri[a][two].astype(np.int64), tri[b][two].astype(np.int64)
-        jump = np.abs(depth[a][two] - depth[b][two]) > DEPTH_JUMP
+        # pairs inside one material that show two faces: a depth jump or a crease (the pairs
+        # by flat index into the pair grid, in C order: one gather a map)
+        tri_a, tri_b = tri[a], tri[b]
+        two = np.flatnonzero(fg[a] & fg[b] & (tri_a != tri_b) & ~diff)
+        ta = tri_a.reshape(-1)[two].astype(np.int64)
+        tb = tri_b.reshape(-1)[two].astype(np.int64)
+        jump = np.abs(depth[a].reshape(-1)[two] - depth[b].reshape(-1)[two]) > DEPTH_JUMP
         jump |= np.abs(np.einsum("nk,nk->n", normals[ta], normals[tb])) < cos
-        diff[tuple(i[jump] for i in two)] = True
+        diff.reshape(-1)[two[jump]] = True
         out[a] |= diff
         out[b] |= diff
     return out
