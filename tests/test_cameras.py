@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from ucad_cl.cameras import camera_position, label_ring, make_ring, pixel_rays
+from ucad_cl.cameras import (camera_position, label_ring, look_at_many, look_at_w2c, make_ring,
+                             pixel_rays)
 
 
 def project(ring, v, X):
@@ -27,6 +28,41 @@ def test_azimuth_and_elevation_conventions():
         assert np.allclose([u, w], [32, 24]) and np.isclose(z, ring.distance)
         # +Y (up) appears above the centre: smaller row coordinate
         assert project(ring, v, np.array([0, 0.1, 0]))[0][1] < 24
+
+
+def test_look_at_of_many_cameras_equals_the_definition_camera_by_camera():
+    """``look_at_many`` (one array computation for a ring) against the look-at rule written for
+    one camera in plain Python floats: rows right = forward x up, down = forward x right,
+    forward toward the target, translation -R c; lengths sqrt((x^2 + y^2) + z^2). Within 1e-15
+    (the translation's sums are the matrix product's), and ``look_at_w2c`` the same bits; any
+    azimuth (also past +-360), elevations near the poles, a target off the origin."""
+    import math
+
+    def cross(u, v):
+        return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
+
+    def unit(u):
+        n = math.sqrt((u[0] * u[0] + u[1] * u[1]) + u[2] * u[2])
+        return [x / n for x in u]
+
+    rng = np.random.default_rng(5)
+    az = np.concatenate([rng.uniform(-720, 720, 200), [0.0, 90.0, 180.0, 270.0, 360.0]])
+    el = np.concatenate([rng.uniform(-89.9, 89.9, 200), [89.9, -89.9, 0.0, 45.0, 5.0]])
+    for target in ((0.0, 0.0, 0.0), (0.25, -0.5, 1.5)):
+        got = look_at_many(az, el, 3.7, target)
+        assert got.shape == (len(az), 4, 4)
+        for i, (a, e) in enumerate(zip(az, el)):
+            c = [float(p + t) for p, t in zip(camera_position(a, e, 3.7), target)]
+            fwd = unit([t - p for t, p in zip(target, c)])
+            right = unit(cross(fwd, [0.0, 1.0, 0.0]))
+            down = cross(fwd, right)
+            R = [right, down, fwd]
+            t = [-((R[k][0] * c[0] + R[k][1] * c[1]) + R[k][2] * c[2]) for k in range(3)]
+            ref = np.array([R[0] + [t[0]], R[1] + [t[1]], R[2] + [t[2]], [0.0, 0.0, 0.0, 1.0]])
+            np.testing.assert_allclose(got[i], ref, rtol=0, atol=1e-15)
+            assert np.array_equal(got[i], look_at_w2c(a, e, 3.7, target))
+    assert np.array_equal(make_ring(azimuths=az, elevations=[12.5], distance=3.7).w2c,
+                          look_at_many(az, np.full(len(az), 12.5), 3.7))
 
 
 def test_fitted_distance_keeps_the_bounding_sphere_in_frame():

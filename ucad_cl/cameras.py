@@ -59,7 +59,7 @@ def make_ring(azimuth_step: float = 5.0, elevations: Sequence[float] = (15.0,),
         near = NEAR_FRACTION * distance
     all_el = np.repeat(el, az.size)
     all_az = np.tile(az, el.size)
-    w2c = np.stack([look_at_w2c(a, e, distance) for a, e in zip(all_az, all_el)])
+    w2c = look_at_many(all_az, all_el, distance)
     return CameraRing(K=K, w2c=w2c, width=width, height=height, azimuth=all_az,
                       elevation=all_el, distance=float(distance), near=float(near))
 
@@ -94,17 +94,35 @@ def camera_distance(w2c) -> float:
 def look_at_w2c(azimuth: float, elevation: float, distance: float,
                 target: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     """4x4 world-to-camera matrix of a camera looking at ``target`` (OpenCV axes, +Y world up)."""
-    pos = camera_position(azimuth, elevation, distance) + np.asarray(target, dtype=np.float64)
-    fwd = np.asarray(target, dtype=np.float64) - pos
-    fwd /= np.linalg.norm(fwd)
+    return look_at_many([azimuth], [elevation], distance, target)[0]
+
+
+def look_at_many(azimuths, elevations, distance: float,
+                 target: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """(N, 4, 4) ``look_at_w2c`` of N cameras at once (degrees; one distance and target): the
+    camera at ``camera_position`` + target, rows right, down, forward (forward toward the
+    target, right = forward x up), translation -R c. Lengths are sqrt((x^2 + y^2) + z^2)."""
+    a = np.radians(np.asarray(azimuths, np.float64))
+    e = np.radians(np.asarray(elevations, np.float64))
+    to = np.asarray(target, dtype=np.float64)
+    pos = distance * np.stack([np.cos(e) * np.cos(a), np.sin(e), -np.cos(e) * np.sin(a)], -1)
+    pos = pos + to
+    fwd = to - pos
+    fwd /= _lengths(fwd)
     right = np.cross(fwd, [0.0, 1.0, 0.0])
-    right /= np.linalg.norm(right)
+    right /= _lengths(right)
     down = np.cross(fwd, right)
-    R = np.stack([right, down, fwd])
-    w2c = np.eye(4)
-    w2c[:3, :3] = R
-    w2c[:3, 3] = -R @ pos
+    R = np.stack([right, down, fwd], 1)
+    w2c = np.zeros((len(pos), 4, 4))
+    w2c[:, :3, :3] = R
+    w2c[:, :3, 3] = (-R @ pos[:, :, None])[:, :, 0]
+    w2c[:, 3, 3] = 1.0
     return w2c
+
+
+def _lengths(x: np.ndarray) -> np.ndarray:
+    """(N, 1) Euclidean lengths of the rows of ``x`` (N, 3), summed in that order."""
+    return np.sqrt((x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1]) + x[:, 2] * x[:, 2])[:, None]
 
 
 def pixel_rays(K: np.ndarray, w2c: np.ndarray, width: int, height: int):
