@@ -552,6 +552,7 @@ class _Fit:
         self.notes: list[str] = []
         self.described: dict[tuple[str, int], _Described] = {}   # (sha, view) -> re-rank's
         self.angles: dict[str, list[ViewAngles]] = {}             # sha -> its views' angles
+        self.albedo: dict[str, np.ndarray] = {}   # sha -> base colour a material id (+1), re-rank
         self.rings: dict[str, PoseRing] = {}                       # sha -> its catalog_ring
         self.stored_rows = _StoredRows(reader, self.notes)          # retrieval's rows
         self.intrinsics: np.ndarray | None = None   # the photo's assumed K in a window's pixels
@@ -826,11 +827,11 @@ class _Fit:
         ``described`` (and its boundaries, where ``_prefiltered`` did not read it): the views
         read in turn, each shaded (``shade_stored_view``, the catalogue's base colours) on
         ``SHADE_THREADS`` threads while the next is read, then one HOG launch for all."""
-        albedo: dict[str, np.ndarray] = {}
+        albedo = self.albedo
         shaded, masks = [], []
         with ThreadPoolExecutor(SHADE_THREADS) as pool:
             for (sha, v), n_materials in todo.items():
-                if sha not in albedo:
+                if sha not in albedo:           # (once per photo: the part rows' JSON)
                     albedo[sha] = np.full((n_materials + 1, 3), 0.8)
                     for row in self.r.parts(sha):
                         albedo[sha][row.index + 1] = row.props.get("base_color", [0.8] * 3)[:3]
