@@ -107,7 +107,6 @@ def view_cues(mesh: Mesh, views: ViewSet, images: np.ndarray, extractor: Feature
     if normals is None:
         normals = face_normals(mesh)
     masks = np.isfinite(views.depth)
-    V, H, W = masks.shape
     with ThreadPoolExecutor(1) as pool:         # the HOG beside the rest (both free the GIL)
         hog = pool.submit(lambda: extractor.extract(images, masks).feats)
         out = _map_cues(views, masks, normals, size)

@@ -119,7 +119,7 @@ def square_windows(masks: np.ndarray, pad: float = 0.1,
 
 
 def crop_window(image: np.ndarray, window: tuple[int, int, int], size: int,
-                interpolation: int = cv2.INTER_AREA, dtype=None) -> np.ndarray:
+                interpolation: int = cv2.INTER_AREA, dtype: type | None = None) -> np.ndarray:
     """The square ``window`` (top, left, side) of one (H, W[, C]) image, resized to ``size``;
     pixels outside the image repeat the nearest edge pixel. ``dtype``: the window's pixels are
     converted to it first (e.g. a bool mask to float32: only the window is converted)."""
