@@ -456,9 +456,8 @@ def _distances(edges: np.ndarray) -> np.ndarray:
     gap = int(np.ceil(TAU))
     stack = np.ones((B, S + gap, T), np.uint8)
     stack[:, :S] = ~edges
-    d = cv2.distanceTransform(stack.reshape(B * (S + gap), T)[:B * (S + gap) - gap],
-                              cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    d = np.pad(d, ((0, gap), (0, 0))).reshape(B, S + gap, T)[:, :S]
+    d = cv2.distanceTransform(stack.reshape(B * (S + gap), T), cv2.DIST_L2,
+                              cv2.DIST_MASK_PRECISE).reshape(B, S + gap, T)[:, :S]
     return np.minimum(d, np.float32(TAU))
 
 

@@ -371,8 +371,8 @@ class _Moments:
         self.SS = {(k, m): sc.SSC[k, m] if k >= 2 else sc.sum(u[k] * u[m])
                    for k in range(4) for m in range(k, 4)}
         # sums of B0 y, B1 y, C0 y, C1 y, y, y^2: six (3, P) arrays, a row per channel
-        rows = [(sc.sum(B0 * y), sc.sum(B1 * y), *sc.chan[c])
-                for c, y in enumerate(sc.rgb[:, c] for c in range(3))]
+        rows = [(sc.sum(B0 * sc.rgb[:, c]), sc.sum(B1 * sc.rgb[:, c]), *sc.chan[c])
+                for c in range(3)]
         self.T = [np.stack([r[j] for r in rows]) for j in range(6)]
 
     def losses(self, g: np.ndarray, channels) -> np.ndarray:
