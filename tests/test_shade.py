@@ -1,6 +1,8 @@
 """Shading: against an independent per-pixel computation (Embree hits + trimesh normals)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import trimesh
@@ -97,6 +99,84 @@ def test_stored_view_shading_without_the_mesh_matches_shade_views(runtime):
         on_box = fg & (views.tri_id[v].astype(np.int64) < box_faces)
         assert np.mean(diff[on_box] <= 1) > 0.99, v
         assert np.mean(diff[fg] <= 4) > 0.9, v
+
+
+def _stored_view_by_definition(depth, mat_id, tri_id, K, albedo, light, ambient, specular,
+                               shininess, bg):
+    """``shade_stored_view``'s docstring, pixel by pixel in Python floats: the back-projected
+    point of each pixel, its central differences (a neighbour off the vehicle or the image
+    counts as the pixel), each face's mean over its pixels whose four neighbours lie on it."""
+    H, W = depth.shape
+    Ki = np.linalg.inv(K).tolist()
+    fg = np.isfinite(depth)
+
+    def point(i, j):
+        x = (j + 0.5, i + 0.5, 1.0)
+        return [depth[i, j] * sum(Ki[r][c] * x[c] for c in range(3)) for r in range(3)]
+
+    def unit(a):
+        n = math.sqrt(sum(c * c for c in a))
+        return [c / n for c in a] if n > 0 else [0.0, 0.0, 0.0]
+
+    own, sums = {}, {}
+    for i, j in zip(*np.nonzero(fg)):
+        near = [(i, j + 1), (i, j - 1), (i + 1, j), (i - 1, j)]
+        inside = [0 <= a < H and 0 <= b < W and fg[a, b] for a, b in near]
+        right, left, down, up = (point(a, b) if ok else point(i, j) for (a, b), ok in zip(near, inside))
+        e, f = [x - y for x, y in zip(right, left)], [x - y for x, y in zip(down, up)]
+        n = unit([e[1] * f[2] - e[2] * f[1], e[2] * f[0] - e[0] * f[2], e[0] * f[1] - e[1] * f[0]])
+        own[i, j] = n
+        if all(ok and tri_id[a, b] == tri_id[i, j] for (a, b), ok in zip(near, inside)):
+            acc = sums.setdefault(int(tri_id[i, j]), [0.0, 0.0, 0.0])
+            for c in range(3):
+                acc[c] += n[c]
+    light = unit(list(light))
+    out = np.empty((H, W, 3), np.uint8)
+    out[...] = bg
+    for (i, j), n in own.items():
+        n = unit(sums.get(int(tri_id[i, j]), n))
+        p = point(i, j)
+        if sum(a * b for a, b in zip(n, p)) > 0:
+            n = [-c for c in n]
+        v = unit([-c for c in p])
+        h = unit([a + b for a, b in zip(light, v)])
+        diffuse = max(sum(a * b for a, b in zip(n, light)), 0.0)
+        spec = specular * max(sum(a * b for a, b in zip(n, h)), 0.0) ** shininess
+        base = albedo[min(int(mat_id[i, j]), len(albedo) - 1)]
+        out[i, j] = linear_to_srgb8(np.array([c * (ambient + (1 - ambient) * diffuse) + spec
+                                              for c in base]))
+    return out
+
+
+def test_stored_view_shading_follows_its_definition_pixel_by_pixel(runtime):
+    """``shade_stored_view`` (vectorised over the vehicle's pixels) against its definition
+    evaluated pixel by pixel (``_stored_view_by_definition``): a vehicle cut by the image's
+    edges, one left alone on a pixel, and face indices spread over 2^32 (the grouping of a
+    face's pixels by ``np.unique`` instead of by offset: the same bytes)."""
+    mesh = _scene()
+    ring = make_ring(60.0, (20.0,), size=40, distance=1.1)     # close: cut by the edges
+    views = render_views(mesh, ring, runtime=runtime)
+    kw = dict(light=(-0.4, -0.6, -1.0), ambient=0.3, specular=0.25, shininess=32.0)
+    albedo = np.array([(0.8, 0.8, 0.8)] + [m.base_color[:3] for m in mesh.materials])
+    lone = np.full_like(views.depth[0], np.inf)
+    lone[7, 9] = 2.0
+    cases = [(views.depth[v], views.mat_id[v], views.tri_id[v]) for v in range(ring.n_views)]
+    cases.append((lone, views.mat_id[0], views.tri_id[0]))
+    cut = 0
+    for depth, mat, tri in cases:
+        fg = np.isfinite(depth)
+        cut += int(fg[0].any() or fg[-1].any() or fg[:, 0].any() or fg[:, -1].any())
+        got = shade_stored_view(depth, mat, tri, ring.K, albedo, light_dir=kw["light"],
+                                ambient=kw["ambient"], specular=kw["specular"],
+                                shininess=kw["shininess"], background=(9, 8, 7))
+        want = _stored_view_by_definition(depth, mat, tri, ring.K, albedo, bg=(9, 8, 7), **kw)
+        diff = np.abs(got.astype(int) - want.astype(int))
+        assert diff.max() <= 1 and np.mean(diff.max(-1)[fg] == 0) > 0.98   # float sums' order
+        spread = np.where(fg, tri.astype(np.uint64) * 65521 % (2**32 - 1), tri).astype(np.uint32)
+        assert np.array_equal(shade_stored_view(depth, mat, spread, ring.K, albedo,
+                                                light_dir=kw["light"], background=(9, 8, 7)),
+                              got)
+    assert cut >= 2                                       # the edges are exercised
 
 
 def test_two_sided_winding_does_not_matter(runtime):

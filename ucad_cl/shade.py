@@ -253,38 +253,46 @@ def shade_stored_view(depth: np.ndarray, mat_id: np.ndarray, tri_id: np.ndarray,
     depth = np.asarray(depth, np.float64)
     H, W = depth.shape
     out = np.empty((H, W, 3), np.uint8)
-    out[...] = np.asarray(background, np.uint8)
-    rows = np.flatnonzero(np.isfinite(depth).any(axis=1))
-    cols = np.flatnonzero(np.isfinite(depth).any(axis=0))
+    out[0] = np.asarray(background, np.uint8)
+    out[1:] = out[0]                                # (one row broadcast: ~50x faster)
+    finite = np.isfinite(depth)
+    rows = np.flatnonzero(finite.any(axis=1))
     if rows.size == 0:
         return out
-    win = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))   # the vehicle's box
-    depth = depth[win]
-    fg = np.isfinite(depth)
+    cols = np.flatnonzero(finite.any(axis=0))
+    r0, c0 = int(rows[0]), int(cols[0])
+    fgp = np.pad(finite[r0:rows[-1] + 1, c0:cols[-1] + 1], 1)   # the vehicle's box, padded
+    wp = fgp.shape[1]
+    at = np.flatnonzero(fgp)                        # the vehicle's pixels, flat in fgp
+    i, j = np.divmod(at, wp)
+    q = (i + (r0 - 1)) * W + (j + (c0 - 1))         # ... and flat in the view
     Kinv = np.linalg.inv(np.asarray(K, np.float64))
-    j, i = np.meshgrid(np.arange(cols[0], cols[-1] + 1) + 0.5, np.arange(rows[0], rows[-1] + 1)
-                       + 0.5)
-    P = np.stack([j, i, np.ones_like(j)], -1) @ Kinv.T * np.where(fg, depth, 0.0)[..., None]
-    pad = np.pad(P, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    fgp = np.pad(fg, 1)
-    nb = [(slice(1, -1), slice(2, None)), (slice(1, -1), slice(None, -2)),
-          (slice(2, None), slice(1, -1)), (slice(None, -2), slice(1, -1))]
-    pts = [np.where(fgp[s][..., None], pad[s], P) for s in nb]     # off-vehicle: the pixel
-    n = np.cross(pts[0] - pts[1], pts[2] - pts[3])
-    tri = np.pad(np.asarray(tri_id, np.int64)[win], 1, constant_values=-1)
-    t = tri[1:-1, 1:-1]
-    same = fg & np.logical_and.reduce([tri[s] == t for s in nb])
-    nf = n[fg]
+    pix = np.stack([j + (c0 - 1 + 0.5), i + (r0 - 1 + 0.5), np.ones(at.size)], -1)
+    p = pix @ Kinv.T * depth.ravel()[q][:, None]   # the back-projected points
+    row = np.full(fgp.size, -1, np.int64)           # fgp's pixel -> its row of p (-1: off)
+    row[at] = np.arange(at.size)
+    tri = np.pad(np.asarray(tri_id)[r0:rows[-1] + 1, c0:cols[-1] + 1].astype(np.int64), 1,
+                 constant_values=-1).ravel()
+    t = tri[at]
+    own = np.arange(at.size)
+    pts, same = [], np.ones(at.size, bool)
+    for step in (1, -1, wp, -wp):                   # right, left, below, above
+        k = row[at + step]
+        pts.append(np.take(p, np.where(k >= 0, k, own), axis=0))   # off-vehicle: the pixel
+        same &= tri[at + step] == t
+    a, b = pts[0] - pts[1], pts[2] - pts[3]
+    nf = np.empty_like(p)                           # a x b, as np.cross computes it
+    nf[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    nf[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    nf[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
     nf /= np.maximum(_norms(nf), 1e-300)
-    faces, f = np.unique(t[fg], return_inverse=True)
-    ok = same[fg]
-    if ok.any():
-        acc = np.stack([np.bincount(f[ok], weights=nf[ok, c], minlength=faces.size)
+    f, n_faces = _face_groups(t)
+    if same.any():
+        acc = np.stack([np.bincount(f[same], weights=nf[same, c], minlength=n_faces)
                         for c in range(3)], -1)
-        has = np.bincount(f[ok], minlength=faces.size)[f] > 0
+        has = np.bincount(f[same], minlength=n_faces)[f] > 0
         nf[has] = acc[f[has]]
     nf /= np.maximum(_norms(nf), 1e-300)
-    p = P[fg]
     nf *= np.where(np.einsum("pk,pk->p", nf, p) > 0.0, -1.0, 1.0)[:, None]
     light = np.asarray(light_dir, np.float64)
     light = light / np.linalg.norm(light)
@@ -292,12 +300,27 @@ def shade_stored_view(depth: np.ndarray, mat_id: np.ndarray, tri_id: np.ndarray,
     half = light + v
     half /= _norms(half)
     alb = np.asarray(albedo, np.float64)
-    a = alb[np.minimum(np.asarray(mat_id, np.int64)[win][fg], len(alb) - 1)]
+    base = alb[np.minimum(np.asarray(mat_id).ravel()[q].astype(np.int64), len(alb) - 1)]
     diffuse = np.maximum(nf @ light, 0.0)
-    spec = specular * np.maximum(np.einsum("pk,pk->p", nf, half), 0.0) ** shininess
-    out[win][fg] = linear_to_srgb8(a * (ambient + (1.0 - ambient) * diffuse)[:, None]
-                                   + spec[:, None])
+    nh = np.einsum("pk,pk->p", nf, half)
+    lit = np.flatnonzero(~(nh <= 0.0))              # max(n.h, 0)^shininess: 0 elsewhere (NaN kept)
+    spec = np.zeros(at.size)
+    spec[lit] = specular * np.take(nh, lit) ** shininess
+    out.reshape(-1, 3)[q] = linear_to_srgb8(base * (ambient + (1.0 - ambient) * diffuse)[:, None]
+                                            + spec[:, None])
     return out
+
+
+def _face_groups(t: np.ndarray) -> tuple[np.ndarray, int]:
+    """(group of each pixel, number of groups): pixels of one face (``t``, (N,) int64 face
+    indices) share a group. The groups are ``t - min(t)`` when that span is small (no sort),
+    else ``np.unique``'s; either way a ``np.bincount`` over them adds each face's pixels in
+    pixel order, so the sums are the same bits."""
+    lo, hi = int(t.min()), int(t.max())
+    if hi - lo <= 16 * t.size + 4096:
+        return t - lo, hi - lo + 1
+    faces, f = np.unique(t, return_inverse=True)
+    return f.reshape(-1), faces.size
 
 
 def _norms(x: np.ndarray) -> np.ndarray:
