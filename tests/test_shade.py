@@ -177,6 +177,9 @@ def test_stored_view_shading_follows_its_definition_pixel_by_pixel(runtime):
                                                 light_dir=kw["light"], background=(9, 8, 7)),
                               got)
     assert cut >= 2                                       # the edges are exercised
+    empty = shade_stored_view(np.zeros((0, 5), np.float32), np.zeros((0, 5), np.uint16),
+                              np.zeros((0, 5), np.uint32), ring.K, albedo)
+    assert empty.shape == (0, 5, 3)
 
 
 def test_two_sided_winding_does_not_matter(runtime):

@@ -253,8 +253,8 @@ def shade_stored_view(depth: np.ndarray, mat_id: np.ndarray, tri_id: np.ndarray,
     depth = np.asarray(depth, np.float64)
     H, W = depth.shape
     out = np.empty((H, W, 3), np.uint8)
-    out[0] = np.asarray(background, np.uint8)
-    out[1:] = out[0]                                # (one row broadcast: ~50x faster)
+    out[:1] = np.asarray(background, np.uint8)
+    out[1:] = out[:1]                               # (a row copied down: ~50x a 3-value broadcast)
     finite = np.isfinite(depth)
     rows = np.flatnonzero(finite.any(axis=1))
     if rows.size == 0:
