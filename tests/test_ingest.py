@@ -337,6 +337,83 @@ def test_lines_and_points_primitives_are_skipped_with_a_note(tmp_path, suffix):
     assert load_mesh_isolated(path, orientation="file").report.notes == mesh.report.notes
 
 
+def _box(lo, hi):
+    """(8, 3) corners and (12, 3) outward triangles of an axis-aligned box."""
+    x = np.array([[lo[0] if i & 1 == 0 else hi[0], lo[1] if i & 2 == 0 else hi[1],
+                   lo[2] if i & 4 == 0 else hi[2]] for i in range(8)], np.float64)
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    return x, np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+
+
+def _car_obj(path, plate=None, lid=False, wheels=True, plate_y=0.0, sag=0.0):
+    """An OBJ car (a body box on four wheel boxes, materials body and wheel, y up) with, as a
+    third material: a quad at y = ``plate_y`` spanning ``plate`` = (x0, z0, x1, z1) (its second triangle
+    wound the other way; with ``sag``, four triangles meeting at a centre ``sag`` lower), or
+    with ``lid`` a flat panel exactly on the body's top."""
+    parts = [("body", *_box((0.0, 0.3, 0.0), (4.0, 1.5, 1.8)))]
+    for x in (0.5, 3.0) if wheels else ():
+        for z in (-0.1, 1.6):
+            parts.append(("wheel", *_box((x, 0.0, z), (x + 0.6, 0.6, z + 0.3))))
+    if plate is not None:
+        x0, z0, x1, z1 = plate
+        quad = np.array([[x0, plate_y, z0], [x1, plate_y, z0], [x1, plate_y, z1],
+                         [x0, plate_y, z1]], np.float64)
+        tris = np.array([(0, 2, 1), (0, 2, 3)])
+        if sag:
+            quad = np.vstack([quad, quad.mean(axis=0) - (0.0, sag, 0.0)])
+            tris = np.array([(0, 4, 1), (1, 4, 2), (2, 4, 3), (3, 4, 0)])
+        parts.append(("shadow", quad, tris))
+    if lid:
+        top = np.array([[0, 1.5, 0], [4, 1.5, 0], [4, 1.5, 1.8], [0, 1.5, 1.8]], np.float64)
+        parts.append(("roof", top, np.array([(0, 2, 1), (0, 3, 2)])))
+    rows, base = [f"mtllib {path.stem}.mtl"], 1
+    for name, v, f in parts:
+        rows += [f"v {a!r} {b!r} {c!r}" for a, b, c in v.tolist()] + [f"usemtl {name}"]
+        rows += [f"f {a + base} {b + base} {c + base}" for a, b, c in f.tolist()]
+        base += len(v)
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    names = dict.fromkeys(name for name, _, _ in parts)
+    path.with_suffix(".mtl").write_text("".join(f"newmtl {n}\nKd 0.5 0.5 0.5\n" for n in names))
+    return path
+
+
+def test_a_ground_plate_spanning_the_model_is_left_out_with_a_note(tmp_path):
+    """A baked-shadow quad under the whole car (larger than its outline, mixed winding) is left
+    out with a note, and the canonical frame is the car's alone; a plate inside the outline, one
+    through the car's middle, a sagging sheet under it, a roof panel exactly the body's top
+    (with wheels and without: a box's lid) and a one-material model keep every face."""
+    car = load_mesh(_car_obj(tmp_path / "plain.obj"))
+    shadow = load_mesh(_car_obj(tmp_path / "shadow.obj", plate=(-0.4, -0.6, 4.5, 2.3)))
+    assert sorted(m.name for m in shadow.materials) == ["body", "wheel"]
+    assert shadow.report.notes == ["material 'shadow' left out: a flat plate spanning the whole "
+                                   "model (2 faces; a baked shadow or ground sheet, not part of "
+                                   "the vehicle)"]
+    assert shadow.n_faces == car.n_faces == shadow.report.faces_in - 2
+    np.testing.assert_array_equal(shadow.vertices, car.vertices)     # the car's frame alone
+    np.testing.assert_array_equal(shadow.file_to_norm, car.file_to_norm)
+    for name, kw in [("inside", dict(plate=(0.2, 0.1, 3.8, 1.7))),
+                     ("roof", dict(lid=True)), ("lid", dict(lid=True, wheels=False)),
+                     ("through", dict(plate=(-0.4, -0.6, 4.5, 2.3), plate_y=0.9)),
+                     ("sagging", dict(plate=(-0.4, -0.6, 4.5, 2.3), sag=0.05))]:
+        kept = load_mesh(_car_obj(tmp_path / f"{name}.obj", **kw))
+        assert kept.n_faces == kept.report.faces_in, name
+        assert not any("left out" in n for n in kept.report.notes), name
+    one = tmp_path / "one.obj"
+    one.write_text(_car_obj(tmp_path / "tmp.obj", plate=(-0.4, -0.6, 4.5, 2.3)).read_text()
+                   .replace("usemtl wheel", "usemtl body").replace("usemtl shadow", "usemtl body")
+                   .replace("mtllib tmp.mtl", ""))
+    assert load_mesh(one).n_faces == 4 * 12 + 12 + 2
+
+
+def test_real_baked_shadow_quad_is_left_out():
+    """The Toyama sedan's 'Shadow' (a 2-triangle baked-shadow quad under the car, documented
+    in the manifest as a helper) is left out; the vehicle's ten materials stay."""
+    mesh = ingest.load_mesh(_vehicle("toyama_xr_sedan/sedan.glb"))
+    assert "Shadow" not in [m.name for m in mesh.materials] and len(mesh.materials) == 10
+    assert mesh.report.faces_in - mesh.report.faces_out == 2
+    assert any("'Shadow' left out" in n for n in mesh.report.notes)
+
+
 def test_obj_alpha_from_d_and_tr(tmp_path):
     (tmp_path / "m.mtl").write_text("newmtl glassy\nKd 0.1 0.2 0.3\nd 0.25\n"
                                     "newmtl tinted\nKd 1 1 1\nTr 0.6\n")

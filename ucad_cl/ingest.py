@@ -66,7 +66,9 @@ Conventions and decisions (see also ``ucad_cl/artifacts.py``):
   overflow); (2) duplicate faces: same vertex-index set (any order or winding) AND same
   material, the lowest face index is kept; faces with different materials are never duplicates
   (coplanar duplicates are a renderer hard case, not ours to hide); (3) unreferenced vertices
-  (including those orphaned by (1) and (2)). Kept faces and vertices keep their relative order, so
+  (including those orphaned by (1) and (2)); (4) ground plates (``ucad_cl.ground``: a material
+  that is one flat plate spanning the whole model, a baked shadow or ground sheet) with a note
+  each, and the vertices only they used. Kept faces and vertices keep their relative order, so
   ``face_material`` / ``face_node`` stay aligned. pymeshlab (``meshing_remove_null_faces``,
   ``_duplicate_faces``, ``_unreferenced_vertices``) gives the same counts (tested) but cannot
   tell materials apart when removing duplicates and needs the material carried as face quality
@@ -109,6 +111,7 @@ import numpy as np
 
 from . import reasons
 from .artifacts import IngestReport, Material, Mesh, node_stem
+from .ground import ground_plates
 from .orient import orient_mesh
 from .system import (IsolatedCallFailed, IsolatedChild, call_isolated, reader_child,
                      reader_modules_loaded)
@@ -191,6 +194,8 @@ def load_mesh(path: str | os.PathLike, *, clean: bool = True,
     if clean:
         vertices, faces, face_material, face_node = _clean(vertices, faces, face_material,
                                                            face_node, report)
+        vertices, faces, face_material, face_node = _drop_ground_plates(
+            vertices, faces, face_material, face_node, materials, report)
     report.faces_out = int(faces.shape[0])
     if faces.shape[0] == 0:
         raise IngestError(path, "empty", "no triangles left after removing degenerate faces")
@@ -1148,6 +1153,27 @@ def _first_of_each(corners: np.ndarray, material: np.ndarray) -> np.ndarray:
     start = np.ones(len(order), bool)
     start[1:] = (hi[1:] != hi[:-1]) | (lo[1:] != lo[:-1])
     return order[start]
+
+
+def _drop_ground_plates(vertices: np.ndarray, faces: np.ndarray, face_material: np.ndarray,
+                        face_node: np.ndarray, materials: list[Material], report: IngestReport):
+    """Cleaning step (4): the faces of ground plates (``ground.ground_plates``: a baked shadow or
+    ground sheet spanning the model) left out, with a note naming each, then the vertices only
+    they used. Order-preserving, as ``_clean``."""
+    plates = ground_plates(vertices, faces, face_material)
+    if not plates:
+        return vertices, faces, face_material, face_node
+    drop = np.isin(face_material, plates)
+    for m in plates:
+        report.notes.append(f"material {materials[m].name!r} left out: a flat plate spanning the "
+                            f"whole model ({int((face_material == m).sum())} faces; a baked "
+                            "shadow or ground sheet, not part of the vehicle)")
+    faces, face_material, face_node = faces[~drop], face_material[~drop], face_node[~drop]
+    referenced = np.zeros(len(vertices), bool)
+    referenced[faces.ravel()] = True
+    report.unreferenced_vertices += int(len(vertices) - referenced.sum())
+    new_index = np.cumsum(referenced) - 1
+    return vertices[referenced], new_index[faces], face_material, face_node
 
 
 def _clean(vertices: np.ndarray, faces: np.ndarray, face_material: np.ndarray,

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from .build import BuildSummary
 
 
-CODE_VERSION = "18"       # bump when a change alters results: it enters the options hash
+CODE_VERSION = "19"       # bump when a change alters results: it enters the options hash
 
 
 @dataclass(frozen=True)
