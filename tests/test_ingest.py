@@ -405,6 +405,22 @@ def test_a_ground_plate_spanning_the_model_is_left_out_with_a_note(tmp_path):
     assert load_mesh(one).n_faces == 4 * 12 + 12 + 2
 
 
+def test_ground_plates_test_at_most_the_largest_materials():
+    """A file of many large one-triangle materials (hostile: each is flat) has only the
+    ``PLATE_CANDIDATES`` largest tested, chosen by box diagonal (ties: the lower material)."""
+    from ucad_cl import ground
+
+    n = 3 * ground.PLATE_CANDIDATES
+    size = 1.0 + np.arange(n) % 7                     # repeated sizes: ties
+    v = np.zeros((3 * n, 3))
+    v[1::3, 0], v[2::3, 1] = size, size
+    faces, mats = np.arange(3 * n).reshape(n, 3), np.arange(n)
+    got = ground._large_materials(v, faces, mats, 0.0)
+    want = sorted(sorted(range(n), key=lambda m: (-size[m], m))[:ground.PLATE_CANDIDATES])
+    assert got == want
+    assert ground.ground_plates(v, faces, mats) == []
+
+
 def test_real_baked_shadow_quad_is_left_out():
     """The Toyama sedan's 'Shadow' (a 2-triangle baked-shadow quad under the car, documented
     in the manifest as a helper) is left out; the vehicle's ten materials stay."""
