@@ -1159,7 +1159,8 @@ def _drop_ground_plates(vertices: np.ndarray, faces: np.ndarray, face_material: 
                         face_node: np.ndarray, materials: list[Material], report: IngestReport):
     """Cleaning step (4): the faces of ground plates (``ground.ground_plates``: a baked shadow or
     ground sheet spanning the model) left out, with a note naming each, then the vertices only
-    they used. Order-preserving, as ``_clean``."""
+    they used (not counted as unreferenced: the file used them). Order-preserving, as
+    ``_clean``."""
     plates = ground_plates(vertices, faces, face_material)
     if not plates:
         return vertices, faces, face_material, face_node
@@ -1168,12 +1169,17 @@ def _drop_ground_plates(vertices: np.ndarray, faces: np.ndarray, face_material: 
         report.notes.append(f"material {materials[m].name!r} left out: a flat plate spanning the "
                             f"whole model ({int((face_material == m).sum())} faces; a baked "
                             "shadow or ground sheet, not part of the vehicle)")
-    faces, face_material, face_node = faces[~drop], face_material[~drop], face_node[~drop]
+    vertices, faces, _ = _referenced_only(vertices, faces[~drop])
+    return vertices, faces, face_material[~drop], face_node[~drop]
+
+
+def _referenced_only(vertices: np.ndarray, faces: np.ndarray):
+    """(the vertices ``faces`` use, in order; ``faces`` renumbered onto them; how many were
+    dropped)."""
     referenced = np.zeros(len(vertices), bool)
     referenced[faces.ravel()] = True
-    report.unreferenced_vertices += int(len(vertices) - referenced.sum())
     new_index = np.cumsum(referenced) - 1
-    return vertices[referenced], new_index[faces], face_material, face_node
+    return vertices[referenced], new_index[faces], int(len(vertices) - referenced.sum())
 
 
 def _clean(vertices: np.ndarray, faces: np.ndarray, face_material: np.ndarray,
@@ -1198,9 +1204,5 @@ def _clean(vertices: np.ndarray, faces: np.ndarray, face_material: np.ndarray,
     report.duplicate_faces = int(idx.size - first.size)
     keep[idx[~unique_mask]] = False
 
-    faces, face_material, face_node = faces[keep], face_material[keep], face_node[keep]
-    referenced = np.zeros(len(vertices), bool)
-    referenced[faces.ravel()] = True
-    report.unreferenced_vertices = int(len(vertices) - referenced.sum())
-    new_index = np.cumsum(referenced) - 1
-    return vertices[referenced], new_index[faces], face_material, face_node
+    vertices, faces, report.unreferenced_vertices = _referenced_only(vertices, faces[keep])
+    return vertices, faces, face_material[keep], face_node[keep]
