@@ -48,9 +48,8 @@ def ground_plates(vertices: np.ndarray, faces: np.ndarray, face_material: np.nda
     zero area are ignored for the plane's normal, not for flatness."""
     faces = np.asarray(faces, np.int64)
     face_material = np.asarray(face_material, np.int64)
-    mats = np.unique(face_material)
-    if mats.size < 2 or len(faces) == 0:
-        return []
+    if len(faces) == 0 or face_material.min() == face_material.max():
+        return []                                     # one material: never emptied
     v = np.asarray(vertices, np.float64)
     top = float(np.abs(v).max())
     if not 0.0 < top < np.inf:
@@ -63,11 +62,12 @@ def ground_plates(vertices: np.ndarray, faces: np.ndarray, face_material: np.nda
         own = face_material == m
         f = faces[own]
         some = f[::max(1, len(f) // PLATE_SAMPLE)]    # a curved part fails on a few faces
-        if not (_flat(v, some, tol) and _flat(v, f, tol)):
+        if _flat_plane(v, some, tol) is None:
             continue
-        normal = _normal(v, f)
-        assert normal is not None
-        d = v[f] @ normal
+        plane = _flat_plane(v, f, tol)
+        if plane is None:
+            continue
+        normal, height = plane
         mine = np.unique(f)
         used = np.zeros(len(v), bool)
         used[faces[~own].ravel()] = True
@@ -75,7 +75,7 @@ def ground_plates(vertices: np.ndarray, faces: np.ndarray, face_material: np.nda
         rest = v[used]
         if len(rest) < 3:
             continue
-        h = rest @ normal - (d.max() + d.min()) / 2
+        h = rest @ normal - height
         if h.min() < -tol and h.max() > tol:
             continue                                  # the rest lies on both sides
         if _spans(rest, v[mine], normal):
@@ -94,13 +94,16 @@ def _normal(v: np.ndarray, f: np.ndarray) -> np.ndarray | None:
     return s / np.linalg.norm(s)
 
 
-def _flat(v: np.ndarray, f: np.ndarray, tol: float) -> bool:
-    """Whether every corner of faces ``f`` lies within ``tol`` of one plane (``_normal``'s)."""
+def _flat_plane(v: np.ndarray, f: np.ndarray, tol: float) -> tuple[np.ndarray, float] | None:
+    """(``_normal`` of faces ``f``, the height of the middle of their corners along it) when
+    every corner lies within ``tol`` of one plane, else None."""
     normal = _normal(v, f)
     if normal is None:
-        return False
+        return None
     d = v[f] @ normal
-    return bool(d.max() - d.min() <= tol)
+    if d.max() - d.min() > tol:
+        return None
+    return normal, float(d.max() + d.min()) / 2
 
 
 def _large_materials(v: np.ndarray, faces: np.ndarray, face_material: np.ndarray,
