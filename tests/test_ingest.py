@@ -339,10 +339,10 @@ def test_lines_and_points_primitives_are_skipped_with_a_note(tmp_path, suffix):
 
 def _box(lo, hi):
     """(8, 3) corners and (12, 3) outward triangles of an axis-aligned box."""
-    x = np.array([[lo[0] if i & 1 == 0 else hi[0], lo[1] if i & 2 == 0 else hi[1],
-                   lo[2] if i & 4 == 0 else hi[2]] for i in range(8)], np.float64)
-    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
-    return x, np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    import trimesh
+
+    box = trimesh.creation.box(bounds=[lo, hi])
+    return np.asarray(box.vertices, np.float64), np.asarray(box.faces)
 
 
 def _car_obj(path, plate=None, lid=False, wheels=True, plate_y=0.0, sag=0.0):
