@@ -660,32 +660,35 @@ class _CutPhoto:
     mesh: object
 
 
-def _cut_photos(cat) -> list[_CutPhoto]:
+@pytest.fixture(scope="module")
+def cut_photos(catalogue) -> list[_CutPhoto]:
     """Four photos of each of the five meshes (elevation 12 deg, cluttered background), each
-    with the left 30 % of the vehicle's box cut off by the photo's edge."""
+    with the left 30 % of the vehicle's box cut off by the photo's edge (drawn once: two tests
+    read them, neither changes them)."""
     from ucad_cl.refphoto import render_reference
 
     out = []
     for k in range(5):
-        m, mesh, rows = _mesh(cat, k)
+        m, mesh, rows = _mesh(catalogue, k)
         for az in (40.0, 140.0, 220.0, 320.0):
             ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=az,
                                    elevation=12.0, seed=k, background="clutter")
             x0, y0, x1, y1 = ref.box
             c = int(round(x0 + 0.3 * (x1 - x0)))
-            out.append(_CutPhoto(m.sha256, az, np.ascontiguousarray(ref.image[:, c:]),
-                                 (0, y0, x1 - c, y1), ref.mask[:, c:], mesh))
+            image, mask = np.ascontiguousarray(ref.image[:, c:]), ref.mask[:, c:].copy()
+            image.flags.writeable = mask.flags.writeable = False
+            out.append(_CutPhoto(m.sha256, az, image, (0, y0, x1 - c, y1), mask, mesh))
     return out
 
 
-def test_a_vehicle_cut_by_the_photos_edge_is_retrieved(catalogue, monkeypatch):
+def test_a_vehicle_cut_by_the_photos_edge_is_retrieved(catalogue, cut_photos, monkeypatch):
     """Photos with 30 % of the vehicle cut off by the left edge (the box at the edge): retrieval
     that also assumes the vehicle going on past the edge finds more of the five meshes than
     retrieval of the visible part alone (15 against 12 of 20 when written), and says so."""
     import ucad_cl.fit as fit_mod
     import ucad_cl.foreground as fg
 
-    photos = _cut_photos(catalogue)
+    photos = cut_photos
     found, shipped = {}, fg.PAST_EDGE
     for past in (shipped, ()):
         monkeypatch.setattr(fg, "PAST_EDGE", past)
@@ -696,7 +699,8 @@ def test_a_vehicle_cut_by_the_photos_edge_is_retrieved(catalogue, monkeypatch):
     assert found[shipped] >= 14 and found[shipped] >= found[()] + 2, found
 
 
-def test_a_vehicle_cut_by_the_photos_edge_is_posed_past_the_edge(catalogue, monkeypatch):
+def test_a_vehicle_cut_by_the_photos_edge_is_posed_past_the_edge(catalogue, cut_photos,
+                                                                 monkeypatch):
     """The same kind of photos (30 % cut off by the left edge) with the mesh given: the pose
     searched on the photo grown past the edge (the hypothesis nearest to the mesh's stored
     views, the photo's camera moved with it) is nearer the true azimuth than the pose of the
@@ -709,7 +713,7 @@ def test_a_vehicle_cut_by_the_photos_edge_is_posed_past_the_edge(catalogue, monk
     from ucad_cl.pose import az_diff
     from ucad_cl.render import render_views
 
-    photos = _cut_photos(catalogue)
+    photos = cut_photos
     err, shipped = {}, fg.PAST_EDGE
     for past in (shipped, ()):
         monkeypatch.setattr(fg, "PAST_EDGE", past)
