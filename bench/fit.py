@@ -148,6 +148,7 @@ class Score:
     az_err: float = float("nan")     # |fitted - true azimuth| of the pose, degrees
     el_err: float = float("nan")     # fitted - true elevation of the pose, degrees (signed)
     photo_el: float = float("nan")   # the photo's true camera elevation, degrees
+    margin: float = float("nan")     # retrieval's margin (FitResult.retrieval_margin)
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -418,6 +419,8 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
         if key is None and not sc.top1:
             sc.lookalike = ring_iou(reader, res.mesh_id, mesh_id)
         sc.stages = dict(res.seconds)
+        if res.retrieval_margin is not None:
+            sc.margin = res.retrieval_margin
         sc.az_err = az_diff(res.pose.azimuth, ref.azimuth)
         sc.el_err = res.pose.elevation - ref.elevation
         sc.fitted = sum(1 for f in res.parts.values()
@@ -469,6 +472,20 @@ def lookalike_line(results: list[tuple[Vehicle, dict]], threshold: float = LOOKA
             f"truth over the stored ring: median {_q(iou, 50):.3f}, min {_q(iou, 0):.3f}; "
             f"{near} at >= {threshold:.2f} (outline look-alikes); top-1 counting those as right: "
             f"{100 * (right + near) / max(n, 1):.0f} % (not the goal's measure)")
+
+
+def margin_line(results: list[tuple[Vehicle, dict]]) -> str:
+    """End-to-end answers split by the fit's own flag: retrieval uncertain (``retrieval_margin``
+    below ``fit.UNCERTAIN_MARGIN``) or not, each with how many are right."""
+    from ucad_cl.fit import UNCERTAIN_MARGIN
+
+    sc = [r["end to end"] for _, r in results if "end to end" in r]
+    sc = [s for s in sc if np.isfinite(s.top1) and np.isfinite(s.margin)]
+    low = [s for s in sc if s.margin < UNCERTAIN_MARGIN]
+    high = [s for s in sc if s.margin >= UNCERTAIN_MARGIN]
+    return (f"retrieval uncertain (margin < {UNCERTAIN_MARGIN:g}): {len(low)} of {len(sc)}, "
+            f"{sum(s.top1 for s in low):.0f} of them right; the rest: "
+            f"{sum(s.top1 for s in high):.0f} of {len(high)} right")
 
 
 def pose_line(results: list[tuple[Vehicle, dict]], row: str = "mesh given") -> str:
@@ -673,6 +690,7 @@ def main(argv=None) -> int:
     for subset in ("real", "generated"):
         print(f"{subset}: " + lookalike_line([x for x in results if x[0].source == subset]))
         print(f"{subset}: " + top1_by_elevation([x for x in results if x[0].source == subset]))
+        print(f"{subset}: " + margin_line([x for x in results if x[0].source == subset]))
     for row in ("mesh given", "end to end"):
         print(pose_line(results, row))
     edge = sum(1 for _, r in results for x in r.values()

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -11,6 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _bench_module(name: str):
     spec = importlib.util.spec_from_file_location(f"bench_{name}", ROOT / "bench" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module                 # dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
 
@@ -50,3 +52,20 @@ def test_fit_cli_byte_compiles_both_checkouts(tmp_path, monkeypatch):
     source.write_text("X = 1\n")
     fit_cli.byte_compiled(tmp_path)
     assert Path(importlib.util.cache_from_source(str(source))).is_file()
+
+
+def test_fit_bench_splits_answers_by_the_fits_uncertain_flag():
+    """``bench/fit.py``'s margin line: the end-to-end answers below ``fit.UNCERTAIN_MARGIN``
+    and the rest, each with how many are right; photos without a margin (mesh given, failed)
+    are not counted."""
+    from ucad_cl.fit import UNCERTAIN_MARGIN
+
+    fit = _bench_module("fit")
+    low, high = UNCERTAIN_MARGIN / 2, UNCERTAIN_MARGIN * 3
+    rows = [(None, {"end to end": fit.Score(top1=t, margin=m)})
+            for t, m in ((0.0, low), (0.0, low), (1.0, low), (1.0, high), (1.0, high),
+                         (0.0, high), (1.0, UNCERTAIN_MARGIN), (1.0, float("nan")))]
+    rows.append((None, {"mesh given": fit.Score(margin=low)}))
+    assert fit.margin_line(rows) == (
+        f"retrieval uncertain (margin < {UNCERTAIN_MARGIN:g}): 3 of 7, 1 of them right; "
+        "the rest: 3 of 4 right")

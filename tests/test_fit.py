@@ -639,6 +639,9 @@ def test_retrieval_finds_the_mesh_and_cli_writes_outputs(catalogue, tmp_path, ca
             "status"} <= set(body)
     assert [x["name"] for x in doc["materials"]] == [r.name for r in rows]
     assert len(doc["candidates"]) >= 2 and doc["candidates"][0]["mesh_id"] == m.sha256
+    scores = [c["score"] for c in doc["candidates"]]        # how far the answer is ahead
+    assert doc["retrieval_margin"] == pytest.approx((min(scores[1:]) - scores[0]) / scores[0],
+                                                    abs=2e-5)
     png = cv2.imread(str(out / "street.png"))
     assert png is not None and png.shape[1] > 3 * png.shape[0]
     glb = (out / "street.glb").read_bytes()
@@ -648,6 +651,39 @@ def test_retrieval_finds_the_mesh_and_cli_writes_outputs(catalogue, tmp_path, ca
     assert paint and all(mt["pbrMetallicRoughness"]["baseColorFactor"][:3] ==
                          [min(max(c, 0.0), 1.0) for c in body["color_linear"]] for mt in paint)
     assert "KHR_materials_clearcoat" in paint[0]["extensions"]
+
+
+def test_retrieval_margin_and_its_uncertain_note(catalogue, monkeypatch):
+    """retrieval_margin: how far the answer's score is ahead of the least of the next listed
+    meshes', relative to it (None with one candidate or a zero score); a fit whose margin is
+    below UNCERTAIN_MARGIN says so in a note naming the next mesh, one above it does not, and
+    a fit with the mesh given has no margin."""
+    from ucad_cl import fit
+    from ucad_cl.refphoto import render_reference
+
+    def c(score, name="x.glb"):
+        return fit.Candidate("0" * 64, name, 0, 0.0, 15.0, score)
+
+    assert fit.retrieval_margin([c(2.0), c(2.5), c(2.1)]) == pytest.approx(0.05)
+    assert fit.retrieval_margin([c(2.0), c(1.9)]) == pytest.approx(-0.05)   # a pose re-rank
+    assert fit.retrieval_margin([c(2.0)]) is None and fit.retrieval_margin([]) is None
+    assert fit.retrieval_margin([c(0.0), c(1.0)]) is None
+    m, mesh, rows = _mesh(catalogue, 1)
+    ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=130.0, elevation=12.0,
+                           seed=3, background="clutter")
+    res = fit.fit_photo(ref.image, box=ref.box, catalog=catalogue)
+    scores = [x.score for x in res.candidates]
+    assert res.retrieval_margin == pytest.approx((min(scores[1:]) - scores[0]) / scores[0])
+    said = [n for n in res.notes if n.startswith("retrieval is uncertain")]
+    assert not said if res.retrieval_margin >= fit.UNCERTAIN_MARGIN else said
+    monkeypatch.setattr(fit, "UNCERTAIN_MARGIN", res.retrieval_margin + 1e-9)
+    again = fit.fit_photo(ref.image, box=ref.box, catalog=catalogue)
+    [note] = [n for n in again.notes if n.startswith("retrieval is uncertain")]
+    nxt = res.candidates[1 + int(np.argmin(scores[1:]))]
+    assert Path(nxt.mesh_path).name in note
+    given = fit.fit_photo(ref.image, box=ref.box, catalog=catalogue, mesh=m.sha256[:12])
+    assert given.retrieval_margin is None and given.to_json()["retrieval_margin"] is None
+    assert not any(n.startswith("retrieval is uncertain") for n in given.notes)
 
 
 @dataclass

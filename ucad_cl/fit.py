@@ -134,6 +134,9 @@ RERANK_POSE = 1             # retrieval: the first meshes posed; the best pose s
 POSE_PROXY_FROM = 150_000   # meshes over this many triangles are posed on a render proxy ...
 POSE_PROXY_CELLS = 256      # ... clustered on diagonal / 256 (decimate.render_proxy; docs/FIT.md)
 CANDIDATES = 5              # distinct meshes listed by retrieval
+UNCERTAIN_MARGIN = 0.02     # retrieval is "uncertain" when the next listed mesh scores within this
+#                             share of the answer's score (retrieval_margin; docs/FIT.md: chosen on
+#                             tuning draws, checked on a held-out one)
 INDEX_FROM = 32768          # retrieval reads the search index (if fresh) over this many rows ...
 INDEX_ROWS = 4096           # ... and keeps the rows nearest in its projections (docs/FIT.md)
 PRESELECT_ROWS = 2048       # ... then by float32 dot products of the full rows, for the exact rank
@@ -272,6 +275,7 @@ class FitResult:
     loss: float = 0.0
     object: ObjectMask | None = field(default=None, repr=False)   # the photo's object (full
     #                                                               frame), as the fit used it
+    retrieval_margin: float | None = None   # retrieval_margin(candidates); None: mesh given
 
     def to_json(self) -> dict:
         """JSON-ready dict; floats rounded (6 digits, seconds 3), keys in a fixed order."""
@@ -293,6 +297,8 @@ class FitResult:
             "candidates": [{"mesh_id": c.mesh_id, "mesh_path": c.mesh_path, "view": c.view,
                             "azimuth": round(c.azimuth, 4), "elevation": round(c.elevation, 4),
                             "score": round(c.score, 6)} for c in self.candidates],
+            "retrieval_margin": (None if self.retrieval_margin is None
+                                 else round(self.retrieval_margin, 6)),
             "object": self.object_source,
             "loss": round(self.loss, 8),
             "notes": self.notes,
@@ -384,6 +390,17 @@ def catalog_rows(reader: CatalogReader, query: np.ndarray
     notes: list[str] = []
     rows = _StoredRows(reader, notes).rows(query)
     return rows.meshes, rows.take(), rows.mesh_of, rows.view_of, notes
+
+
+def retrieval_margin(candidates: list[Candidate]) -> float | None:
+    """How far retrieval's answer (``candidates[0]``) is ahead of the next listed mesh: (the
+    least score of the others - the answer's) / the answer's score; None with fewer than two
+    candidates or a score of 0. Below ``UNCERTAIN_MARGIN`` the fit says retrieval is uncertain
+    (on the bench's real photos ~4 in 5 such answers were wrong, against ~1 in 25 above it:
+    docs/FIT.md, "How sure retrieval is")."""
+    if len(candidates) < 2 or not candidates[0].score > 0:
+        return None
+    return (min(c.score for c in candidates[1:]) - candidates[0].score) / candidates[0].score
 
 
 def azimuth_step(elevations) -> float:
@@ -639,11 +656,18 @@ class _Fit:
             pose.K = window.photo_K(pose.K)
             obj = window.photo_object(obj, full_shape)
         self._lap("fit")
+        margin = retrieval_margin(candidates) if mesh_key is None else None
+        if margin is not None and margin < UNCERTAIN_MARGIN:
+            nxt = candidates[1 + int(np.argmin([c.score for c in candidates[1:]]))]
+            self.notes.append(
+                f"retrieval is uncertain: the next mesh ({Path(nxt.mesh_path).name}) scores "
+                f"within {margin:.1%} of this one (below {UNCERTAIN_MARGIN:.0%}, most answers "
+                "on the bench's real photos were wrong): check the candidates, or give --mesh")
         return FitResult(mesh_id=meta.sha256, mesh_path=str(meta.source), pose=pose,
                          lighting=light, parts=parts, materials=materials,
                          candidates=candidates, seconds=dict(self.seconds), notes=self.notes,
                          images=images, mesh=mesh, part_rows=rows, object_source=obj.source,
-                         loss=loss, object=obj)
+                         loss=loss, object=obj, retrieval_margin=margin)
 
     # -- the object and the mesh
     def _object_and_mesh(self, photo, obj: ObjectMask, mesh_key):

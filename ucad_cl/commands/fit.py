@@ -1,7 +1,8 @@
 """``ucad-index fit PHOTO (--box X0 Y0 X1 Y1 | --mask MASK) --catalog CAT [--mesh MESH] --out DIR``:
 fit the part materials of a catalogued vehicle to a photo (``ucad_cl.fit``; docs/FIT.md).
 
-Writes DIR/<stem>.json (mesh, pose, lighting, parts, materials, candidates, seconds),
+Writes DIR/<stem>.json (mesh, pose, lighting, parts, materials, candidates, retrieval_margin,
+seconds; a note when retrieval is uncertain),
 DIR/<stem>.glb (the model with every material replaced by its part's fitted material; not
 written when the mesh file moved) and DIR/<stem>.png (photo | fitted render | part masks over
 the photo | error map). ``--photos LIST.csv`` (columns path,x0,y0,x1,y1[,mesh], or a header
@@ -31,7 +32,9 @@ examples:
 The photo list: one photo a line, path,x0,y0,x1,y1[,mesh]; or with a header line naming the
 columns, e.g. "path,mask,mesh" for vehicle masks from a segmenter (paths relative to the list).
 A mask finds the right mesh more often than a box (GrabCut's mask errors cost retrieval:
-docs/FIT.md, "The object mask's share of retrieval").
+docs/FIT.md, "The object mask's share of retrieval"). When the next retrieved mesh scores
+nearly as well as the answer (the JSON's retrieval_margin), a note says retrieval is uncertain:
+look at the candidates the output lists, or give MESH (docs/FIT.md, "How sure retrieval is").
 
 Boxes and masks are in the photo as a viewer shows it (a JPEG's EXIF orientation applied). A
 phone-sized photo is fine: it is analysed in a window around the box, and the pose (K, w2c)
@@ -151,17 +154,25 @@ def run_list(reader, args, segmenter) -> int:
         return 2
     from ..ingest import MeshLoader
 
-    failed = 0
+    from ..fit import UNCERTAIN_MARGIN
+
+    failed = unsure = 0
     with MeshLoader(child=getattr(args, "mesh_reader", None)) as mesh_loader:   # one child
         for path, box, mask, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
             try:
                 res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out,
                                    segmenter, mesh_loader, args.fov)
-                tqdm.write(f"ok    {path} -> {out}.json ({res.mesh_path})")
+                m = res.retrieval_margin
+                flag = m is not None and m < UNCERTAIN_MARGIN
+                unsure += flag
+                tqdm.write(f"ok    {path} -> {out}.json ({res.mesh_path})"
+                           + (f"  retrieval uncertain (margin {m:.1%})" if flag else ""))
             except ValueError as exc:
                 failed += 1
                 tqdm.write(f"FAIL  {path}: {exc}", file=sys.stderr)
-    print(f"{len(jobs) - failed} fitted, {failed} failed; outputs in {args.out}")
+    print(f"{len(jobs) - failed} fitted, {failed} failed; outputs in {args.out}"
+          + (f"; retrieval uncertain for {unsure} (check their candidates, or give the mesh)"
+             if unsure else ""))
     return 1 if failed else 0
 
 
