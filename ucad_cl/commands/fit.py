@@ -152,9 +152,8 @@ def run_list(reader, args, segmenter) -> int:
     except (ValueError, OSError) as exc:
         print(f"{args.photos}: {exc}", file=sys.stderr)
         return 2
-    from ..ingest import MeshLoader
-
     from ..fit import UNCERTAIN_MARGIN
+    from ..ingest import MeshLoader
 
     failed = unsure = 0
     with MeshLoader(child=getattr(args, "mesh_reader", None)) as mesh_loader:   # one child
