@@ -668,6 +668,14 @@ def test_retrieval_margin_and_its_uncertain_note(catalogue, monkeypatch):
     assert fit.retrieval_margin([c(2.0), c(1.9)]) == pytest.approx(-0.05)   # a pose re-rank
     assert fit.retrieval_margin([c(2.0)]) is None and fit.retrieval_margin([]) is None
     assert fit.retrieval_margin([c(0.0), c(1.0)]) is None
+    copies = [c(2.0, "a.glb"), c(2.0, "copy.glb"), c(2.01, "b.glb"), c(2.5, "d.glb")]
+    assert fit.retrieval_margin(copies) == pytest.approx(0.005)      # a copy is not counted
+    assert fit.retrieval_margin(copies[:2]) is None
+    said = fit._Fit.__new__(fit._Fit)
+    said.notes = []
+    said._say_how_sure(copies, fit.retrieval_margin(copies))
+    assert said.notes[0].startswith("copy.glb score exactly as this mesh")
+    assert said.notes[1].startswith("retrieval is uncertain: the next mesh (b.glb)")
     m, mesh, rows = _mesh(catalogue, 1)
     ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=130.0, elevation=12.0,
                            seed=3, background="clutter")
@@ -679,7 +687,7 @@ def test_retrieval_margin_and_its_uncertain_note(catalogue, monkeypatch):
     monkeypatch.setattr(fit, "UNCERTAIN_MARGIN", res.retrieval_margin + 1e-9)
     again = fit.fit_photo(ref.image, box=ref.box, catalog=catalogue)
     [note] = [n for n in again.notes if n.startswith("retrieval is uncertain")]
-    nxt = res.candidates[1 + int(np.argmin(scores[1:]))]
+    nxt = min((x for x in res.candidates[1:] if x.score != scores[0]), key=lambda x: x.score)
     assert Path(nxt.mesh_path).name in note
     given = fit.fit_photo(ref.image, box=ref.box, catalog=catalogue, mesh=m.sha256[:12])
     assert given.retrieval_margin is None and given.to_json()["retrieval_margin"] is None

@@ -394,13 +394,17 @@ def catalog_rows(reader: CatalogReader, query: np.ndarray
 
 def retrieval_margin(candidates: list[Candidate]) -> float | None:
     """How far retrieval's answer (``candidates[0]``) is ahead of the next listed mesh: (the
-    least score of the others - the answer's) / the answer's score; None with fewer than two
-    candidates or a score of 0. Below ``UNCERTAIN_MARGIN`` the fit says retrieval is uncertain
-    (on the bench's real photos ~4 in 5 such answers were wrong, against ~1 in 25 above it:
+    least score of the others - the answer's) / the answer's score. A listed mesh that scores
+    exactly the answer's score has the answer's stored views (a copy of the model in the
+    library: the same fit) and is not counted. None when no other mesh is listed or the answer
+    scores 0. Below ``UNCERTAIN_MARGIN`` the fit says retrieval is uncertain (such answers on
+    the bench's real photos: 13 of 15 wrong on tuning draws, 2 of 2 on a held-out one;
     docs/FIT.md, "How sure retrieval is")."""
-    if len(candidates) < 2 or not candidates[0].score > 0:
+    if not candidates or not candidates[0].score > 0:
         return None
-    return (min(c.score for c in candidates[1:]) - candidates[0].score) / candidates[0].score
+    s0 = candidates[0].score
+    others = [c.score for c in candidates[1:] if c.score != s0]
+    return (min(others) - s0) / s0 if others else None
 
 
 def azimuth_step(elevations) -> float:
@@ -657,17 +661,30 @@ class _Fit:
             obj = window.photo_object(obj, full_shape)
         self._lap("fit")
         margin = retrieval_margin(candidates) if mesh_key is None else None
-        if margin is not None and margin < UNCERTAIN_MARGIN:
-            nxt = candidates[1 + int(np.argmin([c.score for c in candidates[1:]]))]
-            self.notes.append(
-                f"retrieval is uncertain: the next mesh ({Path(nxt.mesh_path).name}) scores "
-                f"within {margin:.1%} of this one (below {UNCERTAIN_MARGIN:.0%}, most answers "
-                "on the bench's real photos were wrong): check the candidates, or give --mesh")
+        if mesh_key is None:
+            self._say_how_sure(candidates, margin)
         return FitResult(mesh_id=meta.sha256, mesh_path=str(meta.source), pose=pose,
                          lighting=light, parts=parts, materials=materials,
                          candidates=candidates, seconds=dict(self.seconds), notes=self.notes,
                          images=images, mesh=mesh, part_rows=rows, object_source=obj.source,
                          loss=loss, object=obj, retrieval_margin=margin)
+
+    def _say_how_sure(self, candidates: list[Candidate], margin: float | None) -> None:
+        """Notes on retrieval's answer: listed meshes that score exactly as it does (copies of
+        the model), and, when ``margin`` is below ``UNCERTAIN_MARGIN``, the next mesh."""
+        if not candidates:
+            return
+        s0 = candidates[0].score
+        copies = [Path(c.mesh_path).name for c in candidates[1:] if c.score == s0]
+        if copies:
+            self.notes.append(f"{', '.join(copies)} score exactly as this mesh (the same stored "
+                              "views: copies of the model in the library?)")
+        if margin is not None and margin < UNCERTAIN_MARGIN:
+            nxt = min((c for c in candidates[1:] if c.score != s0), key=lambda c: c.score)
+            self.notes.append(
+                f"retrieval is uncertain: the next mesh ({Path(nxt.mesh_path).name}) scores "
+                f"within {margin:.1%} of this one (below {UNCERTAIN_MARGIN:.0%}, most answers "
+                "on the bench's real photos were wrong): check the candidates, or give --mesh")
 
     # -- the object and the mesh
     def _object_and_mesh(self, photo, obj: ObjectMask, mesh_key):
