@@ -674,7 +674,7 @@ def test_retrieval_margin_and_its_uncertain_note(catalogue, monkeypatch):
     said = fit._Fit.__new__(fit._Fit)
     said.notes = []
     said._say_how_sure(copies, fit.retrieval_margin(copies))
-    assert said.notes[0].startswith("copy.glb score exactly as this mesh")
+    assert said.notes[0].startswith("copy.glb scores exactly as this mesh")
     assert said.notes[1].startswith("retrieval is uncertain: the next mesh (b.glb)")
     m, mesh, rows = _mesh(catalogue, 1)
     ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=130.0, elevation=12.0,

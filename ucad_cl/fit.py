@@ -677,8 +677,9 @@ class _Fit:
         s0 = candidates[0].score
         copies = [Path(c.mesh_path).name for c in candidates[1:] if c.score == s0]
         if copies:
-            self.notes.append(f"{', '.join(copies)} score exactly as this mesh (the same stored "
-                              "views: copies of the model in the library?)")
+            verb, what = ("scores", "a copy") if len(copies) == 1 else ("score", "copies")
+            self.notes.append(f"{', '.join(copies)} {verb} exactly as this mesh (the same stored "
+                              f"views: {what} of the model in the library?)")
         if margin is not None and margin < UNCERTAIN_MARGIN:
             nxt = min((c for c in candidates[1:] if c.score != s0), key=lambda c: c.score)
             self.notes.append(
