@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -689,6 +689,12 @@ def test_retrieval_margin_and_its_uncertain_note(catalogue, monkeypatch):
     [note] = [n for n in again.notes if n.startswith("retrieval is uncertain")]
     nxt = min((x for x in res.candidates[1:] if x.score != scores[0]), key=lambda x: x.score)
     assert Path(nxt.mesh_path).name in note
+    from ucad_cl.commands.fit import UNCERTAIN_BAND, overview
+    sure, unsure = overview(replace(res, retrieval_margin=None)), overview(again)
+    band = np.all(unsure == UNCERTAIN_BAND, axis=2)            # the picture says it too
+    assert sure.shape == unsure.shape and band[:12, -1].all() and not band[-1].any()
+    rows = ~np.all(sure == unsure, axis=(1, 2))
+    assert rows[:12].all() and not rows[len(rows) // 8:].any()  # only the band differs
     given = fit.fit_photo(ref.image, box=ref.box, catalog=catalogue, mesh=m.sha256[:12])
     assert given.retrieval_margin is None and given.to_json()["retrieval_margin"] is None
     assert not any(n.startswith("retrieval is uncertain") for n in given.notes)

@@ -253,6 +253,9 @@ def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter,
     return res, out
 
 
+UNCERTAIN_BAND = (170, 20, 20)   # the overview's band for an uncertain retrieval (RGB)
+
+
 def write_outputs(res, out_dir: Path, stem: str) -> Path:
     """DIR/<stem>.json, .png and (with the mesh) .glb; returns DIR/<stem>."""
     import cv2
@@ -274,10 +277,12 @@ def write_outputs(res, out_dir: Path, stem: str) -> Path:
 
 def overview(res, height: int = 256):
     """(h, 4w, 3) uint8 RGB: photo | fitted render | part masks over the photo | error map
-    (|photo - render| in 8-bit sRGB levels, x4, inside the vehicle), in the working frame."""
+    (|photo - render| in 8-bit sRGB levels, x4, inside the vehicle), in the working frame; when
+    retrieval was uncertain (``fit.UNCERTAIN_MARGIN``) a red band across its top says so."""
     import cv2
     import numpy as np
 
+    from ..fit import UNCERTAIN_MARGIN
     from ..segment import material_colors
 
     im = res.images
@@ -295,7 +300,15 @@ def overview(res, height: int = 256):
     if h > height:
         row = cv2.resize(row, (int(round(w * height / h)), height),
                          interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(row)
+    row = np.ascontiguousarray(row)
+    m = res.retrieval_margin
+    if m is not None and m < UNCERTAIN_MARGIN:
+        band = max(12, row.shape[0] // 14)
+        row[:band] = UNCERTAIN_BAND
+        cv2.putText(row, f"retrieval uncertain (margin {m:.1%}): check the candidates",
+                    (4, band - max(3, band // 4)), cv2.FONT_HERSHEY_SIMPLEX, band / 32,
+                    (255, 255, 255), 1, cv2.LINE_AA)
+    return row
 
 
 def report(res, out: Path) -> None:
