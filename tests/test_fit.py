@@ -1313,8 +1313,10 @@ def test_retrieval_keeps_the_object_mask_whose_answer_is_nearest(catalogue, monk
     alone and keeps the answer that scores best: the same answer and scores as the minimum
     over those masks each retrieved by a fresh fit (no shared view, row or finer-HOG caches;
     ties: the voted mask, then the seeds' order), with the voted mask as the object, and for
-    at least one of the cluttered photos a single seed's mask wins. Over rings coarser than SEED_MASK_STEP (this
-    catalogue's 30 deg) only the voted mask is tried."""
+    at least one of the cluttered photos a single seed's mask wins. When the voted mask's
+    answer is sure (its retrieval_margin at least SURE_MARGIN) it is the answer, the single-seed
+    masks untried. Over rings coarser than SEED_MASK_STEP (this catalogue's 30 deg) only the
+    voted mask is tried."""
     import ucad_cl.fit as fit
     from ucad_catalog.reader import CatalogReader
     from ucad_cl.foreground import object_mask
@@ -1340,12 +1342,23 @@ def test_retrieval_keeps_the_object_mask_whose_answer_is_nearest(catalogue, monk
                     tried.append((cands[0].score, i, om, cands))
             score, i, best, cands = min(tried, key=lambda t: t[:2])
             monkeypatch.setattr(fit, "SEED_MASK_STEP", 360.0)
+            monkeypatch.setattr(fit, "SURE_MARGIN", np.inf)         # never sure: every mask
             obj, meta, got, _, _ = fit._Fit(r, None)._object_and_mesh(ref.image, first, None)
             assert meta.sha256 == got[0].mesh_id == cands[0].mesh_id
             assert [(c.mesh_id, c.view, c.score) for c in got] == \
                 [(c.mesh_id, c.view, c.score) for c in cands]
             assert np.array_equal(obj.mask, masks[0].mask)
             won_alone += i > 0
+            voted = tried[0][3]
+            margin = fit.retrieval_margin(voted)
+            assert margin is not None and tried[0][1] == 0
+            monkeypatch.setattr(fit, "SURE_MARGIN", margin)         # sure: the voted mask's
+            obj, meta, got, _, _ = fit._Fit(r, None)._object_and_mesh(ref.image, first, None)
+            assert [(c.mesh_id, c.view, c.score) for c in got] == \
+                [(c.mesh_id, c.view, c.score) for c in voted] and meta.sha256 == voted[0].mesh_id
+            monkeypatch.setattr(fit, "SURE_MARGIN", margin + 1e-9)  # just short of sure: all
+            _, _, got, _, _ = fit._Fit(r, None)._object_and_mesh(ref.image, first, None)
+            assert [(c.mesh_id, c.score) for c in got] == [(c.mesh_id, c.score) for c in cands]
             monkeypatch.setattr(fit, "SEED_MASK_STEP", 10.0)
             obj, _, got, _, _ = fit._Fit(r, None)._object_and_mesh(ref.image, first, None)
             assert np.array_equal(obj.mask, masks[0].mask)

@@ -153,7 +153,8 @@ REGION_WEIGHT = 0.5         # ... + this x the colour variance its material regi
 REFINE_CORE = 0.04          # ... their core (eroded by this share of the box side) is foreground
 MIN_REFINED = 0.3           # ... kept when GrabCut keeps at least this share of the prior
 SEED_MASK_STEP = 10.0       # ... and each seed alone too, over stored rings of at most this
-#                             azimuth step (degrees; docs/FIT.md)
+#                             azimuth step (degrees; docs/FIT.md) ...
+SURE_MARGIN = 0.15          # ... unless the voted mask's answer leads by this retrieval_margin
 SHADE_THREADS = 2           # threads shading the re-rank's stored views (_describe_fine)
 
 
@@ -702,8 +703,11 @@ class _Fit:
         (the colours were worse from the winning mask: docs/FIT.md). The single-seed masks
         only over stored rings of azimuth step (``azimuth_step``) at most ``SEED_MASK_STEP``:
         a coarser ring's silhouettes are too far from the photo's pose, and a mask shaped by
-        one of them favours its own mesh (docs/FIT.md)."""
+        one of them favours its own mesh (docs/FIT.md). The single-seed masks are not tried
+        when the voted mask's answer is sure, ``retrieval_margin`` of its candidates at least
+        ``SURE_MARGIN`` (on the bench's tuning draws no such answer was changed by them)."""
         hypotheses: list[ObjectMask] = []       # other object masks retrieval tries
+        first, placed, seeds = obj, [], []
         if obj.source != "mask":                # GrabCut again, seeded by stored silhouettes
             if mesh_key is None:
                 seeds = self._first_views(photo, obj)
@@ -711,19 +715,22 @@ class _Fit:
                 sha = self._given(mesh_key).sha256
                 seeds = [(sha, self._nearest_view(sha, photo, obj))]
             self._lap("retrieval")
-            first = obj
             placed = self._placed_silhouettes(photo, first, seeds)
             refined = self._refined_object(photo, first, placed)
             if refined is not None:
                 obj = refined
-            if (len(seeds) > 1 and azimuth_step([v.elevation for v in self._views(seeds[0][0])])
-                    <= SEED_MASK_STEP):
-                for one in placed:              # one mask per seed too (docstring)
-                    alone = self._refined_object(photo, first, [one])
-                    if alone is not None:
-                        hypotheses.append(alone)
             self._lap("object")
         meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
+        margin = retrieval_margin(candidates)
+        if (len(seeds) > 1 and not (margin is not None and margin >= SURE_MARGIN)
+                and azimuth_step([v.elevation for v in self._views(seeds[0][0])])
+                <= SEED_MASK_STEP):
+            self._lap("retrieval")
+            for one in placed:                  # one mask per seed too (docstring)
+                alone = self._refined_object(photo, first, [one])
+                if alone is not None:
+                    hypotheses.append(alone)
+            self._lap("object")
         tried = [obj.mask]
         for alt in hypotheses:                  # (ties: the mask voted by every seed)
             if any(np.array_equal(alt.mask, m) for m in tried):
