@@ -408,6 +408,12 @@ def retrieval_margin(candidates: list[Candidate]) -> float | None:
     return (min(others) - s0) / s0 if others else None
 
 
+def retrieval_uncertain(margin: float | None) -> bool:
+    """Whether a ``retrieval_margin`` says retrieval is uncertain: known and below
+    ``UNCERTAIN_MARGIN`` (the fit's note, the batch's mark and the overview's band)."""
+    return margin is not None and margin < UNCERTAIN_MARGIN
+
+
 def azimuth_step(elevations) -> float:
     """Azimuth step (degrees) of a stored ring from its views' elevations: 360 over the number
     of views at the first elevation (rings are elevation-major, ``cameras.make_ring``)."""
@@ -681,7 +687,7 @@ class _Fit:
             verb, what = ("scores", "a copy") if len(copies) == 1 else ("score", "copies")
             self.notes.append(f"{', '.join(copies)} {verb} exactly as this mesh (the same stored "
                               f"views: {what} of the model in the library?)")
-        if margin is not None and margin < UNCERTAIN_MARGIN:
+        if retrieval_uncertain(margin):
             nxt = min((c for c in candidates[1:] if c.score != s0), key=lambda c: c.score)
             self.notes.append(
                 f"retrieval is uncertain: the next mesh ({Path(nxt.mesh_path).name}) scores "
@@ -722,7 +728,7 @@ class _Fit:
             self._lap("object")
         meta, candidates, best_view = self._pick_mesh(photo, obj, mesh_key)
         margin = retrieval_margin(candidates)
-        if (len(seeds) > 1 and not (margin is not None and margin >= SURE_MARGIN)
+        if (len(seeds) > 1 and (margin is None or margin < SURE_MARGIN)
                 and azimuth_step([v.elevation for v in self._views(seeds[0][0])])
                 <= SEED_MASK_STEP):
             self._lap("retrieval")

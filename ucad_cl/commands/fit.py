@@ -152,7 +152,7 @@ def run_list(reader, args, segmenter) -> int:
     except (ValueError, OSError) as exc:
         print(f"{args.photos}: {exc}", file=sys.stderr)
         return 2
-    from ..fit import UNCERTAIN_MARGIN
+    from ..fit import retrieval_uncertain
     from ..ingest import MeshLoader
 
     failed = unsure = 0
@@ -162,7 +162,7 @@ def run_list(reader, args, segmenter) -> int:
                 res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out,
                                    segmenter, mesh_loader, args.fov)
                 m = res.retrieval_margin
-                flag = m is not None and m < UNCERTAIN_MARGIN
+                flag = retrieval_uncertain(m)
                 unsure += flag
                 tqdm.write(f"ok    {path} -> {out}.json ({res.mesh_path})"
                            + (f"  retrieval uncertain (margin {m:.1%})" if flag else ""))
@@ -278,11 +278,11 @@ def write_outputs(res, out_dir: Path, stem: str) -> Path:
 def overview(res, height: int = 256):
     """(h, 4w, 3) uint8 RGB: photo | fitted render | part masks over the photo | error map
     (|photo - render| in 8-bit sRGB levels, x4, inside the vehicle), in the working frame; when
-    retrieval was uncertain (``fit.UNCERTAIN_MARGIN``) a red band across its top says so."""
+    retrieval was uncertain (``fit.retrieval_uncertain``) a red band across its top says so."""
     import cv2
     import numpy as np
 
-    from ..fit import UNCERTAIN_MARGIN
+    from ..fit import retrieval_uncertain
     from ..segment import material_colors
 
     im = res.images
@@ -302,7 +302,7 @@ def overview(res, height: int = 256):
                          interpolation=cv2.INTER_AREA)
     row = np.ascontiguousarray(row)
     m = res.retrieval_margin
-    if m is not None and m < UNCERTAIN_MARGIN:
+    if retrieval_uncertain(m):
         band = max(12, row.shape[0] // 14)
         row[:band] = UNCERTAIN_BAND
         cv2.putText(row, f"retrieval uncertain (margin {m:.1%}): check the candidates",
