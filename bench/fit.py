@@ -384,7 +384,8 @@ def _prior_props(part: str) -> tuple[float, float, float]:
 # ----------------------------------------------------------------------------- the run
 
 def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
-            runs: int = 1, mesh_loader=None, true_fov: bool = False) -> dict[str, Score]:
+            runs: int = 1, mesh_loader=None, true_fov: bool = False,
+            vgg=None) -> dict[str, Score]:
     from ucad_cl.fit import fit_photo
     from ucad_cl.pose import az_diff
 
@@ -394,6 +395,8 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
         given = {"mask": ref.mask} if row == "true object mask" else {"box": box}
         if true_fov:                                    # --true-fov: the lens told to the fit
             given["fov"] = float(ref.fov)
+        if vgg is not None:                             # --vgg: the l_vgg term joins the fit
+            given["vgg"] = vgg
         t = time.perf_counter()
         try:
             res = fit_photo(ref.image, catalog=reader, mesh=key, mesh_loader=mesh_loader, **given)
@@ -627,6 +630,9 @@ def main(argv=None) -> int:
     ap.add_argument("--true-fov", action="store_true",
                     help="tell the fit each photo's field of view (fit_photo(fov=...), the CLI's "
                          "--fov) instead of letting it assume 45 deg")
+    ap.add_argument("--vgg", default=None, metavar="onnx:MODEL:CONFIG.json",
+                    help="add the paper's l_vgg through this ONNX feature extractor to every "
+                         "fit (fit_photo(vgg=...), the CLI's --vgg)")
     ap.add_argument("--runs", type=int, default=1,
                     help="fit each photo this many times; its seconds are their median")
     ap.add_argument("--save", type=Path, default=None, metavar="DIR",
@@ -642,6 +648,10 @@ def main(argv=None) -> int:
     if args.generated > args.library:
         ap.error("--generated must be <= --library")
     args.work.mkdir(parents=True, exist_ok=True)
+    vgg = None
+    if args.vgg:
+        from ucad_cl.vgg import OnnxFeatures
+        vgg = OnnxFeatures.from_spec(args.vgg)
     print(f"machine: {machine()}")
     t0 = time.perf_counter()
     synth_lib = generated_library(args.work, args.library)
@@ -672,7 +682,8 @@ def main(argv=None) -> int:
             t_ref += time.perf_counter() - t
             if args.save:
                 saved.append(save_reference(args.save, i, v, ref, box, key))
-            r = run_one(ref, box, v, reader, key, names, args.runs, mesh_loader, args.true_fov)
+            r = run_one(ref, box, v, reader, key, names, args.runs, mesh_loader, args.true_fov,
+                        vgg)
             results.append((v, r))
             e = r["end to end"]
             print(f"  {i + 1:3d}/{len(vehicles)} {v.name[:32]:32s} body dE e2e {e.body:5.2f} "
@@ -680,7 +691,8 @@ def main(argv=None) -> int:
                   f"top-1 {e.top1:.0f}  {e.seconds:.2f} s"
                   + ("" if e.top1 != 0 else f"  (got {e.mesh})"), flush=True)
     print(f"\n{len(results)} references (seed {args.ref_seed}, scene {args.scene}"
-          f"{', the field of view given' if args.true_fov else ''}, boxes grown by "
+          f"{', the field of view given' if args.true_fov else ''}"
+          f"{f', l_vgg through {vgg.name} (weight {vgg.weight:g})' if vgg else ''}, boxes grown by "
           f"{args.box_grow:g}; "
           f"{t_ref:.0f} s to draw them), catalogue of {len(accepted)} meshes; total "
           f"{time.perf_counter() - t0:.0f} s\n")

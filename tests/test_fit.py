@@ -1398,3 +1398,38 @@ def test_retrieval_searches_a_repeated_object_mask_once(catalogue, monkeypatch):
     assert [(c.mesh_id, c.view, c.score) for c in got] == \
         [(c.mesh_id, c.view, c.score) for c in alone]
     assert meta.sha256 == m.sha256
+
+
+def test_vgg_term_through_the_fit_and_the_cli(photo, catalogue, tmp_path, capsys):
+    """--vgg onnx:MODEL:CONFIG (here a small random convolutional network: no VGG ships or
+    downloads, tests/test_vgg.py): the fit's JSON records l_vgg and the objective falling
+    (``vgg``; null without the option), the body colour stays near the truth (after the one
+    exposure factor) and near the fit without the term, the same input gives the same JSON,
+    and a bad spec is one line with exit status 2."""
+    from tests.test_vgg import tiny_net
+    from ucad_cl.cli import main
+
+    path, box, m = photo
+    spec = tiny_net(tmp_path)
+    args = ["fit", str(path), "--box", *map(str, box), "--catalog", str(catalogue),
+            "--mesh", m.sha256[:12]]
+    docs = []
+    for extra, out in (([], "plain"), (["--vgg", spec], "vgg"), (["--vgg", spec], "again")):
+        assert main(args + extra + ["--out", str(tmp_path / out)]) == 0
+        docs.append(json.loads((tmp_path / out / "car.json").read_text()))
+    plain, vgg, again = docs
+    assert plain["vgg"] is None
+    v = vgg["vgg"]
+    assert v["model"] == "tiny.onnx" and v["weight"] == 1.0 and v["jacobians"] >= 1
+    assert v["l_vgg_after"] < v["l_vgg_before"] and v["loss_after"] < v["loss_before"], v
+    assert "l_vgg (tiny.onnx" in capsys.readouterr().out
+    body = [np.asarray(d["parts"]["body"]["color_linear"]) for d in (plain, vgg)]
+    s = _exposure(body[1], COLORS["body"])
+    assert _de(body[1], COLORS["body"], s) < 4.0, body     # measured 1.8 (2.3 without)
+    assert _de(body[1], body[0]) < 6.0, body        # measured 3.0: the random net pulls
+    for d in (vgg, again):
+        d.pop("seconds"), d["vgg"].pop("seconds"), d.pop("glb")
+    assert json.dumps(vgg) == json.dumps(again)
+    assert main(args + ["--vgg", "onnx:nowhere.onnx:x.json", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and "--vgg" in err, err

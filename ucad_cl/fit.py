@@ -55,7 +55,10 @@
    E_up = 1 is documented there), then white-balanced on the tyres (``NEUTRAL_PARTS``: the
    light takes half, ``light.BALANCE_SHARE``, of the colour cast that would make them neutral
    grey). Each part keeps its prior (``ucad_catalog.parts``) metallic, roughness, clear coat
-   and transmission; only the base colour is fitted.
+   and transmission; only the base colour is fitted. With ``vgg`` (a user's ONNX feature
+   extractor, ``ucad_cl.vgg``) the paper's l_vgg joins the objective: the colours are moved
+   from the closed form by a few Levenberg-Marquardt steps on l_rgb + 0.1 l_stat + w l_vgg,
+   the light kept (``vgg.refine_colours``).
 6. **Status per part**: ``fitted``; ``prior`` when the render shows none of it inside the
    object (the prior's colour is kept: the source colour for car paint and 'other'); ``flagged``
    with a reason when fewer than ``MIN_PIXELS`` pixels are left after erosion (prior colour), or
@@ -101,6 +104,7 @@ from .foreground import (GrownPhoto, ObjectMask, PhotoWindow, box_stretch, check
                          mask_box, object_mask, past_the_edge, refine_with_silhouette)
 from .ingest import IngestError, MeshLoader
 from .jobs import content_sha256
+from .labeller import onnx_spec
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
                     plausible_cast, predict, shading)
 from .orient import in_frame
@@ -111,6 +115,7 @@ from .runtime import Runtime
 from .search import CatalogMatch, search_catalog
 from .segment import OnnxSegmenter
 from .shade import face_normals, shade_stored_view
+from .vgg import OnnxFeatures, VggFit, refine_colours
 
 RING_SIDE = 192             # pose refinement render size, pixels
 WORK_SIDE = 384             # longer side of the working frame, pixels
@@ -176,12 +181,8 @@ class OnnxPhotoSegmenter:
 
     @classmethod
     def from_spec(cls, spec: str) -> "OnnxPhotoSegmenter":
-        """From ``onnx:MODEL:CONFIG.json``; ValueError for another spelling."""
-        kind, _, arg = str(spec).partition(":")
-        model, _, config = arg.partition(":")
-        if kind != "onnx" or not model or not config:
-            raise ValueError("expected onnx:MODEL:CONFIG.json")
-        return cls(OnnxSegmenter(model, config))
+        """From ``onnx:MODEL:CONFIG.json`` (``labeller.onnx_spec``)."""
+        return cls(OnnxSegmenter(*onnx_spec(spec)))
 
     def segment_photo(self, image: np.ndarray) -> dict[str, np.ndarray]:
         import cv2
@@ -277,6 +278,7 @@ class FitResult:
     object: ObjectMask | None = field(default=None, repr=False)   # the photo's object (full
     #                                                               frame), as the fit used it
     retrieval_margin: float | None = None   # retrieval_margin(candidates); None: mesh given
+    vgg: VggFit | None = None             # the l_vgg refinement (``vgg=``); None: not run
 
     def to_json(self) -> dict:
         """JSON-ready dict; floats rounded (6 digits, seconds 3), keys in a fixed order."""
@@ -302,6 +304,7 @@ class FitResult:
                                  else round(self.retrieval_margin, 6)),
             "object": self.object_source,
             "loss": round(self.loss, 8),
+            "vgg": self.vgg.to_json() if self.vgg is not None else None,
             "notes": self.notes,
             "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
         }
@@ -310,29 +313,32 @@ class FitResult:
 def fit_photo(photo: np.ndarray, *, box=None, mask: np.ndarray | None = None,
               catalog: str | Path | CatalogReader, mesh: str | None = None,
               segmenter: PhotoSegmenter | None = None, runtime: Runtime | None = None,
-              mesh_loader: MeshLoader | None = None, fov: float | None = None) -> FitResult:
+              mesh_loader: MeshLoader | None = None, fov: float | None = None,
+              vgg: OnnxFeatures | None = None) -> FitResult:
     """Fit the part materials of the catalogued vehicle in ``photo`` ((H, W, 3) uint8 RGB),
     given by ``box`` (x0, y0, x1, y1 pixels, x1/y1 exclusive) or ``mask`` ((H, W) bool), against
     ``catalog`` (a path or an open reader); ``mesh`` (id, id prefix, path or file name) skips
     retrieval; ``mesh_loader``: a ``MeshLoader`` to reuse over a batch of photos (default: one
     started for this photo); ``fov``: the photo's field of view over its narrower side in
     degrees, when known (a lens's focal length: ``pose.FOV_RANGE``; default: the pose search
-    assumes ``pose.FOV_PRIOR``). ValueError with a one-line message for bad input (see the
+    assumes ``pose.FOV_PRIOR``); ``vgg``: a user's ONNX feature extractor
+    (``ucad_cl.vgg.OnnxFeatures``) whose masked Gram matrices join the objective (the paper's
+    l_vgg; step 5). ValueError with a one-line message for bad input (see the
     module docstring), a damaged catalogue included (an object unreadable or gone: "the
     catalogue ...")."""
     check_fov(fov)
     if isinstance(catalog, CatalogReader):
-        return _run(catalog, runtime, mesh_loader, photo, box, mask, mesh, segmenter, fov)
+        return _run(catalog, runtime, mesh_loader, photo, box, mask, mesh, segmenter, fov, vgg)
     try:
         reader = CatalogReader(catalog)
     except CatalogError as exc:
         raise ValueError(str(exc)) from None
     with reader:
-        return _run(reader, runtime, mesh_loader, photo, box, mask, mesh, segmenter, fov)
+        return _run(reader, runtime, mesh_loader, photo, box, mask, mesh, segmenter, fov, vgg)
 
 
 def _run(reader: CatalogReader, runtime, mesh_loader, photo, box, mask, mesh,
-         segmenter, fov) -> FitResult:
+         segmenter, fov, vgg=None) -> FitResult:
     """``_Fit.run`` with the catalogue's read errors (and any file read error) met anywhere in
     the fit turned into the one-line ValueError (the CLI prints it, never a traceback); a
     ``MeshLoader`` started for the photo when none is given (with retrieval to run, its
@@ -343,9 +349,10 @@ def _run(reader: CatalogReader, runtime, mesh_loader, photo, box, mask, mesh,
         except OSError as exc:                  # no process to be had (limits, memory)
             raise ValueError(f"cannot start the mesh reader's process: {exc}") from None
         with own:
-            return _run(reader, runtime, own, photo, box, mask, mesh, segmenter, fov)
+            return _run(reader, runtime, own, photo, box, mask, mesh, segmenter, fov, vgg)
     try:
-        return _Fit(reader, runtime, mesh_loader).run(photo, box, mask, mesh, segmenter, fov)
+        return _Fit(reader, runtime, mesh_loader).run(photo, box, mask, mesh, segmenter, fov,
+                                                      vgg)
     except CatalogError as exc:
         raise ValueError(f"the catalogue is damaged: {exc}") from None
     except OSError as exc:                     # a file the fit reads that the reader did not wrap
@@ -592,7 +599,7 @@ class _Fit:
         self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self._t
         self._t = now
 
-    def run(self, photo, box, mask, mesh_key, segmenter, fov=None) -> FitResult:
+    def run(self, photo, box, mask, mesh_key, segmenter, fov=None, vgg=None) -> FitResult:
         photo = check_image(photo)
         window = PhotoWindow.around(photo.shape[:2], box, mask)
         if window is not None:                  # a large photo: steps 1-6 run on a window of it
@@ -662,7 +669,8 @@ class _Fit:
         pose.K[:2, 2] += np.array(shift, np.float64) / scale
         self._lap("render")
         seg = segmenter.segment_photo(work) if segmenter is not None else None
-        parts, light, loss, images, materials = _fit_parts(work, obj_w, frame, rows, seg)
+        parts, light, loss, images, materials, vgg_fit = _fit_parts(work, obj_w, frame, rows,
+                                                                    seg, vgg)
         if window is not None:                  # the pose and the object in the photo's pixels
             pose.K = window.photo_K(pose.K)
             obj = window.photo_object(obj, full_shape)
@@ -674,7 +682,7 @@ class _Fit:
                          lighting=light, parts=parts, materials=materials,
                          candidates=candidates, seconds=dict(self.seconds), notes=self.notes,
                          images=images, mesh=mesh, part_rows=rows, object_source=obj.source,
-                         loss=loss, object=obj, retrieval_margin=margin)
+                         loss=loss, object=obj, retrieval_margin=margin, vgg=vgg_fit)
 
     def _say_how_sure(self, candidates: list[Candidate], margin: float | None) -> None:
         """Notes on retrieval's answer: listed meshes that score exactly as it does (copies of
@@ -1258,8 +1266,9 @@ def _prior(part: str, rows) -> tuple[np.ndarray, float, float, float]:
     return color, float(pbr["metallicFactor"]), float(pbr["roughnessFactor"]), coat
 
 
-def _fit_parts(work, obj, frame: _Frame, rows, seg):
-    """Per-part fit in the working frame; returns (parts, lighting, loss, images, materials)."""
+def _fit_parts(work, obj, frame: _Frame, rows, seg, vgg=None):
+    """Per-part fit in the working frame; returns (parts, lighting, loss, images, materials,
+    the l_vgg refinement or None); ``vgg``: ``ucad_cl.vgg.OnnxFeatures`` or None."""
     import cv2
 
     h, w = obj.shape
@@ -1299,6 +1308,9 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
     neutral = {i: float(np.count_nonzero(samples.part == i)) for i, p in enumerate(fit_parts)
                if p in NEUTRAL_PARTS and float(LUMA @ np.nan_to_num(lf.albedo[i])) <= TYRE_LUMA}
     lf, gain = balance(lf, neutral)
+    vgg_fit = None
+    if vgg is not None:                        # the paper's l_vgg joins (ucad_cl/vgg.py)
+        lf, vgg_fit = refine_colours(vgg, work, samples, np.nonzero(sel), lf)
     B, C = shading(samples, lf.lighting)
     res = (samples.rgb - predict(samples, lf.lighting, lf.albedo))
     parts: dict[str, PartFit] = {}
@@ -1334,7 +1346,7 @@ def _fit_parts(work, obj, frame: _Frame, rows, seg):
                   else _rl(_prior(r.part, [r])[0])}
                  for r in sorted(rows, key=lambda r: r.index)]
     images = FitImages(photo=work, render=render, part_map=part_map, object=obj)
-    return parts, lf.lighting, lf.loss, images, materials
+    return parts, lf.lighting, lf.loss, images, materials, vgg_fit
 
 
 def _check_tyre(fitted: np.ndarray, prior: np.ndarray, gains: np.ndarray):

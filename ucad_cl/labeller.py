@@ -239,6 +239,16 @@ def never_visible_part(X: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # the model
 # ---------------------------------------------------------------------------------------------
+def onnx_spec(spec: str) -> tuple[str, str]:
+    """(MODEL, CONFIG) of an ``onnx:MODEL:CONFIG.json`` option (a user's ONNX model and its
+    JSON config); ValueError for another spelling."""
+    kind, _, arg = str(spec).partition(":")
+    model, _, config = arg.partition(":")
+    if kind != "onnx" or not model or not config:
+        raise ValueError("expected onnx:MODEL:CONFIG.json")
+    return model, config
+
+
 def onnx_session(path: Path, options=None):
     """An onnxruntime CPU session of the model at ``path``; ValueError naming the file when
     onnxruntime cannot load it (its own errors, e.g. ``InvalidProtobuf`` for a file that is no

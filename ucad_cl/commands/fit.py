@@ -64,6 +64,11 @@ def register(sub) -> None:
                         "retrieval over the whole catalogue")
     p.add_argument("--segmenter", default=None, metavar="onnx:MODEL:CONFIG.json",
                    help="part masks from this ONNX image segmenter instead of the render")
+    p.add_argument("--vgg", default=None, metavar="onnx:MODEL:CONFIG.json",
+                   help="add the paper's l_vgg (masked Gram matrices of this ONNX feature "
+                        "extractor's maps, e.g. a VGG-16 you export; none ships) to the "
+                        "objective; config: input_size [H, W], mean, std, outputs, "
+                        "layer_weights, weight (docs/FIT.md, 'The VGG term')")
     p.add_argument("--fov", type=float, default=None, metavar="DEG",
                    help="the photos' field of view over the narrower side, in degrees, when "
                         "known (a long lens: small, a close-up with a wide lens: large); "
@@ -82,14 +87,14 @@ def run(args) -> int:
     if args.photo is not None and args.box is None and args.mask is None:
         print("error: give --box X0 Y0 X1 Y1 or --mask MASK.png", file=sys.stderr)
         return 2
-    segmenter = None
-    if args.segmenter:
-        from ..fit import OnnxPhotoSegmenter
+    options = {}
+    for flag, spec in (("--segmenter", args.segmenter), ("--vgg", args.vgg)):
         try:
-            segmenter = OnnxPhotoSegmenter.from_spec(args.segmenter)
+            options[flag] = _onnx_option(flag, spec)
         except (ValueError, OSError) as exc:
-            print(f"error: --segmenter {args.segmenter}: {exc}", file=sys.stderr)
+            print(f"error: {flag} {spec}: {exc}", file=sys.stderr)
             return 2
+    segmenter, vgg = options["--segmenter"], options["--vgg"]
     try:
         reader = CatalogReader(args.catalog)
     except CatalogError as exc:
@@ -100,7 +105,7 @@ def run(args) -> int:
             loader = _loader_for(args.mesh, getattr(args, "mesh_reader", None))
             try:
                 res, out = fit_one(reader, args.photo, args.box, args.mask, args.mesh,
-                                   args.out, segmenter, loader, args.fov)
+                                   args.out, segmenter, loader, args.fov, vgg)
             except ValueError as exc:
                 print(f"{args.photo}: {exc}", file=sys.stderr)
                 return 2
@@ -109,7 +114,20 @@ def run(args) -> int:
                     loader.close()
             report(res, out)
             return 0
-        return run_list(reader, args, segmenter)
+        return run_list(reader, args, segmenter, vgg)
+
+
+def _onnx_option(flag: str, spec: str | None):
+    """What an ``onnx:MODEL:CONFIG.json`` option names (None without it): the photo segmenter
+    of ``--segmenter``, the feature extractor of ``--vgg``; ValueError / OSError naming the
+    file. (Imported here: a lone call reads its mesh ahead before importing the fit.)"""
+    if not spec:
+        return None
+    if flag == "--segmenter":
+        from ..fit import OnnxPhotoSegmenter
+        return OnnxPhotoSegmenter.from_spec(spec)
+    from ..vgg import OnnxFeatures
+    return OnnxFeatures.from_spec(spec)
 
 
 def _loader_for(mesh_key, child=None):
@@ -144,7 +162,7 @@ def _read_ahead(reader, mesh_key, mesh_loader) -> None:
         mesh_loader.prefetch(meta.source)
 
 
-def run_list(reader, args, segmenter) -> int:
+def run_list(reader, args, segmenter, vgg=None) -> int:
     from tqdm import tqdm
 
     try:
@@ -160,7 +178,7 @@ def run_list(reader, args, segmenter) -> int:
         for path, box, mask, mesh in tqdm(jobs, unit="photo", desc="fit", disable=None):
             try:
                 res, out = fit_one(reader, path, box, mask, mesh or args.mesh, args.out,
-                                   segmenter, mesh_loader, args.fov)
+                                   segmenter, mesh_loader, args.fov, vgg)
                 m = res.retrieval_margin
                 flag = retrieval_uncertain(m)
                 unsure += flag
@@ -232,11 +250,11 @@ def read_list(path: Path) -> list:
 
 
 def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter, mesh_loader=None,
-            fov: float | None = None):
+            fov: float | None = None, vgg=None):
     """Fit one photo and write its three outputs; ValueError with one line on bad input.
     ``mesh_loader``: an ``ingest.MeshLoader`` kept over a list of photos, or started for this
     photo's given mesh (else the fit starts one); a given mesh is read ahead in its child;
-    ``fov``: the photo's field of view (``fit_photo``)."""
+    ``fov``: the photo's field of view and ``vgg``: the l_vgg feature extractor (``fit_photo``)."""
     _read_ahead(reader, mesh, mesh_loader)
     from ..fit import fit_photo
     from .common import read_image, read_mask
@@ -244,7 +262,7 @@ def fit_one(reader, photo: Path, box, mask_path, mesh, out_dir: Path, segmenter,
     image = read_image(photo)
     mask = read_mask(mask_path, image.shape[:2]) if mask_path is not None else None
     res = fit_photo(image, box=box, mask=mask, catalog=reader, mesh=mesh, segmenter=segmenter,
-                    mesh_loader=mesh_loader, fov=fov)
+                    mesh_loader=mesh_loader, fov=fov, vgg=vgg)
     try:
         out = write_outputs(res, out_dir, photo.stem)
     except OSError as exc:
@@ -324,6 +342,11 @@ def report(res, out: Path) -> None:
     for p, f in doc["parts"].items():
         extra = f"  ({f['reason']})" if f.get("reason") else ""
         print(f"  {p:9s} {f['color_srgb']} {f['status']:8s} {f['pixels']:7d} px{extra}")
+    if res.vgg is not None:
+        v = res.vgg
+        print(f"l_vgg ({v.model}, weight {v.weight:g}): {v.vgg_before:.4g} -> {v.vgg_after:.4g}, "
+              f"objective {v.loss_before:.4g} -> {v.loss_after:.4g} ({v.jacobians} Jacobians, "
+              f"{v.images} model runs, {v.seconds:.2f} s)")
     print(f"seconds: {sum(res.seconds.values()):.2f} "
           + " ".join(f"{k} {v:.2f}" for k, v in res.seconds.items()))
     print(f"wrote {out}.json, {out}.png" + (f", {out}.glb" if res.mesh is not None else ""))
