@@ -40,7 +40,8 @@ Rows (every reference is fitted by each):
 * ``oracle``: true labels and pose: the reference's part map at its true camera, normals from the
   rasterizer at that camera, each part eroded as the fit erodes it (``fit.MARGIN``), then
   ``light.fit_light`` and ``light.balance`` (on ``fit.NEUTRAL_PARTS``) on those pixels, as
-  ``fit_photo`` does after its pose and labels: what labels and pose cost;
+  ``fit_photo`` does after its pose and labels: what labels and pose cost (with ``--vgg``, the
+  l_vgg refinement after them too, ``vgg.refine_colours``);
 * ``baseline``: the mean linear colour of the photo under each part's mask (the end-to-end
   row's eroded masks), no light model; ``baseline (true masks)``: the same under the oracle's.
 
@@ -316,9 +317,9 @@ def flat_baseline(photo: np.ndarray, part_map: np.ndarray) -> tuple[dict, float]
     return colors, psnr(paint, photo, part_map >= 0)
 
 
-def oracle(ref, v: Vehicle) -> tuple[dict, float, np.ndarray]:
+def oracle(ref, v: Vehicle, vgg=None) -> tuple[dict, float, np.ndarray]:
     """(colours, PSNR, eroded true part map) of ``light.fit_light`` on the true labels and
-    pose (see the module docstring)."""
+    pose (see the module docstring); ``vgg``: the l_vgg refinement after it, as the fit's."""
     import cv2
 
     from ucad_cl.artifacts import CameraRing
@@ -361,6 +362,9 @@ def oracle(ref, v: Vehicle) -> tuple[dict, float, np.ndarray]:
     lf = fit_light(s, len(parts))
     lf, _ = balance(lf, {i: float(np.count_nonzero(idx == i)) for i, k in enumerate(parts)
                          if PART_NAMES[k] in NEUTRAL_PARTS})            # as fit._fit_parts
+    if vgg is not None:
+        from ucad_cl.vgg import refine_colours
+        lf, _ = refine_colours(vgg, ref.image, s, np.nonzero(sel), lf)
     render = np.zeros_like(ref.image)
     render[sel] = linear_to_srgb8(predict(s, lf.lighting, lf.albedo))
     colors = {PART_NAMES[k]: lf.albedo[i] for i, k in enumerate(parts)
@@ -434,7 +438,7 @@ def run_one(ref, box, v: Vehicle, reader, mesh_id: str, names: dict,
             out["baseline"] = score_colors(bc, ref, pixels)
             out["baseline"].psnr = bp
     t = time.perf_counter()
-    oc, op, opm = oracle(ref, v)
+    oc, op, opm = oracle(ref, v, vgg)
     out["oracle"] = score_colors(oc, ref, pixels)
     out["oracle"].psnr, out["oracle"].seconds = op, time.perf_counter() - t
     bc, bp = flat_baseline(ref.image, opm)

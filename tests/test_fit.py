@@ -1404,8 +1404,8 @@ def test_vgg_term_through_the_fit_and_the_cli(photo, catalogue, tmp_path, capsys
     """--vgg onnx:MODEL:CONFIG (here a small random convolutional network: no VGG ships or
     downloads, tests/test_vgg.py): the fit's JSON records l_vgg and the objective falling
     (``vgg``; null without the option), the body colour stays near the truth (after the one
-    exposure factor) and near the fit without the term, the same input gives the same JSON,
-    and a bad spec is one line with exit status 2."""
+    exposure factor) and near the fit without the term, the same input gives the same JSON
+    (a --photos batch too), and a bad spec is one line with exit status 2."""
     from tests.test_vgg import tiny_net
     from ucad_cl.cli import main
 
@@ -1427,9 +1427,14 @@ def test_vgg_term_through_the_fit_and_the_cli(photo, catalogue, tmp_path, capsys
     s = _exposure(body[1], COLORS["body"])
     assert _de(body[1], COLORS["body"], s) < 4.0, body     # measured 1.8 (2.3 without)
     assert _de(body[1], body[0]) < 6.0, body        # measured 3.0: the random net pulls
-    for d in (vgg, again):
+    lst = tmp_path / "list.csv"                     # a --photos batch takes the term too
+    lst.write_text(f"{path},{box[0]},{box[1]},{box[2]},{box[3]},{m.sha256[:12]}\n")
+    assert main(["fit", "--photos", str(lst), "--catalog", str(catalogue), "--vgg", spec,
+                 "--out", str(tmp_path / "batch")]) == 0
+    docs.append(json.loads((tmp_path / "batch" / "car.json").read_text()))
+    for d in docs[1:]:
         d.pop("seconds"), d["vgg"].pop("seconds"), d.pop("glb")
-    assert json.dumps(vgg) == json.dumps(again)
+    assert json.dumps(vgg) == json.dumps(again) == json.dumps(docs[3])
     assert main(args + ["--vgg", "onnx:nowhere.onnx:x.json", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err and "--vgg" in err, err
