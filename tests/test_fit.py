@@ -1193,8 +1193,9 @@ def test_photo_list_with_mask_column(photo, catalogue, tmp_path, capsys):
     assert "line 1" in err and "box" in err
 
 
-def _red_segmenter(tmp_path: Path) -> str:
-    """onnx:MODEL:CONFIG of a 1x1 convolution: class 1 (body) where 10 R - 5 G - 5 B > 1."""
+def _red_segmenter(tmp_path: Path, fixed: tuple[int, int] | None = None) -> str:
+    """onnx:MODEL:CONFIG of a 1x1 convolution: class 1 (body) where 10 R - 5 G - 5 B > 1
+    (``fixed``: the input's (H, W) fixed in the graph, not the config's)."""
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
@@ -1202,7 +1203,8 @@ def _red_segmenter(tmp_path: Path) -> str:
     b = np.array([1, 0], np.float32)
     graph = helper.make_graph(
         [helper.make_node("Conv", ["image", "w", "b"], ["logits"])], "red_seg",
-        [helper.make_tensor_value_info("image", TensorProto.FLOAT, ["N", 3, "H", "W"])],
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT,
+                                       ["N", 3, *(fixed or ("H", "W"))])],
         [helper.make_tensor_value_info("logits", TensorProto.FLOAT, ["N", 2, "H", "W"])],
         initializer=[numpy_helper.from_array(w, "w"), numpy_helper.from_array(b, "b")])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
@@ -1233,6 +1235,12 @@ def test_onnx_photo_segmenter_replaces_the_rendered_masks(photo, catalogue, tmp_
                  "--segmenter", "onnx:nowhere.onnx:x.json", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err
+    (tmp_path / "fixed").mkdir()                  # a model that refuses the config's input size
+    bad = _red_segmenter(tmp_path / "fixed", fixed=(16, 16))
+    assert main(["fit", str(path), "--box", *map(str, box), "--catalog", str(catalogue),
+                 "--mesh", m.sha256[:12], "--segmenter", bad, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "seg.onnx: the segmenter fails" in err, err
 
 
 def test_box_photos_are_posed_on_the_refined_object_mask(catalogue, tmp_path, monkeypatch):

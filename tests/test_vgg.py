@@ -13,9 +13,11 @@ import pytest
 from ucad_cl.colorimetry import delta_e2000, linear_to_lab
 
 
-def tiny_net(tmp_path: Path, *, config: dict | None = None, seed: int = 0) -> str:
+def tiny_net(tmp_path: Path, *, config: dict | None = None, seed: int = 0,
+             fixed: tuple[int, int] | None = None, flat: bool = False) -> str:
     """onnx:MODEL:CONFIG of two 3 x 3 convolutions with ReLU (8 channels, the second at stride
-    2), both feature maps as outputs ``f1`` and ``f2``; fixed random weights."""
+    2), both feature maps as outputs ``f1`` and ``f2``; fixed random weights. ``fixed``: the
+    input's (H, W) fixed in the graph; ``flat``: ``f2`` pooled to (N, 8) instead."""
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
@@ -28,12 +30,15 @@ def tiny_net(tmp_path: Path, *, config: dict | None = None, seed: int = 0) -> st
              helper.make_node("Relu", ["c1"], ["f1"]),
              helper.make_node("Conv", ["f1", "w2", "b2"], ["c2"], pads=[1, 1, 1, 1],
                               strides=[2, 2]),
-             helper.make_node("Relu", ["c2"], ["f2"])]
+             helper.make_node("Relu", ["c2"], ["r2" if flat else "f2"])]
+    if flat:
+        nodes += [helper.make_node("GlobalAveragePool", ["r2"], ["p2"]),
+                  helper.make_node("Flatten", ["p2"], ["f2"])]
+    dims = ["N", 3, *(fixed or ("H", "W"))]
     graph = helper.make_graph(
-        nodes, "tiny", [helper.make_tensor_value_info("x", TensorProto.FLOAT,
-                                                      ["N", 3, "H", "W"])],
-        [helper.make_tensor_value_info("f1", TensorProto.FLOAT, ["N", 8, "H", "W"]),
-         helper.make_tensor_value_info("f2", TensorProto.FLOAT, ["N", 8, "h", "w"])],
+        nodes, "tiny", [helper.make_tensor_value_info("x", TensorProto.FLOAT, dims)],
+        [helper.make_tensor_value_info("f1", TensorProto.FLOAT, None),
+         helper.make_tensor_value_info("f2", TensorProto.FLOAT, None)],
         initializer=[numpy_helper.from_array(a, n)
                      for a, n in ((w1, "w1"), (b1, "b1"), (w2, "w2"), (b2, "b2"))])
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
@@ -94,6 +99,14 @@ def test_onnx_features_contract_errors_name_the_file(tmp_path):
         OnnxFeatures(tmp_path / "junk.onnx", cfg)
     with pytest.raises(ValueError, match="onnx:MODEL:CONFIG"):
         OnnxFeatures.from_spec(f"onnx:{model}")
+    # checked when loaded, by one run on a blank image: an input size the graph refuses, an
+    # output that is no feature map
+    (tmp_path / "fixed").mkdir()
+    with pytest.raises(ValueError, match=r"tiny.onnx: the model fails on a \(1, 3, 64, 80\)"):
+        OnnxFeatures.from_spec(tiny_net(tmp_path / "fixed", fixed=(32, 32)))
+    (tmp_path / "flat").mkdir()
+    with pytest.raises(ValueError, match=r"output 'f2' must be \(N, C, h, w\)"):
+        OnnxFeatures.from_spec(tiny_net(tmp_path / "flat", flat=True))
 
 
 def _scene(rng, h=48, w=64):

@@ -64,7 +64,8 @@ MIN_POSITIONS = 16.0    # a part's mask weight at a layer under this: not in tha
 
 class OnnxFeatures:
     """A user ONNX feature extractor and its config (the module docstring); ValueError naming
-    the file for a config or model that does not fit the contract."""
+    the file for a config or model that does not fit the contract (the model is run once on a
+    blank image of ``input_size`` when loaded, so that a fit never meets that)."""
 
     def __init__(self, model_path: str | Path, config: str | Path | dict):
         self.model_path = Path(model_path)
@@ -104,6 +105,7 @@ class OnnxFeatures:
         self.layer_weights = np.asarray(lw, np.float64).ravel()
         if len(self.layer_weights) != len(self.outputs) or np.any(self.layer_weights < 0):
             raise ValueError(f"{where}: layer_weights needs {len(self.outputs)} values >= 0")
+        self.maps(np.zeros((1, *self.input_size, 3), np.float32))   # the contract, checked now
 
     @classmethod
     def from_spec(cls, spec: str) -> "OnnxFeatures":
@@ -121,7 +123,13 @@ class OnnxFeatures:
         x = np.ascontiguousarray(x.transpose(0, 3, 1, 2))
         runs = []
         for i in range(0, len(x), self.batch):
-            got = self.session.run(self.outputs, {self.input_name: x[i:i + self.batch]})
+            try:
+                got = self.session.run(self.outputs, {self.input_name: x[i:i + self.batch]})
+            except Exception as exc:  # noqa: BLE001 - onnxruntime's exception types are its own
+                why = " ".join(str(exc).split())[:200]          # onnxruntime's, on one line
+                raise ValueError(f"{self.model_path}: the model fails on a {x[i:i + 1].shape} "
+                                 f"input (input_size {list(self.input_size)}?): "
+                                 f"{type(exc).__name__}: {why}") from None
             for name, y in zip(self.outputs, got):
                 y = np.asarray(y)
                 if y.ndim != 4 or y.shape[0] != len(x[i:i + self.batch]) \
