@@ -85,6 +85,7 @@ def test_onnx_features_contract_errors_name_the_file(tmp_path):
     bad = tmp_path / "bad.json"
     for text, match in (('{"mean": [0, 0, 0]}', "input_size"), ("{not json", "not JSON"),
                         ('{"input_size": [64]}', "input_size"),
+                        ('{"input_size": [64, 100000]}', "input_size"),
                         ('{"input_size": [64, 80], "std": [0, 1, 1]}', "std"),
                         ('{"input_size": [64, 80], "outputs": ["relu9"]}', "relu9"),
                         ('{"input_size": [64, 80], "layer_weights": [1]}', "layer_weights")):

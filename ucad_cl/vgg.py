@@ -60,6 +60,7 @@ FD_STEP = 0.01          # forward-difference step on a linear base colour
 DAMPING = 1e-3          # initial damping, share of each diagonal term of the normal matrix
 BATCH = 8               # images a model run
 MIN_POSITIONS = 16.0    # a part's mask weight at a layer under this: not in that layer's term
+MAX_INPUT = 2048        # the longest input side a config may ask for, pixels
 
 
 class OnnxFeatures:
@@ -85,8 +86,9 @@ class OnnxFeatures:
             self.batch = int(config.get("batch", BATCH))
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{where}: {exc}") from None
-        if len(self.input_size) != 2 or min(self.input_size) < 8:
-            raise ValueError(f"{where}: input_size must be [H, W], each at least 8, got "
+        if len(self.input_size) != 2 or not 8 <= min(self.input_size) <= max(self.input_size) \
+                <= MAX_INPUT:
+            raise ValueError(f"{where}: input_size must be [H, W], each 8-{MAX_INPUT}, got "
                              f"{config['input_size']}")
         if not (np.all(self.std > 0) and np.all(np.isfinite(self.mean))
                 and self.weight >= 0 and self.batch >= 1):
