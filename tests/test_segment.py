@@ -208,6 +208,7 @@ def test_onnx_class_map_model_with_resize(tmp_path):
 
 def test_onnx_bad_config_and_output(tmp_path):
     import onnx
+    import onnxruntime as ort
     from onnx import TensorProto, helper
 
     graph = helper.make_graph(
@@ -224,6 +225,27 @@ def test_onnx_bad_config_and_output(tmp_path):
         OnnxSegmenter(tmp_path / "x.onnx", {"classes": CLASSES})
     with pytest.raises(FileNotFoundError, match="x.onnx"):
         OnnxSegmenter(tmp_path / "x.onnx", {"classes": CLASSES, "input_size": [8, 8]})
+    # a model fed an input size its graph refuses: one line naming the file (onnxruntime's
+    # own exception, several lines long, is not let through)
+    seg = OnnxSegmenter(build_onnx(tmp_path / "m.onnx", argmax=False),
+                        {"classes": CLASSES, "input_size": [16, 16]})
+    seg.session = ort.InferenceSession(str(_fixed_input(tmp_path / "m.onnx", tmp_path / "f.onnx",
+                                                        8)), providers=["CPUExecutionProvider"])
+    with pytest.raises(ValueError, match=r"m\.onnx: the segmenter \(input_size \[16, 16\]\) "
+                                         r"fails on a \(1, 3, 16, 16\) input") as exc:
+        seg.segment(flat_mesh(2), flat_views(np.ones((1, 16, 16), np.uint16)))
+    assert "\n" not in str(exc.value)
+
+
+def _fixed_input(src, dst, side: int):
+    """A copy of the ONNX model ``src`` whose input is fixed to (N, 3, side, side)."""
+    import onnx
+
+    model = onnx.load(str(src))
+    dims = model.graph.input[0].type.tensor_type.shape.dim
+    dims[2].dim_value, dims[3].dim_value = side, side
+    onnx.save(model, str(dst))
+    return dst
 
 
 # -- priors -------------------------------------------------------------------------------------

@@ -103,7 +103,8 @@ def test_onnx_features_contract_errors_name_the_file(tmp_path):
     # checked when loaded, by one run on a blank image: an input size the graph refuses, an
     # output that is no feature map
     (tmp_path / "fixed").mkdir()
-    with pytest.raises(ValueError, match=r"tiny.onnx: the model fails on a \(1, 3, 64, 80\)"):
+    with pytest.raises(ValueError, match=r"tiny.onnx: the model \(input_size \[64, 80\]\) "
+                                         r"fails on a \(1, 3, 64, 80\) input"):
         OnnxFeatures.from_spec(tiny_net(tmp_path / "fixed", fixed=(32, 32)))
     (tmp_path / "flat").mkdir()
     with pytest.raises(ValueError, match=r"output 'f2' must be \(N, C, h, w\)"):

@@ -104,7 +104,7 @@ from .foreground import (GrownPhoto, ObjectMask, PhotoWindow, box_stretch, check
                          mask_box, object_mask, past_the_edge, refine_with_silhouette)
 from .ingest import IngestError, MeshLoader
 from .jobs import content_sha256
-from .labeller import onnx_spec
+from .labeller import onnx_run, onnx_spec
 from .light import (LUMA, Lighting, Samples, balance, fit_light, neutral_gains,
                     plausible_cast, predict, shading)
 from .orient import in_frame
@@ -192,13 +192,8 @@ class OnnxPhotoSegmenter:
         h, w = m.input_size
         x = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
         x = np.ascontiguousarray(x.transpose(2, 0, 1)[None], np.float32) / np.float32(255)
-        try:
-            y = np.asarray(m.session.run(None, {m.input_name: x})[0])
-        except Exception as exc:  # noqa: BLE001 - onnxruntime's exception types are its own
-            why = " ".join(str(exc).split())[:200]              # onnxruntime's, on one line
-            raise ValueError(f"{m.model_path}: the segmenter fails on a {x.shape} input "
-                             f"(input_size {list(m.input_size)}?): {type(exc).__name__}: "
-                             f"{why}") from None
+        y = np.asarray(onnx_run(m.session, m.model_path, None, {m.input_name: x},
+                                f"the segmenter (input_size {list(m.input_size)})")[0])
         if y.ndim == 4 and np.issubdtype(y.dtype, np.floating):
             cls = y[0].argmax(axis=0)
         elif y.ndim == 3 and np.issubdtype(y.dtype, np.integer):

@@ -249,6 +249,19 @@ def onnx_spec(spec: str) -> tuple[str, str]:
     return model, config
 
 
+def onnx_run(session, path: Path, outputs, feeds: dict, what: str = "the model") -> list:
+    """``session.run(outputs, feeds)``; ValueError naming the file, on one line, when
+    onnxruntime fails (its own exception types, with multi-line messages: e.g. a graph whose
+    fixed input size is not the one fed)."""
+    try:
+        return session.run(outputs, feeds)
+    except Exception as exc:  # noqa: BLE001 - onnxruntime's exception types are its own
+        why = " ".join(str(exc).split())[:200]
+        shapes = ", ".join(str(tuple(v.shape)) for v in feeds.values())
+        raise ValueError(f"{path}: {what} fails on a {shapes} input: {type(exc).__name__}: "
+                         f"{why}") from None
+
+
 def onnx_session(path: Path, options=None):
     """An onnxruntime CPU session of the model at ``path``; ValueError naming the file when
     onnxruntime cannot load it (its own errors, e.g. ``InvalidProtobuf`` for a file that is no

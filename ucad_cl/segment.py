@@ -44,7 +44,7 @@ from typing import Protocol
 import numpy as np
 
 from .artifacts import PART_NAMES, Mesh, PartMasks, ViewSet
-from .labeller import MODEL_PATH, LabellerModel, label_materials, onnx_session
+from .labeller import MODEL_PATH, LabellerModel, label_materials, onnx_run, onnx_session
 from .names import name_prior
 from .runtime import Runtime
 from .system import IsolatedCallFailed, call_isolated
@@ -250,7 +250,8 @@ class OnnxSegmenter:
             x = np.stack([cv2.resize(im, (w, h), interpolation=cv2.INTER_NEAREST)
                           for im in rgb[v0:v0 + self.batch]])
             x = np.ascontiguousarray(x.transpose(0, 3, 1, 2), np.float32) / np.float32(255)
-            y = np.asarray(self.session.run(None, {self.input_name: x})[0])
+            y = np.asarray(onnx_run(self.session, self.model_path, None, {self.input_name: x},
+                                    f"the segmenter (input_size {list(self.input_size)})")[0])
             n = x.shape[0]
             if y.ndim == 3 and np.issubdtype(y.dtype, np.integer):
                 cls, prob = y.astype(np.int64), None

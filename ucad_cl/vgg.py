@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from .colorimetry import linear_to_srgb
-from .labeller import onnx_session, onnx_spec
+from .labeller import onnx_run, onnx_session, onnx_spec
 from .light import STAT_WEIGHT, LightFit, Samples, objective, shading
 
 VGG_WEIGHT = 1.0        # w of l_vgg against l_rgb (1) and l_stat (0.1): the paper's weights
@@ -125,13 +125,9 @@ class OnnxFeatures:
         x = np.ascontiguousarray(x.transpose(0, 3, 1, 2))
         runs = []
         for i in range(0, len(x), self.batch):
-            try:
-                got = self.session.run(self.outputs, {self.input_name: x[i:i + self.batch]})
-            except Exception as exc:  # noqa: BLE001 - onnxruntime's exception types are its own
-                why = " ".join(str(exc).split())[:200]          # onnxruntime's, on one line
-                raise ValueError(f"{self.model_path}: the model fails on a {x[i:i + 1].shape} "
-                                 f"input (input_size {list(self.input_size)}?): "
-                                 f"{type(exc).__name__}: {why}") from None
+            got = onnx_run(self.session, self.model_path, self.outputs,
+                           {self.input_name: x[i:i + self.batch]},
+                           f"the model (input_size {list(self.input_size)})")
             for name, y in zip(self.outputs, got):
                 y = np.asarray(y)
                 if y.ndim != 4 or y.shape[0] != len(x[i:i + self.batch]) \
