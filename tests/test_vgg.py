@@ -187,12 +187,12 @@ def test_gauss_newton_gradient_is_half_the_objectives_numerical_gradient():
     """J^T r of l_rgb + 0.1 l_stat (``vgg._BaseTerm``, from per-part sums) is half the gradient
     of ``light.objective`` (computed pixel by pixel) by central differences, at several
     colours, with a coated, a matte and a metal part, reflection folded on one."""
-    from ucad_cl.light import objective
+    from ucad_cl.light import objective, shading
     from ucad_cl.vgg import _BaseTerm
 
     s, _, _, truth, light = _scene(np.random.default_rng(5))
     light.coat_scale = np.array([0.0, 1.0, 1.0])
-    term = _BaseTerm(s, light, 3, np.arange(3))
+    term = _BaseTerm(s, *shading(s, light), np.arange(3))
     for a in (truth, truth * 1.3, truth * np.array([0.5, 1.0, 2.0])):
         jtj, jtr = term.normal(a)
         num = np.zeros(9)

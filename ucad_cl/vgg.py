@@ -191,19 +191,18 @@ def refine_colours(features: OnnxFeatures, photo: np.ndarray, samples: Samples,
     ``samples`` the fitted pixels at ``pixels`` (rows, columns) of it, in order (their parts
     index ``fit.albedo``); l_rgb and l_stat over the pixels ``fit.kept``, as ``fit_light``."""
     t0 = time.perf_counter()
-    term = _GramTerm(features, photo, samples, pixels, fit)
+    B, C = shading(samples, fit.lighting)              # the model's pixels: a[part] B + C
+    term = _GramTerm(features, photo, samples, B, C, pixels, len(fit.albedo))
     a = np.array(fit.albedo, np.float64)
     free = np.flatnonzero(np.isfinite(a).all(axis=1))          # parts with kept pixels
-    kept = samples.take(np.flatnonzero(fit.kept))
+    idx = np.flatnonzero(fit.kept)
+    kept = samples.take(idx)
     P = len(a)
-
-    def total(colours, vgg_value):
-        return objective(kept, fit.lighting, colours, P) + features.weight * vgg_value
-
-    base = _BaseTerm(kept, fit.lighting, P, free)
+    base = _BaseTerm(kept, B[idx], C[idx], free)
     v0, g0 = term.value(a)
-    loss0 = total(a, v0)
-    best, best_v, best_l = a, v0, loss0
+    base0 = objective(kept, fit.lighting, a, P)
+    loss0 = base0 + features.weight * v0
+    best, best_v, best_l, best_base = a, v0, loss0, base0
     lam, jacobians, trials = DAMPING, 0, 0
     while jacobians < ITERATIONS and trials < TRIALS and free.size:
         jtj, jtr = base.normal(best)
@@ -218,16 +217,17 @@ def refine_colours(features: OnnxFeatures, photo: np.ndarray, samples: Samples,
             cand = best.copy()
             cand[free] = np.maximum(best[free] + step.reshape(-1, 3), 0.0)
             v, g = term.value(cand)
-            lc = total(cand, v)
+            lb = objective(kept, fit.lighting, cand, P)
+            lc = lb + features.weight * v
             if lc < best_l:
-                best, best_v, best_l, g0 = cand, v, lc, g
+                best, best_v, best_l, best_base, g0 = cand, v, lc, lb, g
                 lam /= 4.0
                 moved = True
                 break
             lam *= 4.0
         if not moved:
             break
-    out = replace(fit, albedo=best, loss=float(objective(kept, fit.lighting, best, P)))
+    out = replace(fit, albedo=best, loss=float(best_base))
     info = VggFit(model=features.name, weight=features.weight, loss_before=float(loss0),
                   loss_after=float(best_l), vgg_before=float(v0), vgg_after=float(best_v),
                   jacobians=jacobians, images=term.images, seconds=time.perf_counter() - t0)
@@ -238,10 +238,9 @@ class _BaseTerm:
     """Gauss-Newton normal matrix (diagonal) and J^T r of l_rgb + 0.1 l_stat in the colours of
     the parts ``free`` (rows (part, channel), part-major), exact: the model is linear in each
     colour and the terms are separable per part and channel, so per-part sums of the pixels'
-    B, C and y (``light.shading``) taken once give them at any colours."""
+    B, C (``light.shading`` of ``kept``) and y taken once give them at any colours."""
 
-    def __init__(self, kept: Samples, light, P: int, free: np.ndarray):
-        B, C = shading(kept, light)
+    def __init__(self, kept: Samples, B: np.ndarray, C: np.ndarray, free: np.ndarray):
         y, part = kept.rgb, kept.part
         self.free, self.N = free, float(len(part))
         rows = []
@@ -271,14 +270,13 @@ class _BaseTerm:
 class _GramTerm:
     """l_vgg of base colours: the photo's Grams once, a render's per call (module docstring)."""
 
-    def __init__(self, features: OnnxFeatures, photo, samples: Samples, pixels, fit: LightFit):
+    def __init__(self, features: OnnxFeatures, photo, samples: Samples, B: np.ndarray,
+                 C: np.ndarray, pixels, P: int):
         import cv2
 
-        self.f, self.part = features, samples.part
-        self.B, self.C = shading(samples, fit.lighting)          # the model: a[part] B + C
+        self.f, self.part, self.B, self.C = features, samples.part, B, C
         self.rows, self.cols = pixels
         self.photo = np.asarray(photo, np.float64) / 255.0
-        P = len(fit.albedo)
         h, w = self.photo.shape[:2]
         part_masks = np.zeros((P, h, w), np.float32)
         part_masks[samples.part, self.rows, self.cols] = 1.0
