@@ -94,6 +94,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -260,6 +261,16 @@ def onnx_run(session, path: Path, outputs, feeds: dict, what: str = "the model")
         shapes = ", ".join(str(tuple(v.shape)) for v in feeds.values())
         raise ValueError(f"{path}: {what} fails on a {shapes} input: {type(exc).__name__}: "
                          f"{why}") from None
+
+
+def open_onnx(model_path: str | Path) -> tuple[Path, Any, str]:
+    """(path, CPU session, input name) of a user's ONNX model: FileNotFoundError when the file
+    is missing, ValueError naming it when onnxruntime cannot load it (``onnx_session``)."""
+    path = Path(model_path)
+    if not path.exists():
+        raise FileNotFoundError(f"ONNX model {path} does not exist")
+    session = onnx_session(path)
+    return path, session, session.get_inputs()[0].name
 
 
 def onnx_session(path: Path, options=None):

@@ -44,7 +44,7 @@ from typing import Protocol
 import numpy as np
 
 from .artifacts import PART_NAMES, Mesh, PartMasks, ViewSet
-from .labeller import MODEL_PATH, LabellerModel, label_materials, onnx_run, onnx_session
+from .labeller import MODEL_PATH, LabellerModel, label_materials, onnx_run, open_onnx
 from .names import name_prior
 from .runtime import Runtime
 from .system import IsolatedCallFailed, call_isolated
@@ -231,11 +231,7 @@ class OnnxSegmenter:
         if len(self.input_size) != 2 or min(self.input_size) < 1:
             raise ValueError(f"input_size must be [H, W] > 0, got {config['input_size']}")
         self.batch = int(config.get("batch", 8))
-        self.model_path = Path(model_path)
-        if not self.model_path.exists():
-            raise FileNotFoundError(f"ONNX model {self.model_path} does not exist")
-        self.session = onnx_session(self.model_path)
-        self.input_name = self.session.get_inputs()[0].name
+        self.model_path, self.session, self.input_name = open_onnx(model_path)
 
     def segment(self, mesh: Mesh, views: ViewSet) -> PartMasks:
         import cv2

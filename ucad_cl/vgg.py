@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from .colorimetry import linear_to_srgb
-from .labeller import onnx_run, onnx_session, onnx_spec
+from .labeller import onnx_run, onnx_spec, open_onnx
 from .light import STAT_WEIGHT, LightFit, Samples, objective, shading
 
 VGG_WEIGHT = 1.0        # w of l_vgg against l_rgb (1) and l_stat (0.1): the paper's weights
@@ -93,10 +93,7 @@ class OnnxFeatures:
         if not (np.all(self.std > 0) and np.all(np.isfinite(self.mean))
                 and self.weight >= 0 and self.batch >= 1):
             raise ValueError(f"{where}: std must be > 0, weight >= 0, batch >= 1")
-        if not self.model_path.exists():
-            raise FileNotFoundError(f"ONNX model {self.model_path} does not exist")
-        self.session = onnx_session(self.model_path)
-        self.input_name = self.session.get_inputs()[0].name
+        self.model_path, self.session, self.input_name = open_onnx(self.model_path)
         names = [o.name for o in self.session.get_outputs()]
         self.outputs = [str(n) for n in config.get("outputs", names)]
         missing = [n for n in self.outputs if n not in names]
