@@ -280,3 +280,44 @@ def test_program_binaries_cached_on_disk(runtime, tmp_path, monkeypatch):
     for k in range(3):
         runtime.build_source(f"{SUM_KERNEL}\n// variant {k}")
     assert len(list(folder.glob("*.bin"))) == 2
+
+
+def test_a_successful_build_says_nothing(runtime, tmp_path, monkeypatch):
+    """pyopencl warns (``CompilerWarning``) at every build whose log is not empty, and Debian's
+    PoCL for 'haswell' logs ABI notes at every build of our programs, so every ``ucad-index``
+    call printed two lines of it: a build that succeeds leaves no warning for the user, from
+    source and from the cached binary; with pyopencl's ``PYOPENCL_COMPILER_OUTPUT`` set the
+    log is shown as pyopencl shows it; a program that does not build still raises. (Device logs
+    are not reliable enough to test on: the build here warns as pyopencl does for a log.)"""
+    import warnings
+
+    import pyopencl as cl
+
+    real = cl.Program
+
+    class Noisy:
+        def __init__(self, *args):
+            self.prg = real(*args)
+
+        def build(self, **kw):
+            built = self.prg.build(**kw)
+            warnings.warn("From-source build succeeded, but resulted in non-empty logs",
+                          cl.CompilerWarning, stacklevel=2)
+            return built
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.delenv("PYOPENCL_COMPILER_OUTPUT", raising=False)
+    monkeypatch.setattr(cl, "Program", Noisy)
+    for _ in range(2):                                  # from source, then from the binary
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            _run_add(runtime, runtime.build_source(SUM_KERNEL + "// noisy"))
+        assert not [w for w in seen if issubclass(w.category, cl.CompilerWarning)]
+    monkeypatch.setenv("PYOPENCL_COMPILER_OUTPUT", "1")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        runtime.build_source(SUM_KERNEL + "// noisy")
+    assert [w for w in seen if issubclass(w.category, cl.CompilerWarning)]
+    monkeypatch.setattr(cl, "Program", real)
+    with pytest.raises(cl.Error):
+        runtime.build_source(SUM_KERNEL + "\nkernel void broken(void) { undeclared = 1; }\n")

@@ -35,12 +35,14 @@ must be set before the first OpenCL call in the process.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import re
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -273,10 +275,12 @@ def _build_cached(ctx, device, source: str, options: list[str]):
     try:
         blob = path.read_bytes()
         if len(blob) > 32 and hashlib.sha256(blob[32:]).digest() == blob[:32]:
-            return cl.Program(ctx, [device], [blob[32:]]).build(options=options)
+            with _quiet_build():
+                return cl.Program(ctx, [device], [blob[32:]]).build(options=options)
     except (OSError, cl.Error):
         pass                                    # absent, unreadable or refused: from source
-    prg = cl.Program(ctx, source).build(options=options)
+    with _quiet_build():
+        prg = cl.Program(ctx, source).build(options=options)
     try:
         binary = bytes(prg.get_info(cl.program_info.BINARIES)[0])
     except cl.Error:
@@ -284,6 +288,24 @@ def _build_cached(ctx, device, source: str, options: list[str]):
     if binary and _cache_write(path, hashlib.sha256(binary).digest() + binary):
         _prune(path.parent, PROGRAM_CACHE_FILES)
     return prg
+
+
+@contextlib.contextmanager
+def _quiet_build():
+    """Where a build succeeds, its compiler log is not the user's concern: pyopencl warns
+    (``CompilerWarning``, two lines on stderr) at every build whose log is not empty, and
+    Debian's PoCL 3.1 compiling for 'haswell' on a CPU whose AVX-512 is hidden logs ABI notes
+    on our 16-wide vector types at every build, from the binary too, so every ``ucad-index``
+    call printed them. Silenced unless ``PYOPENCL_COMPILER_OUTPUT`` is set (pyopencl's own
+    switch, which then shows the whole log); a failed build still raises with its log. (The
+    warnings filter is process-wide: a warning of another thread during a build is silenced
+    too, which only ever drops this category.)"""
+    import pyopencl as cl
+
+    with warnings.catch_warnings():
+        if not os.environ.get("PYOPENCL_COMPILER_OUTPUT"):
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+        yield
 
 
 def _cache_write(path: Path, data: bytes) -> bool:
