@@ -268,7 +268,7 @@ def test_crowding_is_the_mean_cosine_of_the_nearest_rows_of_other_meshes(built, 
     built catalogue's index (3 meshes, 16 views: fewer peers than CROWD_K) and over random
     rows: 30 meshes of 4 views (more peers than CROWD_K), a mesh on another ring (its rows
     have no peers: they get the mean of the others), a mesh whose cameras are unknown (the
-    same), an azimuth written as 360 + a; with CROWD_SAMPLE = 7 the peers are every
+    same), an azimuth written as 360 + a, an elevation below 0; with CROWD_SAMPLE = 7 the peers are every
     ceil(n / 7)-th row of the camera; the rows read a few cameras at a time give the same
     bytes as all at once; none with peers: zeros."""
     from ucad_catalog import searchindex as si
@@ -285,7 +285,7 @@ def test_crowding_is_the_mean_cosine_of_the_nearest_rows_of_other_meshes(built, 
     rng = np.random.default_rng(3)
     base = rng.random((4, 40))
     rows = [np.abs(base + rng.normal(0, 0.3, (4, 40))).astype(np.float32) for _ in range(30)]
-    ring = [(0.0, 10.0), (90.0, 10.0), (180.0, 10.0), (270.0, 10.0)]
+    ring = [(0.0, 10.0), (90.0, -10.0), (180.0, 10.0), (270.0, 10.0)]
     cameras: list = [ring] * 28 + [[(45.0, 5.0)] * 4, None]
     cameras[5] = [(360.0, 10.0)] + ring[1:]
     read = lambda k, views: rows[k][views]                     # noqa: E731
