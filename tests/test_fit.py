@@ -39,25 +39,6 @@ def _mesh(cat, k):
     return m, in_frame(load_mesh(m.source, orientation=None), m.file_to_norm), rows
 
 
-def _crowding_reference(r, t) -> np.ndarray:
-    """(N,) float64: each stored row's crowding less the mean over all rows, brute force from
-    the stored features and view angles: the mean cosine of its ``CROWD_K`` nearest rows of
-    other meshes with the same azimuth and elevation (what retrieval adds, x CROWDING_WEIGHT,
-    to each row's distance; ``ucad_catalog.searchindex.crowding``)."""
-    from ucad_catalog.searchindex import CROWD_K
-
-    x = np.asarray(t.feats, np.float64)
-    x = x / np.linalg.norm(x, axis=1, keepdims=True)
-    cams = [(round(v.azimuth, 3), round(v.elevation, 3)) for m in t.meshes
-            for v in r.view_angles(m.sha256)]
-    assert len(cams) == len(x)
-    out = np.empty(len(x))
-    for i in range(len(x)):
-        peers = [j for j in range(len(x)) if cams[j] == cams[i] and t.mesh[j] != t.mesh[i]]
-        out[i] = np.mean(sorted(x[peers] @ x[i])[-CROWD_K:])
-    return out - out.mean()
-
-
 def _neutral_light():
     from ucad_cl.refphoto import RefLight
     return RefLight(sky_zenith=(0.35, 0.35, 0.35), sky_horizon=(0.4, 0.4, 0.4),
@@ -437,39 +418,6 @@ def test_retrieval_leaves_out_a_mesh_without_features_with_a_note(catalogue, tmp
     assert any(f"left out of retrieval, e.g. {gone[:12]}" in n for n in res.notes), res.notes
 
 
-def test_crowded_rows_lose_retrieval(catalogue, tmp_path):
-    """Retrieval adds CROWDING_WEIGHT x (a row's crowding - the mean over all rows) to each
-    stored row's distance (CSLS against hubs; the index's ``crowding``): a photo of mesh 3 is
-    found; with the
-    crowding of mesh 3's rows raised by 0.5 (a crowd of look-alikes around it) another mesh
-    wins; a catalogue without a fresh index is searched without the term, and a note says so."""
-    import shutil
-
-    import ucad_cl.fit as fit
-    from ucad_catalog.reader import CatalogReader
-    from ucad_cl.refphoto import render_reference
-
-    m, mesh, rows = _mesh(catalogue, 3)
-    ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=50.0, elevation=12.0,
-                           seed=4, background="plain")
-    with CatalogReader(catalogue) as r:
-        first = fit.fit_photo(ref.image, mask=ref.mask, catalog=r)
-        idx = r.search_index()[0]
-        assert idx is not None and first.mesh_id == m.sha256
-        k = [x.sha256 for x in idx.meshes].index(m.sha256)
-        crowd = idx.crowding.astype(np.float64).copy()
-        crowd[idx.mesh == k] += 0.5
-        idx.crowding = crowd.astype(np.float32)
-        moved = fit.fit_photo(ref.image, mask=ref.mask, catalog=r)
-    assert moved.mesh_id != m.sha256
-    assert not [n for n in first.notes + moved.notes if "crowding" in n]
-    plain = tmp_path / "plain"
-    shutil.copytree(catalogue, plain)
-    (plain / "search_index.npz").unlink()
-    res = fit.fit_photo(ref.image, mask=ref.mask, catalog=plain)
-    assert any("retrieval ran without its crowding term" in n for n in res.notes), res.notes
-
-
 def test_retrieval_through_the_search_index_keeps_the_answer(catalogue, tmp_path, monkeypatch):
     """With the build's search index (used from INDEX_FROM rows: here from 0), retrieval
     ranks the INDEX_ROWS rows nearest in its projection (24 of the 60 here) read in full: the
@@ -489,7 +437,6 @@ def test_retrieval_through_the_search_index_keeps_the_answer(catalogue, tmp_path
     ref = render_reference(mesh, [r.part for r in rows], COLORS, azimuth=50.0, elevation=12.0,
                            seed=4, background="plain")
     monkeypatch.setattr(fit, "INDEX_FROM", 0)          # the index even for 60 rows
-    monkeypatch.setattr(fit, "CROWDING_WEIGHT", 0.0)   # (a catalogue without index has none)
     with CatalogReader(plain) as r:
         assert r.search_index()[1].startswith("no search index")
         every = fit.fit_photo(ref.image, mask=ref.mask, catalog=r)
@@ -619,8 +566,7 @@ def test_prefilter_passes_the_meshes_nearest_by_hog_and_edges(catalogue, monkeyp
         edges = photo_edges(ref.image, ref.mask)
         with CatalogReader(catalogue) as r:
             t = r.feature_table()
-            d = (2.0 - 2.0 * unit_rows(np.asarray(t.feats, np.float64))[0] @ q
-                 + fit.CROWDING_WEIGHT * _crowding_reference(r, t))
+            d = 2.0 - 2.0 * unit_rows(np.asarray(t.feats, np.float64))[0] @ q
             best = {}                                  # mesh -> (d, row) of its best row
             for row in np.lexsort((np.arange(len(d)), d)):
                 best.setdefault(int(t.mesh[row]), (float(d[row]), int(row)))

@@ -245,94 +245,6 @@ def test_feature_table_stacks_every_accepted_mesh_once(built, tmp_path):
     assert np.array_equal(t3.feats, want[1])
 
 
-def _crowding_brute(rows: list[np.ndarray], cameras, k: int) -> np.ndarray:
-    """Each row's mean cosine (float64) to its ``k`` nearest rows of other meshes with the same
-    camera; NaN where it has none (the reference of ``searchindex.crowding`` before filling)."""
-    x = np.concatenate(rows).astype(np.float64)
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    mesh = np.concatenate([np.full(len(r), i) for i, r in enumerate(rows)])
-    cams = [c if c is None else (c[0] % 360.0, c[1]) for i, r in enumerate(rows)
-            for c in (cameras[i] if cameras[i] is not None else [None] * len(r))]
-    out = np.full(len(x), np.nan)
-    for i in range(len(x)):
-        peers = [j for j in range(len(x)) if cams[i] is not None and cams[j] is not None
-                 and np.allclose(cams[j], cams[i], atol=1e-4) and mesh[j] != mesh[i]]
-        if peers:
-            out[i] = np.mean(sorted(x[peers] @ x[i])[-k:])
-    return out
-
-
-def test_crowding_is_the_mean_cosine_of_the_nearest_rows_of_other_meshes(built, monkeypatch):
-    """``searchindex.crowding`` against a brute-force reference (float64): per row, the mean
-    cosine of its CROWD_K nearest rows of other meshes seen from the same camera. Over the
-    built catalogue's index (3 meshes, 16 views: fewer peers than CROWD_K) and over random
-    rows: 30 meshes of 4 views (more peers than CROWD_K), a mesh on another ring (its rows
-    have no peers: they get the mean of the others), a mesh whose cameras are unknown (the
-    same), an azimuth written as 360 + a, an elevation below 0; with CROWD_SAMPLE = 7 the peers are every
-    ceil(n / 7)-th row of the camera; the rows read a few cameras at a time give the same
-    bytes as all at once; none with peers: zeros."""
-    from ucad_catalog import searchindex as si
-
-    _, cat, _ = built
-    with CatalogReader(cat) as r:
-        t = r.feature_table()
-        idx, _ = r.search_index()
-        cams = [[(v.azimuth, v.elevation) for v in r.view_angles(m.sha256)] for m in t.meshes]
-    ref = _crowding_brute([t.rows_of(k) for k in range(len(t.meshes))], cams, si.CROWD_K)
-    assert idx.crowding.dtype == np.float32 and np.isfinite(ref).all()
-    assert np.allclose(idx.crowding, ref, rtol=0, atol=2e-6)
-
-    rng = np.random.default_rng(3)
-    base = rng.random((4, 40))
-    rows = [np.abs(base + rng.normal(0, 0.3, (4, 40))).astype(np.float32) for _ in range(30)]
-    ring = [(0.0, 10.0), (90.0, -10.0), (180.0, 10.0), (270.0, 10.0)]
-    cameras: list = [ring] * 28 + [[(45.0, 5.0)] * 4, None]
-    cameras[5] = [(360.0, 10.0)] + ring[1:]
-    read = lambda k, views: rows[k][views]                     # noqa: E731
-    got = si.crowding(read, [4] * 30, cameras)
-    want = _crowding_brute(rows, cameras, si.CROWD_K)
-    lone = np.isnan(want)
-    assert lone.sum() == 8 and np.allclose(got[~lone], want[~lone], rtol=0, atol=2e-6)
-    assert np.allclose(got[lone], want[~lone].mean(), rtol=0, atol=2e-6)
-    monkeypatch.setattr(si, "CROWD_BYTES", 3 * 28 * si.ROW_BYTES_GUESS)    # a camera or two
-    assert si.crowding(read, [4] * 30, cameras).tobytes() == got.tobytes()
-    monkeypatch.setattr(si, "CROWD_SAMPLE", 7)                  # 28 rows a camera: every 4th
-    sampled = si.crowding(read, [4] * 30, cameras)
-    x = [r / np.linalg.norm(r.astype(np.float64), axis=1, keepdims=True) for r in rows]
-    for k, v in ((0, 1), (13, 2), (27, 3)):
-        peers = [x[j][v] for j in range(0, 28, 4) if j != k]
-        assert abs(sampled[4 * k + v] - np.mean(sorted(np.array(peers) @ x[k][v])[-si.CROWD_K:])
-                   ) < 2e-6
-    assert not si.crowding(read, [4] * 2, [None, None]).any()
-
-
-def test_an_index_of_another_format_is_stale_and_written_anew(built, tmp_path, monkeypatch,
-                                                             capsys):
-    """The index's key hashes its format (``_db.INDEX_FORMAT``) with the feature key: an index
-    an older version wrote (format 1: no crowding) is stale, not used (it would lack rows'
-    crowding), and the writer replaces it though no mesh changed."""
-    import shutil
-
-    from ucad_catalog import _db, searchindex
-
-    copy = tmp_path / "cat"
-    shutil.copytree(built[1], copy)
-    (copy / "search_index.npz").unlink()
-    monkeypatch.setattr(_db, "INDEX_FORMAT", 1)
-    assert searchindex.main([str(copy), "--no-fsync"]) == 0
-    with CatalogReader(copy) as r:
-        assert r.search_index()[0] is not None and r.status()["search_index"] == "fresh"
-    monkeypatch.undo()
-    with CatalogReader(copy) as r:
-        assert r.search_index()[1].startswith("the search index is stale")
-        assert r.status()["search_index"] == "stale"
-    capsys.readouterr()
-    assert searchindex.main([str(copy), "--no-fsync"]) == 0
-    assert capsys.readouterr().out.startswith("search index: 48 rows of 3 meshes")
-    with CatalogReader(copy) as r:
-        assert r.search_index()[0] is not None
-
-
 def test_search_index_projects_every_row_and_goes_stale(built, tmp_path, capsys):
     """The build's ``search_index.npz``: the projections are (row - mean) @ axes of every stored
     row, the axes an orthonormal basis of the fitting rows' top principal subspace (their
@@ -388,7 +300,7 @@ def test_search_index_projects_every_row_and_goes_stale(built, tmp_path, capsys)
         con.execute("DELETE FROM meshes WHERE sha256=?", (t.meshes[0].sha256,))
     with CatalogReader(copy) as r:
         assert r.search_index() == (None, "the search index is stale (meshes changed since "
-                                          "it was written, or an older version wrote it)")
+                                          "it was written)")
         assert r.status()["search_index"] == "stale"
     killed = copy / ".tmp-search_index.npz.99999.deadbeef"      # a killed writer's file
     killed.write_bytes(b"partial")

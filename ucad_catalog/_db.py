@@ -36,7 +36,6 @@ DB_NAME = "catalog.sqlite"
 OBJECTS_DIR = "objects"
 LOCK_NAME = "write.lock"
 SEARCH_INDEX = "search_index.npz"   # derived: projected features for retrieval (searchindex.py)
-INDEX_FORMAT = 2     # the search index's contents: 2 added each row's crowding (searchindex.py)
 INDEX_UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)  # np.load of a bad .npz
 
 
@@ -228,23 +227,8 @@ def feature_key(conn: sqlite3.Connection) -> tuple[tuple[str, str | None], ...]:
 
 
 def feature_key_hash(key) -> str:
-    """sha256 (hex) of a feature key: [(mesh sha256, features object sha256 or None)], with the
-    search index's format (``INDEX_FORMAT``): an index another format wrote is stale."""
-    return hashlib.sha256(canonical_json([INDEX_FORMAT, [list(p) for p in key]]).encode()
-                          ).hexdigest()
-
-
-def view_cameras(conn: sqlite3.Connection) -> dict[str, list[tuple[float, float]]]:
-    """sha256 -> [(azimuth, elevation)] in degrees of each accepted mesh's stored views, in
-    view order (the cameras the rows of its ``features.npy`` were computed from)."""
-    out: dict[str, list[tuple[float, float]]] = {}
-    for sha, view, az, el in conn.execute(
-            "SELECT m.sha256, v.view, v.azimuth, v.elevation FROM views v JOIN meshes m ON "
-            "m.id=v.mesh_id WHERE m.state='accepted' ORDER BY m.sha256, v.view"):
-        cams = out.setdefault(sha, [])
-        if view == len(cams):                   # (views 0, 1, ...; a gap ends the list)
-            cams.append((float(az), float(el)))
-    return out
+    """sha256 (hex) of a feature key: [(mesh sha256, features object sha256 or None)]."""
+    return hashlib.sha256(canonical_json([list(p) for p in key]).encode()).hexdigest()
 
 
 def feature_objects(root: Path, key) -> tuple[list[tuple[str, Path, tuple[int, ...], bool]],

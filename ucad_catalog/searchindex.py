@@ -12,16 +12,14 @@ full (``SearchIndex.rows``) for the exact ranking that follows.
 **Contents** (``np.savez``, no pickle): ``key`` (the feature key's sha256, ``feature_key_hash``),
 ``mean`` (D,) and ``axes`` (D, DIMS) float64 (``fit_pca`` of every ``FIT_STRIDE``-th row of
 each mesh, sparser beyond ``FIT_ROWS`` rows),
-``proj`` (N, DIMS) float32 = (row - mean) @ axes of every row, ``crowding`` (N,) float32
-(``crowding``: how near each row's nearest rows of other meshes lie, for retrieval's
-hubness correction), ``counts`` (M,) int64: rows of
+``proj`` (N, DIMS) float32 = (row - mean) @ axes of every row, ``counts`` (M,) int64: rows of
 each mesh of the key that has features, in key order (``MESH_ORDER``), ``meshes`` (M,) their
 sha256, ``skipped``: JSON of [(sha256, why)] of the accepted meshes left out (no or unreadable
 features).
 
 **Freshness.** The feature key is the list of (accepted mesh, its ``features.npy`` object or
 None) in ``MESH_ORDER``; the index is fresh iff its ``key`` is the hash of the catalogue's key
-now and of this code's ``INDEX_FORMAT`` (an index of an older format is stale). A stale, missing or unreadable index is not used: retrieval then reads every row, as
+now. A stale, missing or unreadable index is not used: retrieval then reads every row, as
 without one. ``ucad-index build`` writes it at the end of each run, in a process of its own
 (``main``; atomically: temporary file, fsync, rename), so deleting it loses nothing; ``gc`` and
 ``verify`` do not look at it.
@@ -39,13 +37,13 @@ import sqlite3
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ._db import (INDEX_UNREADABLE, SEARCH_INDEX, TMP_PREFIX, CatalogError, check_catalog_db,
                   feature_key, feature_key_hash, feature_objects, locate_db, npy_header,
-                  open_search_index, search_index_key, view_cameras, will_need)
+                  open_search_index, search_index_key, will_need)
 
 if TYPE_CHECKING:
     from .reader import MeshInfo
@@ -57,12 +55,6 @@ FIT_ROWS = 16384   # ... at most about this many in all (memory: FIT_ROWS x D x 
 INDEX_CHUNK = 1024  # rows per float64 block of the index's covariance (~15 MB a block)
 IOV_RUN = 1024          # rows one preadv reads at most (Linux's IOV_MAX)
 PREFETCH_MESHES = 256   # objects whose rows are asked for together (_advise) before reading
-CROWD_K = 10            # crowding: the mean cosine of a row's CROWD_K nearest rows of other
-#                         meshes seen from the same camera ...
-CROWD_SAMPLE = 2048     # ... among at most this many of that camera's rows (every n-th)
-CROWD_CHUNK = 1024      # rows whose cosines are taken in one product (~8 MB)
-CROWD_BYTES = 256 << 20  # rows read at a time for it (cameras a few at a time) ...
-ROW_BYTES_GUESS = 1764 * 4   # ... counted at the HOG row's size (D = 1,764 float32)
 
 
 def fit_pca(x: np.ndarray, dims: int, chunk: int) -> tuple[np.ndarray, np.ndarray]:
@@ -87,96 +79,6 @@ def fit_pca(x: np.ndarray, dims: int, chunk: int) -> tuple[np.ndarray, np.ndarra
     return mean, np.ascontiguousarray(axes)
 
 
-def crowding(read: Callable[[int, list[int]], np.ndarray], counts: list[int],
-             cameras: list[list[tuple[float, float]] | None]) -> np.ndarray:
-    """(N,) float32: the crowding of every stored row, meshes in order (``counts[k]`` rows of
-    mesh k; ``read(k, views)``: those rows of mesh k, (len(views), D)). A row's crowding
-    is the mean cosine of its ``CROWD_K`` nearest rows (cosine of the HOG rows made unit) among
-    the rows of *other* meshes seen from the same camera (``cameras[k][v]``, (azimuth,
-    elevation) in degrees, equal to 1e-3 deg; every mesh of a catalogue is stored in the same
-    canonical frame and ring, so view v of two meshes is one camera), at most ``CROWD_SAMPLE``
-    of them (every n-th in order, beyond that). Why: retrieval ranks the photo's HOG against
-    every row, and rows in a crowded neighbourhood (many near-identical meshes, such as a
-    generator's family) are near to every query and win too often (hubness); retrieval
-    subtracts each row's crowding as CSLS does (Conneau et al. 2018, "Word translation
-    without parallel data"; ``ucad_cl.fit``). The nearest rows of other meshes are all but
-    always those of the same camera (over the bench's 1,003 meshes, correlation 0.990 with the
-    crowding over every row, at 1/100th of the cost). A row with no other mesh at its camera
-    (or of a mesh whose cameras are unknown, ``None``) gets the mean of the others (0 when none
-    has one). Cameras are taken a few at a time, their rows read (``CROWD_BYTES`` at most) and
-    dropped. Deterministic: float32 products on one BLAS thread (``one_blas_thread``), the K
-    largest summed in ascending order in float64."""
-    start = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)])
-    out = np.full(int(start[-1]), np.nan)
-    known = [k for k, cams in enumerate(cameras) if cams is not None and len(cams) == counts[k]]
-    if known:
-        rows = np.concatenate([np.arange(start[k], start[k + 1]) for k in known])
-        mesh = np.concatenate([np.full(counts[k], k, np.int64) for k in known])
-        cam = np.array([c for k in known for c in cameras[k] or ()], np.float64).reshape(-1, 2)
-        cam[:, 0] %= 360.0                          # (azimuth 360 + a is a)
-        cam = np.round(cam, 3)
-        _, first, group = np.unique(cam, axis=0, return_index=True, return_inverse=True)
-        order = np.argsort(first, kind="stable")    # cameras in the order first met
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        group = rank[group.ravel()]
-        by = np.lexsort((rows, group))              # rows camera by camera, in row order
-        bounds = np.searchsorted(group[by], np.arange(len(order) + 1))
-        per_batch = max(1, CROWD_BYTES // ROW_BYTES_GUESS)
-        g = 0
-        while g < len(order):                       # cameras whose rows fit CROWD_BYTES
-            h = g + 1
-            while h < len(order) and bounds[h + 1] - bounds[g] <= per_batch:
-                h += 1
-            take = by[bounds[g]:bounds[h]]
-            buffer, where = _read_rows(read, mesh[take], rows[take] - start[mesh[take]])
-            for c in range(g, h):
-                lo, hi = bounds[c] - bounds[g], bounds[c + 1] - bounds[g]
-                out[rows[take[lo:hi]]] = _crowd_camera(buffer[where[lo:hi]], mesh[take[lo:hi]])
-            del buffer
-            g = h
-    have = np.isfinite(out)
-    out[~have] = out[have].mean() if have.any() else 0.0
-    return out.astype(np.float32)
-
-
-def _read_rows(read: Callable[[int, list[int]], np.ndarray], mesh: np.ndarray,
-               view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(buffer, where): the rows (``mesh[i]``, ``view[i]``) read mesh by mesh, each mesh's
-    views ascending (``read``), into ``buffer`` (n, D) float32, row i at ``buffer[where[i]]``."""
-    o = np.lexsort((view, mesh))
-    cuts = np.flatnonzero(np.diff(mesh[o])) + 1
-    buffer: np.ndarray | None = None
-    for lo, hi in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(o)]])):
-        got = np.asarray(read(int(mesh[o[lo]]), view[o[lo:hi]].tolist()), np.float32)
-        if buffer is None:
-            buffer = np.empty((len(o), got.shape[1]), np.float32)
-        buffer[lo:hi] = got
-    assert buffer is not None
-    where = np.empty(len(o), np.int64)
-    where[o] = np.arange(len(o))
-    return buffer, where
-
-
-def _crowd_camera(x: np.ndarray, mesh: np.ndarray) -> np.ndarray:
-    """``crowding`` (float64, NaN without peers) of the rows ``x`` (float32, made unit here,
-    in place) of one camera, of meshes ``mesh``."""
-    x /= np.maximum(np.linalg.norm(x, axis=1, keepdims=True), np.float32(1e-30))
-    step = -(-len(x) // CROWD_SAMPLE)
-    peers, peer_mesh = x[::step], mesh[::step]
-    kk = min(CROWD_K, len(peers))
-    out = np.empty(len(x))
-    for a in range(0, len(x), CROWD_CHUNK):
-        sim = x[a:a + CROWD_CHUNK] @ peers.T
-        sim[mesh[a:a + CROWD_CHUNK, None] == peer_mesh[None]] = -np.inf
-        top = np.sort(np.partition(sim, sim.shape[1] - kk, axis=1)[:, -kk:], axis=1)
-        seen = np.isfinite(top)
-        n = seen.sum(axis=1)
-        total = np.where(seen, top, 0.0).astype(np.float64).sum(axis=1)
-        out[a:a + CROWD_CHUNK] = np.where(n > 0, total / np.maximum(n, 1), np.nan)
-    return out
-
-
 def one_blas_thread():
     """A context in which NumPy's BLAS and LAPACK run on one thread (``threadpoolctl``): with
     more, OpenBLAS splits a product's sums differently (``c.T @ c`` of 1,024 rows gave other bits
@@ -187,15 +89,12 @@ def one_blas_thread():
     return threadpool_limits(1, user_api="blas")
 
 
-def write_search_index(root: Path, key, cameras: dict[str, list[tuple[float, float]]],
-                       dims: int = DIMS, durable: bool = True) -> str:
+def write_search_index(root: Path, key, dims: int = DIMS, durable: bool = True) -> str:
     """Write ``root/SEARCH_INDEX`` for the feature key ``key`` (``_db.feature_key`` of the
     catalogue now: the writer's, under its lock) unless the one there is fresh for it; a line
-    saying what was done. ``cameras``: each mesh's views' (azimuth, elevation)
-    (``_db.view_cameras``), for ``crowding``. Each ``features.npy`` is read twice, one mesh at a
-    time (every ``FIT_STRIDE``-th row of each, or sparser so that about ``FIT_ROWS`` rows in
-    all, fits the axes; then every row is projected), then through memory maps a camera at a
-    time for ``crowding``, so memory stays at the projections and the fitting
+    saying what was done. Each ``features.npy`` is read twice, one mesh at a time (every
+    ``FIT_STRIDE``-th row of each, or sparser so that about ``FIT_ROWS`` rows in all, fits the
+    axes; then every row is projected), so memory stays at the projections and the fitting
     rows (~0.3 GB over 1,003 meshes: the build runs this in a process of its own, ``main``,
     so that its driver stays small). Meshes without readable (V, D) float features are left
     out (``skipped``); with no rows at all the old index is removed."""
@@ -233,13 +132,11 @@ def write_search_index(root: Path, key, cameras: dict[str, list[tuple[float, flo
         for (_, p, _), n in zip(items, counts):
             proj[at:at + n] = (np.load(p, allow_pickle=False).astype(np.float64) - mean) @ axes
             at += n
-        crowd = crowding(lambda k, views: _rows_of(items[k][1], views),
-                         [int(c) for c in counts], [cameras.get(sha) for sha, _, _ in items])
     tmp = path.with_name(f"{TMP_PREFIX}{SEARCH_INDEX}.{os.getpid()}.{uuid.uuid4().hex[:8]}")
     try:
         with open(tmp, "wb") as f:
             np.savez(f, key=np.array(feature_key_hash(key)), mean=mean, axes=axes, proj=proj,
-                     crowding=crowd, counts=counts, meshes=np.array([sha for sha, _, _ in items], "U64"),
+                     counts=counts, meshes=np.array([sha for sha, _, _ in items], "U64"),
                      skipped=np.array(json.dumps([list(x) for x in skipped])))
             f.flush()
             if durable:
@@ -252,49 +149,17 @@ def write_search_index(root: Path, key, cameras: dict[str, list[tuple[float, flo
             f"({path.stat().st_size / 2**20:.1f} MB)")
 
 
-def _rows_of(path: Path, views: list[int]) -> np.ndarray:
-    """(len(views), D) float32: rows ``views`` of a ``features.npy`` object, runs of
-    consecutive views read straight into place (``os.preadv``: through a memory map the page
-    faults cost 5 s over 1,003 meshes, against ~0.3 s); an object not stored raw through
-    ``np.load``."""
-    shape, raw = npy_header(path)
-    if not raw or len(shape) != 2:
-        return np.array(np.load(path, allow_pickle=False)[np.asarray(views, np.int64)],
-                        np.float32)
-    n, D = shape
-    out = np.empty((len(views), D), np.float32)
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        start = os.fstat(fd).st_size - n * D * 4
-        r = 0
-        while r < len(views):
-            e = r + 1
-            while e < len(views) and views[e] == views[e - 1] + 1 and e - r < IOV_RUN:
-                e += 1
-            if views[r] < 0 or views[e - 1] >= n:
-                raise ValueError(f"views {views[r]}..{views[e - 1]} of {n}")
-            want = (e - r) * D * 4
-            if os.preadv(fd, [out[r:e].data.cast("B")], start + views[r] * D * 4) != want:
-                raise EOFError("short read")
-            r = e
-    finally:
-        os.close(fd)
-    return out
-
-
 @dataclass
 class SearchIndex:
     """A fresh search index (``CatalogReader.search_index()``): ``meshes`` (the accepted meshes
     with features, ``feature_table`` order), ``mesh``/``view`` (N,) of every row as in
-    ``FeatureTable``, ``proj`` (N, d) float32, ``crowding`` (N,) float32 (``crowding``),
-    ``mean`` (D,), ``axes`` (D, d), ``skipped`` as in
+    ``FeatureTable``, ``proj`` (N, d) float32, ``mean`` (D,), ``axes`` (D, d), ``skipped`` as in
     ``FeatureTable``; ``paths``: each mesh's ``features.npy`` object. Arrays are read-only."""
 
     meshes: list["MeshInfo"]
     mesh: np.ndarray
     view: np.ndarray
     proj: np.ndarray
-    crowding: np.ndarray
     mean: np.ndarray
     axes: np.ndarray
     paths: list[Path]
@@ -452,9 +317,8 @@ def load_search_index(root: Path, key, metas: list["MeshInfo"],
             return None, "no search index (built before it existed: the next build writes it)"
         with z:
             if str(z["key"]) != feature_key_hash(key):
-                return None, ("the search index is stale (meshes changed since it was "
-                              "written, or an older version wrote it)")
-            mean, axes, proj, crowd = z["mean"], z["axes"], z["proj"], z["crowding"]
+                return None, "the search index is stale (meshes changed since it was written)"
+            mean, axes, proj = z["mean"], z["axes"], z["proj"]
             counts, shas = z["counts"], [str(s) for s in z["meshes"]]
             skipped = tuple(tuple(s) for s in json.loads(str(z["skipped"])))
     except INDEX_UNREADABLE as exc:
@@ -462,7 +326,6 @@ def load_search_index(root: Path, key, metas: list["MeshInfo"],
     by_sha = {m.sha256: m for m in metas}
     ok = (mean.ndim == 1 and axes.shape[:1] == mean.shape and proj.ndim == 2
           and proj.shape[1] == axes.shape[1] and counts.shape == (len(shas),)
-          and crowd.shape == proj.shape[:1] and bool(np.isfinite(crowd).all())
           and int(counts.sum()) == len(proj) and all(s in by_sha and s in objects for s in shas))
     if not ok:
         return None, "the search index is inconsistent with the catalogue"
@@ -470,9 +333,9 @@ def load_search_index(root: Path, key, metas: list["MeshInfo"],
         meshes=[by_sha[s] for s in shas],
         mesh=np.repeat(np.arange(len(shas), dtype=np.int64), counts),
         view=np.concatenate([np.arange(n, dtype=np.int64) for n in counts]),
-        proj=proj, crowding=crowd, mean=mean, axes=axes, paths=[objects[s] for s in shas],
+        proj=proj, mean=mean, axes=axes, paths=[objects[s] for s in shas],
         skipped=skipped)   # type: ignore[arg-type]
-    for a in (idx.mesh, idx.view, idx.proj, idx.crowding, idx.mean, idx.axes, idx.sq_norms):
+    for a in (idx.mesh, idx.view, idx.proj, idx.mean, idx.axes, idx.sq_norms):
         a.flags.writeable = False
     return idx, ""
 
@@ -492,10 +355,9 @@ def main(argv: list[str] | None = None) -> int:
         try:
             check_catalog_db(conn, db)
             key = feature_key(conn)
-            cameras = view_cameras(conn)
         finally:
             conn.close()
-        line = write_search_index(root, key, cameras, durable=not args.no_fsync)
+        line = write_search_index(root, key, durable=not args.no_fsync)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         print(f"{line}; peak {peak:.0f} MB")
     except (CatalogError, OSError, ValueError, EOFError, sqlite3.Error, MemoryError) as exc:
@@ -504,6 +366,6 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["DIMS", "SearchIndex", "crowding", "fit_pca", "load_search_index", "main", "one_blas_thread",
+__all__ = ["DIMS", "SearchIndex", "fit_pca", "load_search_index", "main", "one_blas_thread",
            "write_search_index"]
 

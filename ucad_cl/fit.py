@@ -18,16 +18,12 @@
    photos reads the catalogue's features once; meshes without readable features are left out
    with a note): the ``PRESELECT_ROWS`` rows of largest float32 dot product with the query
    (the stored rows are unit vectors), then ``search.search_catalog``'s exact float64 ranking of
-   those, each row's squared distance plus ``CROWDING_WEIGHT`` x its crowding less the mean
-   (``ucad_catalog.searchindex.crowding``: how near its nearest rows of other meshes lie; a
-   row in a crowded neighbourhood is near every query: CSLS's hubness correction; none without
-   a fresh search index, and a note says so); of the first ``PREFILTER_MESHES`` distinct meshes, the ``FINE_MESHES`` of least HOG
+   those; of the first ``PREFILTER_MESHES`` distinct meshes, the ``FINE_MESHES`` of least HOG
    distance + ``EDGE_WEIGHT`` x ``cues.edge_distance`` (below) at their best view, read from
    the stored material map (``_prefiltered``), are re-ranked by a finer HOG (``FINE_HOG``:
    128 px crop, 8 px cells) of their best view and its neighbours, the stored views shaded
    from their depth, material and triangle maps (``shade.shade_stored_view``; no mesh is
-   read): a view's score = HOG distance (with its crowding term) + ``FINE_WEIGHT`` x the
-   finer HOG's distance +
+   read): a view's score = HOG distance + ``FINE_WEIGHT`` x the finer HOG's distance +
    ``EDGE_WEIGHT`` x how far the view's material boundaries lie from the photo's edges
    (``cues.edge_distance``); a mesh's = its best view's + ``RECALL_WEIGHT`` x how far the
    photo's edges inside the object lie from that view's boundaries (``cues.edge_recall``) +
@@ -165,8 +161,6 @@ SEED_MASK_STEP = 10.0       # ... and each seed alone too, over stored rings of 
 #                             azimuth step (degrees; docs/FIT.md) ...
 SURE_MARGIN = 0.15          # ... unless the voted mask's answer leads by this retrieval_margin
 SHADE_THREADS = 2           # threads shading the re-rank's stored views (_describe_fine)
-CROWDING_WEIGHT = 1.0       # retrieval: + this x (a stored row's crowding - the mean), CSLS's
-#                             weight (docs/FIT.md: 0.5 / 1 / 1.5 / 2 measured on tuning draws)
 
 
 class PhotoSegmenter(Protocol):
@@ -474,8 +468,6 @@ class _StoredRows:
         self.read: np.ndarray | None = None    # (>= n_read, D) float32: the index rows read ...
         self.n_read = 0
         self.at: np.ndarray | None = None      # ... and where each index row is in it (-1: not)
-        self.crowd: np.ndarray | None = None   # (N,) the rows' crowding terms (``crowding``)
-        self.first: np.ndarray | None = None   # (M + 1,) each mesh's first row
 
     def database(self) -> FeatureTable | SearchIndex:
         """Where retrieval's stored rows come from: the catalogue's search index when it is
@@ -497,31 +489,6 @@ class _StoredRows:
                 self.db = index
                 self._note_skipped(index.skipped)
         return self.db
-
-    def crowding(self, mesh: np.ndarray, view: np.ndarray) -> np.ndarray:
-        """(n,) float64: ``CROWDING_WEIGHT`` x (crowding - its mean over every row) of the
-        stored rows (mesh index into ``database().meshes``, view), from the search index when
-        it is fresh and covers the rows ``database()`` ranks; zeros otherwise (a note says
-        retrieval ran without it)."""
-        if self.first is None:
-            src = self.database()
-            index: SearchIndex | None = src if isinstance(src, SearchIndex) else None
-            if index is None:
-                try:
-                    index, _ = self.r.search_index()
-                except CatalogError:
-                    index = None
-            if (index is not None and len(index.mesh) == len(src.mesh)
-                    and [m.sha256 for m in index.meshes] == [m.sha256 for m in src.meshes]):
-                c = index.crowding.astype(np.float64)
-                self.crowd = CROWDING_WEIGHT * (c - c.mean())
-            else:
-                self.notes.append("no fresh search index: retrieval ran without its crowding "
-                                  "term (`ucad-index build` on the same library writes it)")
-            self.first = np.searchsorted(src.mesh, np.arange(len(src.meshes) + 1))
-        if self.crowd is None:
-            return np.zeros(len(mesh))
-        return self.crowd[self.first[np.asarray(mesh, np.int64)] + np.asarray(view, np.int64)]
 
     def _table(self) -> FeatureTable:
         """The catalogue's stacked features (``CatalogReader.feature_table``)."""
@@ -847,10 +814,6 @@ class _Fit:
         zeros = np.zeros(len(db))                  # angles are read for the matches only
         matches = search_catalog(query, db, mesh_of, view_of, zeros, zeros,
                                  top=len(db))
-        crowd = self.stored_rows.crowding(np.array([mt.mesh for mt in matches], np.int64),
-                                          np.array([mt.view for mt in matches], np.int64))
-        matches = [replace(mt, score=mt.score + float(c)) for mt, c in zip(matches, crowd)]
-        matches.sort(key=lambda mt: mt.score)      # (stable: ties keep the exact rank's order)
         first: dict[int, CatalogMatch] = {}       # mesh -> its best row
         for mt in matches:
             first.setdefault(mt.mesh, mt)
@@ -870,8 +833,7 @@ class _Fit:
         ``_prefiltered``, each at its best view and its
         ``FINE_VIEWS`` neighbours on each side in azimuth (same elevation), its view chosen by
         ``d + FINE_WEIGHT * d_fine + EDGE_WEIGHT * d_edge`` (ties: the first in azimuth order,
-        from ``-FINE_VIEWS``): ``d`` the squared distance of the unit HOG rows plus the row's
-        crowding term (``_StoredRows.crowding``), ``d_fine``
+        from ``-FINE_VIEWS``): ``d`` the squared distance of the unit HOG rows, ``d_fine``
         that of the finer HOG (``FINE_HOG``) of the photo's object and of the stored view
         shaded from its maps (``shade.shade_stored_view``: no mesh read), ``d_edge`` how far
         the stored view's material boundaries lie from the photo's edges around the object
@@ -897,8 +859,7 @@ class _Fit:
             at = [i for _, i in ring].index(mt.view)
             sel = [ring[(at + d) % len(ring)][1] for d in range(-FINE_VIEWS, FINE_VIEWS + 1)]
             first = int(np.searchsorted(table.mesh, mt.mesh))    # its rows, in view order
-            d = (2.0 - 2.0 * unit_rows(table.rows(first + np.asarray(sel)))[0] @ q
-                 + self.stored_rows.crowding(np.full(len(sel), mt.mesh), np.asarray(sel)))
+            d = 2.0 - 2.0 * unit_rows(table.rows(first + np.asarray(sel)))[0] @ q
             for v, dv in zip(sel, d):
                 rows.append((mt.mesh, v, float(dv)))
                 have = self.described.get((sha, v))
