@@ -225,6 +225,22 @@ def test_onnx_bad_config_and_output(tmp_path):
         OnnxSegmenter(tmp_path / "x.onnx", {"classes": CLASSES})
     with pytest.raises(FileNotFoundError, match="x.onnx"):
         OnnxSegmenter(tmp_path / "x.onnx", {"classes": CLASSES, "input_size": [8, 8]})
+    # a config file that is missing, not JSON, not an object or of the wrong types: one line
+    # naming the file (labeller.onnx_config, shared with fit --vgg)
+    cfg = tmp_path / "seg.json"
+    with pytest.raises(FileNotFoundError, match=r"ONNX config .*seg\.json does not exist"):
+        OnnxSegmenter(tmp_path / "bad.onnx", cfg)
+    for text, match in (("{not json", r"seg\.json: not JSON \(.*line 1\)"),
+                        ("[1, 2]", r"seg\.json: not a JSON object"),
+                        ('{"classes": {"a": "body"}, "input_size": [8, 8]}', r"seg\.json: invalid"),
+                        ('{"classes": [1], "input_size": [8, 8]}', r"seg\.json: "),
+                        ('{"classes": {"1": "body"}, "input_size": [0, 8]}',
+                         r"seg\.json: input_size must be"),
+                        ('{"classes": {"1": "body"}}', r"seg\.json: an ONNX config needs")):
+        cfg.write_text(text, encoding="utf-8")
+        with pytest.raises(ValueError, match=match) as exc:
+            OnnxSegmenter(tmp_path / "bad.onnx", cfg)
+        assert "\n" not in str(exc.value)
     # a model fed an input size its graph refuses: one line naming the file (onnxruntime's
     # own exception, several lines long, is not let through)
     seg = OnnxSegmenter(build_onnx(tmp_path / "m.onnx", argmax=False),

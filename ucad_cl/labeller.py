@@ -250,6 +250,26 @@ def onnx_spec(spec: str) -> tuple[str, str]:
     return model, config
 
 
+def onnx_config(config: str | Path | dict) -> tuple[dict, str]:
+    """(the JSON config of a user's ONNX model, how errors name it): ``config`` a path (read
+    as UTF-8, a BOM dropped) or a dict already read ('config'). FileNotFoundError when the file
+    is missing, ValueError naming it when it is not JSON or not a JSON object."""
+    if isinstance(config, dict):
+        return config, "config"
+    path = Path(config)
+    if not path.is_file():
+        raise FileNotFoundError(f"ONNX config {path} does not exist")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not JSON ({exc.msg}, line {exc.lineno})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot be read ({exc})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: not a JSON object")
+    return data, str(path)
+
+
 def onnx_run(session, path: Path, outputs, feeds: dict, what: str = "the model") -> list:
     """``session.run(outputs, feeds)``; ValueError naming the file, on one line, when
     onnxruntime fails (its own exception types, with multi-line messages: e.g. a graph whose

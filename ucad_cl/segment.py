@@ -44,7 +44,8 @@ from typing import Protocol
 import numpy as np
 
 from .artifacts import PART_NAMES, Mesh, PartMasks, ViewSet
-from .labeller import MODEL_PATH, LabellerModel, label_materials, onnx_run, open_onnx
+from .labeller import (MODEL_PATH, LabellerModel, label_materials, onnx_config, onnx_run,
+                       open_onnx)
 from .names import name_prior
 from .runtime import Runtime
 from .system import IsolatedCallFailed, call_isolated
@@ -222,15 +223,19 @@ class OnnxSegmenter:
     """Runs a user ONNX segmentation model under the contract in the module docstring."""
 
     def __init__(self, model_path: str | Path, config: dict | str | Path):
-        if not isinstance(config, dict):
-            config = json.loads(Path(config).read_text(encoding="utf-8-sig"))   # a BOM dropped
+        config, where = onnx_config(config)
         if "classes" not in config or "input_size" not in config:
-            raise ValueError("ONNX config needs 'classes' {index: part} and 'input_size' [H, W]")
-        self.classes = {int(k): str(v) for k, v in config["classes"].items()}
-        self.input_size = tuple(int(x) for x in config["input_size"])
+            raise ValueError(f"{where}: an ONNX config needs 'classes' {{index: part}} and "
+                             "'input_size' [H, W]")
+        try:
+            self.classes = {int(k): str(v) for k, v in dict(config["classes"]).items()}
+            self.input_size = tuple(int(x) for x in config["input_size"])
+            self.batch = int(config.get("batch", 8))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: {exc}") from None
         if len(self.input_size) != 2 or min(self.input_size) < 1:
-            raise ValueError(f"input_size must be [H, W] > 0, got {config['input_size']}")
-        self.batch = int(config.get("batch", 8))
+            raise ValueError(f"{where}: input_size must be [H, W] > 0, got "
+                             f"{config['input_size']}")
         self.model_path, self.session, self.input_name = open_onnx(model_path)
 
     def segment(self, mesh: Mesh, views: ViewSet) -> PartMasks:

@@ -42,7 +42,6 @@ CPU convolutions gave the same bytes on 1, 2 and 4 threads (the tests' network).
 """
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -50,7 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from .colorimetry import linear_to_srgb
-from .labeller import onnx_run, onnx_spec, open_onnx
+from .labeller import onnx_config, onnx_run, onnx_spec, open_onnx
 from .light import STAT_WEIGHT, LightFit, Samples, objective, shading
 
 VGG_WEIGHT = 1.0        # w of l_vgg against l_rgb (1) and l_stat (0.1): the paper's weights
@@ -70,13 +69,8 @@ class OnnxFeatures:
 
     def __init__(self, model_path: str | Path, config: str | Path | dict):
         self.model_path = Path(model_path)
-        where = "config" if isinstance(config, dict) else str(config)
-        if not isinstance(config, dict):
-            try:
-                config = json.loads(Path(config).read_text(encoding="utf-8-sig"))
-            except json.JSONDecodeError as exc:
-                raise ValueError(f"{where}: not JSON ({exc.msg}, line {exc.lineno})") from None
-        if not isinstance(config, dict) or "input_size" not in config:
+        config, where = onnx_config(config)
+        if "input_size" not in config:
             raise ValueError(f"{where}: the config needs 'input_size' [H, W]")
         try:
             self.input_size = tuple(int(x) for x in config["input_size"])
