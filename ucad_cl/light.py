@@ -200,7 +200,14 @@ def solve_albedo(s: Samples, light: Lighting, n_parts: int) -> np.ndarray:
 
 def objective(s: Samples, light: Lighting, albedo: np.ndarray, n_parts: int) -> float:
     """``l_rgb + STAT_WEIGHT * l_stat`` of the samples (module docstring)."""
-    pred = predict(s, light, albedo)
+    return shaded_objective(s, *shading(s, light), albedo, n_parts)
+
+
+def shaded_objective(s: Samples, B: np.ndarray, C: np.ndarray, albedo: np.ndarray,
+                     n_parts: int) -> float:
+    """``objective`` with the samples' ``shading`` (B, C) given: for a caller that evaluates
+    many colours under one light."""
+    pred = np.nan_to_num(albedo[s.part]) * B + C
     return float(sum(_loss(pred[:, c][None], s.rgb[:, c], s.part, n_parts)[0]
                      for c in range(3)))
 

@@ -50,7 +50,7 @@ import numpy as np
 
 from .colorimetry import linear_to_srgb
 from .labeller import onnx_config, onnx_run, onnx_spec, open_onnx
-from .light import STAT_WEIGHT, LightFit, Samples, objective, shading
+from .light import STAT_WEIGHT, LightFit, Samples, shaded_objective, shading
 
 VGG_WEIGHT = 1.0        # w of l_vgg against l_rgb (1) and l_stat (0.1): the paper's weights
 ITERATIONS = 3          # Levenberg-Marquardt Jacobians at most
@@ -68,7 +68,6 @@ class OnnxFeatures:
     blank image of ``input_size`` when loaded, so that a fit never meets that)."""
 
     def __init__(self, model_path: str | Path, config: str | Path | dict):
-        self.model_path = Path(model_path)
         config, where = onnx_config(config)
         if "input_size" not in config:
             raise ValueError(f"{where}: the config needs 'input_size' [H, W]")
@@ -87,7 +86,7 @@ class OnnxFeatures:
         if not (np.all(self.std > 0) and np.all(np.isfinite(self.mean))
                 and self.weight >= 0 and self.batch >= 1):
             raise ValueError(f"{where}: std must be > 0, weight >= 0, batch >= 1")
-        self.model_path, self.session, self.input_name = open_onnx(self.model_path)
+        self.model_path, self.session, self.input_name = open_onnx(model_path)
         names = [o.name for o in self.session.get_outputs()]
         self.outputs = [str(n) for n in config.get("outputs", names)]
         missing = [n for n in self.outputs if n not in names]
@@ -187,11 +186,11 @@ def refine_colours(features: OnnxFeatures, photo: np.ndarray, samples: Samples,
     a = np.array(fit.albedo, np.float64)
     free = np.flatnonzero(np.isfinite(a).all(axis=1))          # parts with kept pixels
     idx = np.flatnonzero(fit.kept)
-    kept = samples.take(idx)
+    kept, Bk, Ck = samples.take(idx), B[idx], C[idx]
     P = len(a)
-    base = _BaseTerm(kept, B[idx], C[idx], free)
+    base = _BaseTerm(kept, Bk, Ck, free)
     v0, g0 = term.value(a)
-    base0 = objective(kept, fit.lighting, a, P)
+    base0 = shaded_objective(kept, Bk, Ck, a, P)
     loss0 = base0 + features.weight * v0
     best, best_v, best_l, best_base = a, v0, loss0, base0
     lam, jacobians, trials = DAMPING, 0, 0
@@ -208,7 +207,7 @@ def refine_colours(features: OnnxFeatures, photo: np.ndarray, samples: Samples,
             cand = best.copy()
             cand[free] = np.maximum(best[free] + step.reshape(-1, 3), 0.0)
             v, g = term.value(cand)
-            lb = objective(kept, fit.lighting, cand, P)
+            lb = shaded_objective(kept, Bk, Ck, cand, P)
             lc = lb + features.weight * v
             if lc < best_l:
                 best, best_v, best_l, best_base, g0 = cand, v, lc, lb, g
