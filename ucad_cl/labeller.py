@@ -246,7 +246,7 @@ def onnx_spec(spec: str) -> tuple[str, str]:
     kind, _, arg = str(spec).partition(":")
     model, _, config = arg.partition(":")
     if kind != "onnx" or not model or not config:
-        raise ValueError("expected onnx:MODEL:CONFIG.json")
+        raise ValueError("expected onnx:MODEL:CONFIG.json (the model and its JSON config)")
     return model, config
 
 

@@ -45,7 +45,7 @@ import numpy as np
 
 from .artifacts import PART_NAMES, Mesh, PartMasks, ViewSet
 from .labeller import (MODEL_PATH, LabellerModel, label_materials, onnx_config, onnx_run,
-                       open_onnx)
+                       onnx_spec, open_onnx)
 from .names import name_prior
 from .runtime import Runtime
 from .system import IsolatedCallFailed, call_isolated
@@ -179,8 +179,13 @@ def segmenter_from_spec(spec: str, runtime: Runtime | None = None):
     """A segmenter from a ``--segmenter`` SPEC (``SEGMENTER_SPECS``); ValueError naming the
     accepted spellings otherwise. ``runtime``: the device of segmenters that render."""
     kind, _, arg = str(spec).partition(":")
-    model, _, config = arg.partition(":") if kind == "onnx" else (arg, "", "")
-    return make_segmenter(kind, model or None, config or None, runtime=runtime)
+    if kind == "onnx":                      # one reading of onnx:MODEL:CONFIG for every command
+        try:
+            model, config = onnx_spec(spec)
+        except ValueError as exc:
+            raise ValueError(f"--segmenter {spec}: {exc}") from None
+        return make_segmenter(kind, model, config, runtime=runtime)
+    return make_segmenter(kind, arg or None, runtime=runtime)
 
 
 def check_segmenter_spec(spec: str, *, timeout: float = 300.0) -> None:
