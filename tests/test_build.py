@@ -445,8 +445,8 @@ def test_bad_segmenter_specs_fail_before_any_work(library, tmp_path):
     """A wrong --segmenter is a clear error in the driver (no worker, no catalogue)."""
     from ucad_cl.cli import main
 
-    for spec, msg in (("onnx:model.onnx", "expected onnx:MODEL:CONFIG.json"), ("sam", "unknown segmenter"),
-                      ("masks:", "unknown segmenter")):
+    for spec, msg in (("onnx:model.onnx", "--segmenter onnx:model.onnx: expected onnx:MODEL"),
+                      ("sam", "unknown segmenter"), ("masks:", "unknown segmenter")):
         with pytest.raises(ValueError, match=msg):
             build(library, tmp_path / "cat", BuildOptions(segmenter=spec), progress=False,
                   log=lambda *a: None)
