@@ -185,7 +185,11 @@ def shading(s: Samples, light: Lighting) -> tuple[np.ndarray, np.ndarray]:
 
 def predict(s: Samples, light: Lighting, albedo: np.ndarray) -> np.ndarray:
     """(N, 3) modelled linear RGB of the samples."""
-    B, C = shading(s, light)
+    return _modelled(s, *shading(s, light), albedo)
+
+
+def _modelled(s: Samples, B: np.ndarray, C: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """(N, 3) ``albedo[part] * B + C`` (a part without a colour: 0), the samples' shading given."""
     return np.nan_to_num(albedo[s.part]) * B + C
 
 
@@ -207,7 +211,7 @@ def shaded_objective(s: Samples, B: np.ndarray, C: np.ndarray, albedo: np.ndarra
                      n_parts: int) -> float:
     """``objective`` with the samples' ``shading`` (B, C) given: for a caller that evaluates
     many colours under one light."""
-    pred = np.nan_to_num(albedo[s.part]) * B + C
+    pred = _modelled(s, B, C, albedo)
     return float(sum(_loss(pred[:, c][None], s.rgb[:, c], s.part, n_parts)[0]
                      for c in range(3)))
 
